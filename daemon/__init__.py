@@ -1,0 +1,1 @@
+"""millsense daemon: samples in, estimates, alarms and publications out."""

@@ -1,0 +1,5 @@
+import sys
+
+from millsense.daemon.cli import main
+
+sys.exit(main())

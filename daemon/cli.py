@@ -1,0 +1,87 @@
+"""The `millsense` command: one table of subcommands, exit codes, no tracebacks.
+
+Each subcommand lives in its own module with ``add_arguments(parser)`` and
+``run(args) -> int``; heavy imports happen inside ``run`` so that ``--help`` and
+``check-config`` stay fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+EXIT_UNAVAILABLE = 69
+EXIT_CONFIG = 78
+
+# name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "run": ("millsense.daemon.commands.run", "run the daemon (no --config: the built-in demo)"),
+    "sim": ("millsense.drivers.emulator.cli", "the DAQ emulator driven by the plant simulator"),
+    "replay": ("millsense.daemon.commands.replay", "run the pipeline on a capture, JSON lines out"),
+    "record": ("millsense.daemon.commands.record", "save what the configured DAQ sends"),
+    "watch": ("millsense.daemon.commands.watch", "show live estimates, alarms and status"),
+    "calibrate": ("millsense.daemon.commands.calibrate", "fit friction per gear (and C_f) from captures"),
+    "check-config": ("millsense.daemon.commands.check_config", "validate a configuration file"),
+    "reset": ("millsense.daemon.commands.reset", "clear a latched interlock over Zenoh"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="millsense",
+        description="Cutting torque, force and depth of cut from a CNC spindle motor's own power.",
+    )
+    parser.add_argument("--version", action="version", version=f"millsense {_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (module_name, help_text) in COMMANDS.items():
+        module = importlib.import_module(module_name)
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        module.add_arguments(p)
+        p.set_defaults(_module=module)
+    return parser
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("millsense")
+    except Exception:  # noqa: BLE001 - running from a source tree without metadata
+        return "0+unknown"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from millsense.daemon.config import ConfigError
+
+    try:
+        return int(args._module.run(args) or 0)
+    except ConfigError as exc:
+        for problem in exc.problems:
+            print(problem, file=sys.stderr)
+        return EXIT_CONFIG
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:
+        # stdout closed by the reader (e.g. `| head`): not an error of ours.
+        try:
+            sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - silence the flush at exit
+        except OSError:
+            pass
+        return EXIT_OK
+    except Exception as exc:  # noqa: BLE001 - the one place that turns a bug into an exit code
+        if os.environ.get("MILLSENSE_DEBUG"):
+            raise
+        print(f"millsense {args.command}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        print("(set MILLSENSE_DEBUG=1 to see the traceback)", file=sys.stderr)
+        return EXIT_FAILURE
+
+
+if __name__ == "__main__":
+    sys.exit(main())
