@@ -1,0 +1,400 @@
+"""What every DAQ transport shares: the reader thread, reconnects, the queue, index tracking.
+
+A transport implements a narrow connect / read / write surface (``_connect``,
+``_read``, ``_disconnect`` and the ``_send_*`` outputs); this base class owns the
+thread, the doubling back-off, the one log event per link state change, the bounded
+queue that never blocks the reader, and the turning of 32-bit device indices into a
+monotonic 64-bit ``seq`` with counted gaps.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import structlog
+
+from millsense.drivers.protocol import (
+    CMD_HEARTBEAT,
+    CMD_SEND_DESCRIPTOR,
+    CMD_SET_OUTPUTS,
+    INDEX_MOD,
+    Command,
+    Descriptor,
+    Samples,
+    Status,
+    StreamDecoder,
+    encode_command,
+)
+
+log = structlog.get_logger("millsense.drivers")
+
+
+@dataclass(frozen=True, eq=False)
+class SampleBlock:
+    seq: int  # unwrapped 64-bit index of the first sample (monotonic per driver lifetime)
+    index: int  # the device's 32-bit index of the first sample
+    counts: np.ndarray  # (n, C) int16 raw counts, channel order of the current descriptor
+    lost_before: int  # samples known lost right before this block
+    discontinuity: bool  # device restart / index went backwards / descriptor changed
+
+
+@dataclass(frozen=True)
+class LinkEvent:
+    up: bool
+    reason: str
+
+
+Event = SampleBlock | Descriptor | Status | LinkEvent
+
+
+class LinkDown(Exception):
+    """Raised by a transport when its link is gone; the message is the reason."""
+
+
+class IndexTracker:
+    """Unwraps the device's 32-bit sample index into a 64-bit ``seq`` and finds gaps.
+
+    A forward jump of less than 2**31 is a gap of lost samples; anything else is
+    the index going backwards (a device restart): a discontinuity, with no lost
+    count invented for it.
+    """
+
+    def __init__(self) -> None:
+        self.next_index: int | None = None  # device index expected next
+        self.next_seq = 0
+        self._force_discontinuity = False
+
+    def mark_discontinuity(self) -> None:
+        self._force_discontinuity = True
+
+    def update(self, index: int, n: int) -> tuple[int, int, bool]:
+        """Account for ``n`` samples starting at device ``index``: (seq, lost_before, discontinuity)."""
+        index %= INDEX_MOD
+        discontinuity = self._force_discontinuity
+        self._force_discontinuity = False
+        if self.next_index is None:
+            seq, lost = index, 0
+        else:
+            gap = (index - self.next_index) % INDEX_MOD
+            if gap < INDEX_MOD // 2:
+                seq, lost = self.next_seq + gap, gap
+            else:
+                seq, lost, discontinuity = self.next_seq, 0, True
+        self.next_index = (index + n) % INDEX_MOD
+        self.next_seq = seq + n
+        return seq, lost, discontinuity
+
+
+class _BoundedQueue:
+    """Hand-off from the reader thread: never blocks the producer.
+
+    Sample blocks are refused when ``maxsize`` items wait; other events (rare:
+    link changes, descriptors, status changes) get a small reserve above that.
+    """
+
+    RESERVE = 64
+
+    def __init__(self, maxsize: int) -> None:
+        self.maxsize = maxsize
+        self._items: collections.deque = collections.deque()
+        self._cond = threading.Condition()
+
+    def offer(self, item, is_sample: bool) -> bool:
+        with self._cond:
+            limit = self.maxsize if is_sample else self.maxsize + self.RESERVE
+            if len(self._items) >= limit:
+                return False
+            self._items.append(item)
+            self._cond.notify()
+            return True
+
+    def get(self, timeout: float | None):
+        with self._cond:
+            if not self._items:
+                self._cond.wait(timeout)
+            return self._items.popleft() if self._items else None
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+class Driver:
+    """Base of every transport; see docs/architecture.md "drivers.base".
+
+    Subclasses implement ``_connect()`` (raise OSError/LinkDown on failure),
+    ``_read()`` -> list of Samples/Descriptor/Status (return within ~0.2 s, raise
+    LinkDown/OSError when the link is gone), ``_disconnect()``, and the outputs
+    ``_send_outputs(bits)``, ``_send_heartbeat(counter)``, ``_send_request_descriptor()``.
+    """
+
+    transport = "?"
+
+    def __init__(
+        self,
+        *,
+        queue_size: int = 1000,
+        backoff_initial_s: float = 0.1,
+        backoff_max_s: float = 5.0,
+    ) -> None:
+        self.link_up = False
+        self.descriptor: Descriptor | None = None
+        self.last_status: Status | None = None
+        self._queue = _BoundedQueue(queue_size)
+        self._backoff_initial_s = backoff_initial_s
+        self._backoff_max_s = backoff_max_s
+        self._tracker = IndexTracker()
+        self._closing = threading.Event()
+        self._connected = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._io_lock = threading.Lock()
+        self._heartbeat_counter = 0
+        self._pending_lost = 0
+        self._link_state: bool | None = None
+        self._stats = collections.Counter()
+
+    # -- public ---------------------------------------------------------------
+
+    @property
+    def address(self) -> str:
+        return "?"
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._run, name=f"daq-{self.transport}", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._closing.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        with self._io_lock:
+            self._safe_disconnect()
+
+    def __enter__(self) -> Driver:
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def get(self, timeout: float | None = None) -> Event | None:
+        return self._queue.get(timeout)
+
+    def wait_connected(self, timeout_s: float) -> bool:
+        return self._connected.wait(timeout_s)
+
+    def set_outputs(self, feed_hold: bool, alarm_lamp: bool = False) -> None:
+        bits = (1 if feed_hold else 0) | (2 if alarm_lamp else 0)
+        self._send("outputs", self._send_outputs, bits)
+
+    def heartbeat(self) -> None:
+        self._heartbeat_counter = (self._heartbeat_counter + 1) & 0xFFFF
+        self._send("heartbeat", self._send_heartbeat, self._heartbeat_counter)
+
+    def set_watchdog_ms(self, ms: int) -> None:
+        """Stream transports: a device setting, nothing to send."""
+
+    def request_descriptor(self) -> None:
+        self._send("descriptor request", self._send_request_descriptor)
+
+    def stats(self) -> dict[str, int]:
+        out = dict(self._stats)
+        out["queue_len"] = len(self._queue)
+        out["link_up"] = int(self.link_up)
+        return out
+
+    # -- for subclasses -------------------------------------------------------
+
+    def _connect(self) -> None:
+        raise NotImplementedError
+
+    def _disconnect(self) -> None:
+        raise NotImplementedError
+
+    def _read(self) -> list:
+        raise NotImplementedError
+
+    def _send_outputs(self, bits: int) -> None:
+        raise NotImplementedError
+
+    def _send_heartbeat(self, counter: int) -> None:
+        raise NotImplementedError
+
+    def _send_request_descriptor(self) -> None:
+        raise NotImplementedError
+
+    def _after_connect(self) -> None:
+        """Hook run on the reader thread once connected (e.g. ask for the descriptor)."""
+
+    # -- the reader thread ----------------------------------------------------
+
+    def _send(self, what: str, fn, *args) -> None:
+        """Outputs from any thread; a failure is counted (the reader notices the link)."""
+        if not self.link_up:
+            self._stats["commands_not_sent"] += 1
+            return
+        try:
+            with self._io_lock:
+                fn(*args)
+            self._stats["commands_sent"] += 1
+        except Exception as exc:  # noqa: BLE001 - a write must never kill the caller
+            self._stats["commands_failed"] += 1
+            log.debug("daq command failed", transport=self.transport, command=what, error=str(exc))
+
+    def _run(self) -> None:
+        backoff = self._backoff_initial_s
+        while not self._closing.is_set():
+            try:
+                with self._io_lock:
+                    self._connect()
+            except Exception as exc:  # noqa: BLE001 - any failure to connect is "down, retry"
+                self._set_link(False, f"connect failed: {_reason(exc)}")
+                self._stats["connect_failures"] += 1
+                if self._closing.wait(backoff):
+                    break
+                backoff = min(backoff * 2, self._backoff_max_s)
+                continue
+            backoff = self._backoff_initial_s
+            # no discontinuity here: if the device kept counting, the index gap is
+            # the time we were away; if it restarted, the index goes backwards
+            self._set_link(True, "connected")
+            try:
+                self._after_connect()
+                while not self._closing.is_set():
+                    for item in self._read():
+                        self._handle(item)
+                reason = "closed"
+            except Exception as exc:  # noqa: BLE001 - a lost link is an event, not a traceback
+                reason = _reason(exc)
+            with self._io_lock:
+                self._safe_disconnect()
+            self._set_link(False, reason)
+            if not self._closing.is_set() and self._closing.wait(self._backoff_initial_s):
+                break
+
+    def _safe_disconnect(self) -> None:
+        try:
+            self._disconnect()
+        except Exception:  # noqa: BLE001 - closing a dead link may fail; it is closed either way
+            pass
+
+    def _set_link(self, up: bool, reason: str) -> None:
+        self.link_up = up
+        if up:
+            self._connected.set()
+        if self._link_state is up:
+            return
+        self._link_state = up
+        self._stats["link_changes"] += 1
+        log.info(
+            "daq link up" if up else "daq link down",
+            transport=self.transport,
+            address=self.address,
+            reason=reason,
+        )
+        self._queue.offer(LinkEvent(up, reason), is_sample=False)
+
+    def _handle(self, item) -> None:
+        if isinstance(item, Samples):
+            n = len(item.counts)
+            seq, lost, disc = self._tracker.update(item.first_index, n)
+            self._stats["samples"] += n
+            self._stats["lost_samples"] += lost
+            block = SampleBlock(seq, item.first_index, item.counts, lost + self._pending_lost, disc)
+            if self._queue.offer(block, is_sample=True):
+                self._pending_lost = 0
+                self._stats["blocks"] += 1
+            else:
+                self._pending_lost += lost + n  # lost_before of the dropped block is carried too
+                self._stats["queue_dropped_samples"] += n
+        elif isinstance(item, Descriptor):
+            if item != self.descriptor:
+                if self.descriptor is not None:
+                    self._tracker.mark_discontinuity()
+                self.descriptor = item
+                self._queue.offer(item, is_sample=False)
+        elif isinstance(item, Status):
+            changed = item != self.last_status
+            self.last_status = item
+            if changed:
+                self._queue.offer(item, is_sample=False)
+
+
+def _reason(exc: BaseException) -> str:
+    return str(exc) or type(exc).__name__
+
+
+class StreamDriver(Driver):
+    """A transport that carries the framed byte stream (serial port, TCP socket).
+
+    Subclasses implement ``_open()``, ``_close()``, ``_read_bytes()`` (block up to
+    ~0.2 s for data, return what is there, raise LinkDown at end of stream) and
+    ``_write(bytes)``.  Reads are spaced at least ``read_interval_s`` apart so the
+    reader wakes ~100 times a second, not once per frame.
+    """
+
+    read_interval_s = 0.01
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self._decoder = StreamDecoder()
+        self._decoder_totals: collections.Counter = collections.Counter()
+        self._last_read = 0.0
+
+    def _open(self) -> None:
+        raise NotImplementedError
+
+    def _close(self) -> None:
+        raise NotImplementedError
+
+    def _read_bytes(self) -> bytes:
+        raise NotImplementedError
+
+    def _write(self, data: bytes) -> None:
+        raise NotImplementedError
+
+    def _connect(self) -> None:
+        self._open()
+        self._decoder = StreamDecoder()
+
+    def _disconnect(self) -> None:
+        self._decoder_totals.update(self._decoder.stats.as_dict())
+        self._decoder = StreamDecoder()
+        self._close()
+
+    def _after_connect(self) -> None:
+        self.request_descriptor()
+
+    def _read(self) -> list:
+        wait = self._last_read + self.read_interval_s - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        data = self._read_bytes()
+        self._last_read = time.monotonic()
+        if not data:
+            return []
+        return self._decoder.feed(data)
+
+    def _send_outputs(self, bits: int) -> None:
+        self._write(encode_command(Command(CMD_SET_OUTPUTS, bits)))
+
+    def _send_heartbeat(self, counter: int) -> None:
+        self._write(encode_command(Command(CMD_HEARTBEAT, counter)))
+
+    def _send_request_descriptor(self) -> None:
+        self._write(encode_command(Command(CMD_SEND_DESCRIPTOR)))
+
+    def stats(self) -> dict[str, int]:
+        out = super().stats()
+        totals = self._decoder_totals.copy()
+        totals.update(self._decoder.stats.as_dict())
+        for key, value in totals.items():
+            out[f"decoder_{key}"] = value
+        out["decoder_buffered"] = self._decoder.buffered
+        return out

@@ -1,0 +1,171 @@
+"""The DAQ's own state, independent of any transport: index, ring, outputs, watchdog.
+
+Every server (pty, TCP, Modbus, in-process) drives one ``DeviceModel``; time is
+passed in (``now`` from ``time.monotonic()``) so the watchdog logic is testable
+with a fake clock.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import IO
+
+import numpy as np
+
+from millsense.drivers.protocol import (
+    CMD_HEARTBEAT,
+    CMD_SET_OUTPUTS,
+    FLAG_WATCHDOG,
+    INDEX_MOD,
+    OUT_FEED_HOLD,
+    Command,
+    Status,
+)
+
+
+class StatusLog:
+    """JSON lines of what the device did, with monotonic and wall time (for tests)."""
+
+    def __init__(self, path: str | None) -> None:
+        self._fh: IO[str] | None = open(path, "a", buffering=1) if path else None  # noqa: SIM115
+
+    def write(self, event: str, now: float | None = None, **fields) -> None:
+        if self._fh is None:
+            return
+        rec = {"event": event, "mono": time.monotonic() if now is None else now, "wall": time.time(), **fields}
+        self._fh.write(json.dumps(rec) + "\n")
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+
+class DeviceModel:
+    """Samples from a plant, numbered with a wrapping 32-bit index and kept in a ring."""
+
+    def __init__(
+        self,
+        source,
+        *,
+        start_index: int = 0,
+        ring_depth: int = 4096,
+        watchdog_ms: int = 0,
+        status_log: StatusLog | None = None,
+    ) -> None:
+        self.source = source
+        self.descriptor = source.descriptor
+        self.channel_count = self.descriptor.channel_count
+        self.sample_rate_hz = self.descriptor.sample_rate_hz
+        self.ring_depth = ring_depth
+        self.ring = np.zeros((ring_depth, self.channel_count), dtype=np.int16)
+        self.head = start_index % INDEX_MOD  # index the next sample will get
+        history = getattr(source, "history", None)
+        if history is not None and start_index >= ring_depth:
+            # started mid-count (--start-index): behave like a device that has been
+            # sampling all along, with a full ring, as the Modbus reader assumes
+            first = start_index - ring_depth
+            self.ring[(first + np.arange(ring_depth)) % INDEX_MOD % ring_depth] = history(first, ring_depth)
+        self.outputs = 0  # what the outputs are (commanded, or feed hold forced by the watchdog)
+        self.commanded = 0  # what the last set-outputs command asked for (Modbus coils read this)
+        self.flags = 0
+        self.last_heartbeat = 0
+        self.watchdog_ms = watchdog_ms
+        self._armed = False
+        self._last_heartbeat_time = 0.0
+        self._heard_heartbeat = False
+        self.log = status_log or StatusLog(None)
+
+    # -- samples --------------------------------------------------------------
+
+    def produce(self, n: int) -> tuple[int, np.ndarray]:
+        """The next ``n`` samples: (first index, (n, C) int16), also written to the ring."""
+        first = self.head
+        counts = np.asarray(self.source.step(n), dtype=np.int16)
+        keep = min(n, self.ring_depth)  # only the newest D samples survive
+        pos = (first + n - keep + np.arange(keep, dtype=np.int64)) % INDEX_MOD % self.ring_depth
+        self.ring[pos] = counts[n - keep :]
+        self.head = (first + n) % INDEX_MOD
+        return first, counts
+
+    def ring_registers(self, offset: int, count: int) -> list[int]:
+        """Registers 1000 + offset .. + count - 1 of the Modbus ring, as uint16."""
+        flat = self.ring.reshape(-1).view(np.uint16)
+        return flat[offset : offset + count].tolist()
+
+    # -- outputs and watchdog -------------------------------------------------
+
+    def status(self) -> Status:
+        return Status(self.outputs, self.flags, self.last_heartbeat)
+
+    @property
+    def feed_hold(self) -> bool:
+        return bool(self.outputs & OUT_FEED_HOLD)
+
+    def set_outputs(self, bits: int, now: float, cause: str = "command") -> bool:
+        """An explicit set-outputs command: clears a watchdog trip too. True if anything changed."""
+        bits &= 0x03
+        changed = bits != self.outputs or (self.flags & FLAG_WATCHDOG)
+        self.outputs = bits
+        self.commanded = bits
+        self.flags &= ~FLAG_WATCHDOG
+        self.source.feed_hold = bool(bits & OUT_FEED_HOLD)
+        if changed:
+            self._log_outputs(now, cause)
+        return bool(changed)
+
+    def heartbeat(self, counter: int, now: float) -> None:
+        """A heartbeat counts only if the value changed (the host writes a changing counter)."""
+        counter &= 0xFFFF
+        if self._heard_heartbeat and counter == self.last_heartbeat:
+            return
+        self._heard_heartbeat = True
+        self.last_heartbeat = counter
+        self._last_heartbeat_time = now
+        self._armed = True
+        self.log.write("heartbeat", now, counter=counter)
+
+    def set_watchdog_ms(self, ms: int, now: float) -> None:
+        if ms != self.watchdog_ms:
+            self.watchdog_ms = ms
+            self.log.write("watchdog_period", now, watchdog_ms=ms)
+            if self._heard_heartbeat:
+                self._last_heartbeat_time = max(self._last_heartbeat_time, now)
+
+    def watchdog_deadline(self) -> float | None:
+        """Monotonic time at which the watchdog trips unless a heartbeat comes, or None."""
+        if not self._armed or self.watchdog_ms <= 0 or self.flags & FLAG_WATCHDOG:
+            return None
+        return self._last_heartbeat_time + self.watchdog_ms / 1000.0
+
+    def check_watchdog(self, now: float) -> bool:
+        """Trip if the deadline passed: assert feed hold, raise the flag. True if it tripped now."""
+        deadline = self.watchdog_deadline()
+        if deadline is None or now < deadline:
+            return False
+        self.outputs |= OUT_FEED_HOLD
+        self.flags |= FLAG_WATCHDOG
+        self.source.feed_hold = True
+        self._log_outputs(now, "watchdog", last_heartbeat_mono=self._last_heartbeat_time)
+        return True
+
+    def apply_command(self, cmd: Command, now: float) -> bool:
+        """Apply a COMMAND frame; True if the outputs changed."""
+        if cmd.command == CMD_SET_OUTPUTS:
+            return self.set_outputs(cmd.argument or 0, now)
+        if cmd.command == CMD_HEARTBEAT:
+            self.heartbeat(cmd.argument or 0, now)
+        return False
+
+    def _log_outputs(self, now: float, cause: str, **extra) -> None:
+        self.log.write(
+            "outputs",
+            now,
+            outputs=self.outputs,
+            feed_hold=bool(self.outputs & 1),
+            alarm_lamp=bool(self.outputs & 2),
+            watchdog=bool(self.flags & FLAG_WATCHDOG),
+            cause=cause,
+            **extra,
+        )

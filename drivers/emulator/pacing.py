@@ -1,0 +1,38 @@
+"""Real-time pacing without drift: the sample count due is computed from the start time.
+
+Sleeping a fixed 10 ms per batch would drift by the work done each batch; instead
+the number of samples due is ``floor((now - t0) * rate)``, so a late wake-up is
+caught up by the next batch and minutes of running stay on the clock.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+
+class Pacer:
+    def __init__(self, sample_rate_hz: int, *, realtime: bool = True, batch_s: float = 0.01, clock=time.monotonic):
+        self.rate = sample_rate_hz
+        self.realtime = realtime
+        self.batch = max(1, round(sample_rate_hz * batch_s))
+        self.clock = clock
+        self.t0 = clock()
+        self.produced = 0
+
+    def due(self, now: float | None = None, limit: int | None = None) -> int:
+        """How many samples to produce now (and count them as produced)."""
+        if self.realtime:
+            now = self.clock() if now is None else now
+            n = math.floor((now - self.t0) * self.rate) - self.produced
+        else:
+            n = self.batch * 100
+        if limit is not None:
+            n = min(n, limit - self.produced)
+        n = max(0, n)
+        self.produced += n
+        return n
+
+    def next_time(self) -> float:
+        """Monotonic time when the next batch is due."""
+        return self.t0 + (self.produced + self.batch) / self.rate

@@ -1,0 +1,132 @@
+"""Builds the device from the CLI options and runs the chosen server until done or signalled."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import signal
+import sys
+import time
+
+from millsense.drivers.emulator.device import DeviceModel, StatusLog
+from millsense.drivers.emulator.pacing import Pacer
+from millsense.drivers.emulator.source import SourceError, list_sources, make_source
+from millsense.drivers.emulator.wire import WireEmitter
+
+
+class EmulatorError(Exception):
+    def __init__(self, message: str, exit_code: int = 1) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+def list_text() -> str:
+    return "\n".join(f"{name:<16} {desc}" for name, desc in list_sources())
+
+
+def serve(args) -> int:
+    try:
+        source = make_source(
+            args.scenario,
+            seed=args.seed,
+            loop=args.loop,
+            start_index=args.start_index,
+            filter_cutoff_hz=args.filter_cutoff_hz,
+            noise_scale=args.noise_scale,
+        )
+    except SourceError as exc:
+        raise EmulatorError(str(exc), 2) from exc
+    if args.ring_depth < 1:
+        raise EmulatorError("--ring-depth must be at least 1", 2)
+    status_log = StatusLog(args.status_log)
+    device = DeviceModel(
+        source,
+        start_index=args.start_index,
+        ring_depth=args.ring_depth,
+        watchdog_ms=args.watchdog_ms,
+        status_log=status_log,
+    )
+    status_log.write("start", first_index=device.head, scenario=args.scenario)
+    rate = device.sample_rate_hz
+    duration_samples = None
+    if args.duration_s is not None:
+        duration_samples = int(round(args.duration_s * rate))
+    elif not args.loop and math.isfinite(getattr(source, "duration_s", math.inf)):
+        duration_samples = int(round(source.duration_s * rate))
+    realtime = args.realtime if args.realtime is not None else not args.capture
+    if args.capture and duration_samples is None:
+        raise EmulatorError(f"scenario {args.scenario!r} never ends: give --duration-s for a capture", 2)
+    pacer = Pacer(rate, realtime=realtime)
+    try:
+        code = asyncio.run(_main(args, device, pacer, duration_samples))
+    except OSError as exc:
+        raise EmulatorError(str(exc)) from exc
+    finally:
+        status_log.write("stop", last_index=device.head)
+        status_log.close()
+    if args.truth:
+        _write_truth(source, args.truth)
+    return code
+
+
+async def _main(args, device, pacer, duration_samples) -> int:
+    loop = asyncio.get_running_loop()
+    if args.modbus_tcp:
+        from millsense.drivers.emulator.modbus_server import ModbusDeviceServer
+
+        server = ModbusDeviceServer(device, pacer, *args.modbus_tcp, duration_samples=duration_samples)
+        where = f"modbus-tcp {args.modbus_tcp[0]}:{args.modbus_tcp[1]}"
+    else:
+        from millsense.drivers.emulator.stream_server import StreamServer
+
+        emitter = WireEmitter(
+            device,
+            per_frame=args.per_frame,
+            corrupt_fraction=args.corrupt_fraction,
+            garbage_bps=args.garbage_bps,
+            seed=args.seed,
+        )
+        server = StreamServer(device, emitter, pacer, duration_samples=duration_samples)
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, server.stop.set)
+    capture_fh = None
+    try:
+        if args.modbus_tcp:
+            await server.open()
+        elif args.pty:
+            server.open_pty(args.pty)
+            where = f"pty {args.pty}"
+        elif args.tcp:
+            await server.open_tcp(*args.tcp)
+            where = f"tcp {args.tcp[0]}:{args.tcp[1]}"
+        elif args.capture:
+            capture_fh = open(args.capture, "wb")  # noqa: SIM115 - closed in finally
+            server.open_capture(capture_fh)
+            where = f"capture {args.capture}"
+        if not args.capture:
+            print(f"millsense sim: serving {args.scenario} on {where}", file=sys.stderr, flush=True)
+        t0 = time.monotonic()
+        await server.run()
+        if args.capture:
+            print(
+                f"millsense sim: wrote {pacer.produced} samples to {args.capture} in {time.monotonic() - t0:.2f} s",
+                file=sys.stderr,
+            )
+    finally:
+        if capture_fh is not None:
+            capture_fh.close()
+    return 0
+
+
+def _write_truth(source, path: str) -> None:
+    """Ask the plant's truth recorder to write itself; the ramp has no truth (empty file)."""
+    truth = getattr(source, "truth", None)
+    if truth is None:
+        open(path, "w").close()
+        return
+    for name in ("write_jsonl", "write", "dump", "save"):
+        fn = getattr(truth, name, None)
+        if callable(fn):
+            fn(path)
+            return
+    raise EmulatorError("the plant's truth recorder has no writer method")

@@ -1,0 +1,58 @@
+"""Which plant the emulator wraps: the ramp, or a scenario of ``drivers.sim``."""
+
+from __future__ import annotations
+
+from millsense.drivers.emulator.ramp import RampPlant
+
+
+class SourceError(Exception):
+    """The scenario cannot be built; the message says why."""
+
+
+def list_sources() -> list[tuple[str, str]]:
+    """(name, description) of every scenario the emulator can serve."""
+    names = [("ramp", RampPlant.description)]
+    try:
+        from millsense.drivers import sim
+
+        for name in sim.list_scenarios():
+            scen = sim.SCENARIOS.get(name) if hasattr(sim, "SCENARIOS") else None
+            desc = getattr(scen, "description", "") if scen is not None else ""
+            names.append((name, desc))
+    except (ImportError, AttributeError):
+        pass
+    return names
+
+
+def make_source(
+    scenario: str,
+    *,
+    seed: int = 0,
+    loop: bool = False,
+    start_index: int = 0,
+    filter_cutoff_hz: float | None = None,
+    noise_scale: float | None = None,
+):
+    """Build the plant for ``scenario``; only options given are passed on."""
+    if scenario == "ramp":
+        return RampPlant(start_index=start_index)
+    try:
+        from millsense.drivers.sim import SCENARIOS, Plant
+    except ImportError as exc:
+        raise SourceError(
+            f"cannot serve scenario {scenario!r}: the plant simulator is not available ({exc}); only 'ramp' can be"
+        ) from exc
+    if scenario not in SCENARIOS:
+        known = ", ".join(["ramp", *SCENARIOS])
+        raise SourceError(f"unknown scenario {scenario!r} (known: {known})")
+    kwargs: dict = {"seed": seed}
+    if loop:
+        kwargs["loop"] = True
+    if filter_cutoff_hz is not None:
+        kwargs["filter_cutoff_hz"] = filter_cutoff_hz
+    if noise_scale is not None:
+        kwargs["noise_scale"] = noise_scale
+    try:
+        return Plant(scenario, **kwargs)
+    except TypeError as exc:
+        raise SourceError(f"the plant simulator does not take these options: {exc}") from exc

@@ -1,0 +1,290 @@
+"""The DAQ stream protocol: CRC-16/MODBUS, frame encoders and an incremental decoder.
+
+Frames are ``A5 5A | type | len (u16 LE) | payload | crc (u16 LE)``, the CRC over
+type, length and payload (see ``shared/spec/daq-protocol.md``).
+
+The decoder must keep up with millions of samples a second on one core, so it
+never touches single bytes or samples in Python on the clean path: a run of
+equal-length SAMPLES frames laid end to end is recognised with one numpy
+comparison over a 2-D view of the buffer, their CRCs are computed together (one
+table look-up per 16-bit column over all frames at once) and their payloads become
+one int16 array.  Anything unusual (a descriptor, a bad header, a corrupted frame
+that contains a sync pattern) falls back to a frame-by-frame walk with exactly the
+spec's semantics: check the CRC before trusting a length, else drop one byte and
+hunt for the next sync.  The decoder itself lives in ``drivers/decoder.py`` and is
+re-exported here.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+SYNC = b"\xa5\x5a"
+MAX_PAYLOAD = 4096
+HEADER_LEN = 5  # sync, type, length
+OVERHEAD = HEADER_LEN + 2  # + crc
+
+TYPE_SAMPLES = 0x01
+TYPE_DESCRIPTOR = 0x02
+TYPE_STATUS = 0x03
+TYPE_COMMAND = 0x10
+
+OUT_FEED_HOLD = 0x01
+OUT_ALARM_LAMP = 0x02
+FLAG_WATCHDOG = 0x01
+FLAG_OVERRUN = 0x02
+CMD_SET_OUTPUTS = 0x01
+CMD_HEARTBEAT = 0x02
+CMD_SEND_DESCRIPTOR = 0x03
+_COMMAND_ARG_LEN = {CMD_SET_OUTPUTS: 1, CMD_HEARTBEAT: 2, CMD_SEND_DESCRIPTOR: 0}
+
+MAX_SAMPLES_PER_FRAME = 64
+INDEX_MOD = 1 << 32
+SCALAR_BELOW = 8  # fewer equal frames than this: per-frame CRC beats numpy's per-call cost
+
+
+class ChannelKind(IntEnum):
+    OTHER = 0
+    VOLTAGE = 1
+    CURRENT = 2
+    SPEED = 3
+    ENCODER = 4
+    FEED_CURRENT = 5
+    FEED_RATE = 6
+    FORCE = 7
+
+
+@dataclass(frozen=True)
+class Channel:
+    kind: ChannelKind
+    name: str
+
+
+@dataclass(frozen=True)
+class Descriptor:
+    sample_rate_hz: int
+    channels: tuple[Channel, ...]
+    protocol_version: int = 1
+
+    @property
+    def channel_count(self) -> int:
+        return len(self.channels)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.channels)
+
+
+@dataclass(frozen=True, eq=False)
+class Samples:
+    """Consecutive samples: ``counts[k]`` has device index ``(first_index + k) mod 2**32``."""
+
+    first_index: int
+    counts: np.ndarray  # (S, C) int16
+
+
+@dataclass(frozen=True)
+class Status:
+    outputs: int
+    flags: int
+    last_heartbeat: int
+
+    @property
+    def feed_hold(self) -> bool:
+        return bool(self.outputs & OUT_FEED_HOLD)
+
+    @property
+    def alarm_lamp(self) -> bool:
+        return bool(self.outputs & OUT_ALARM_LAMP)
+
+    @property
+    def watchdog_tripped(self) -> bool:
+        return bool(self.flags & FLAG_WATCHDOG)
+
+    @property
+    def overrun(self) -> bool:
+        return bool(self.flags & FLAG_OVERRUN)
+
+
+@dataclass(frozen=True)
+class Command:
+    command: int
+    argument: int | None = None
+
+
+# --------------------------------------------------------------------------- CRC
+
+
+def _make_tables() -> tuple[np.ndarray, np.ndarray]:
+    table = np.zeros(256, dtype=np.uint16)
+    for i in range(256):
+        crc = i
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+        table[i] = crc
+    # Two bytes at a time: once both input bytes are xored into the 16-bit
+    # register, two table steps are a pure function of the register.
+    v = np.arange(65536, dtype=np.uint32)
+    for _ in range(2):
+        v = (v >> 8) ^ table[v & 0xFF].astype(np.uint32)
+    return table, v.astype(np.uint16)
+
+
+CRC_TABLE, CRC_TABLE2 = _make_tables()
+_T1 = CRC_TABLE.tolist()
+_T2 = CRC_TABLE2.tolist()
+
+
+def crc16_modbus(data: bytes) -> int:
+    """CRC-16/MODBUS (reflected 0xA001, init 0xFFFF) of ``data``."""
+    crc = 0xFFFF
+    n = len(data)
+    even = n & ~1
+    if even:
+        for word in struct.unpack_from(f"<{even // 2}H", data):
+            crc = _T2[crc ^ word]
+    if n & 1:
+        crc = (crc >> 8) ^ _T1[(crc ^ data[-1]) & 0xFF]
+    return crc
+
+
+def crc16_modbus_rows(rows: np.ndarray) -> np.ndarray:
+    """CRC-16/MODBUS of every row of a 2-D uint8 array, vectorised across rows.
+
+    One look-up per 16-bit column over all rows at once: the cost grows with the
+    frame length, not with the number of frames.
+    """
+    k, n = rows.shape
+    crc = np.full(k, 0xFFFF, dtype=np.uint16)
+    if k == 0:
+        return crc
+    even = n & ~1
+    if even:
+        words = np.ascontiguousarray(rows[:, :even]).view("<u2").T.copy()
+        for w in words:
+            np.bitwise_xor(crc, w, out=crc)
+            crc = CRC_TABLE2.take(crc)
+    if n & 1:
+        last = rows[:, n - 1].astype(np.uint16)
+        crc = (crc >> 8) ^ CRC_TABLE.take((crc ^ last) & 0xFF)
+    return crc
+
+
+# ---------------------------------------------------------------------- encoders
+
+
+def _frame(frame_type: int, payload: bytes) -> bytes:
+    if len(payload) > MAX_PAYLOAD:
+        raise ValueError(f"payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}")
+    body = struct.pack("<BH", frame_type, len(payload)) + payload
+    return SYNC + body + struct.pack("<H", crc16_modbus(body))
+
+
+def _as_counts(counts: np.ndarray) -> np.ndarray:
+    counts = np.asarray(counts)
+    if counts.ndim != 2:
+        raise ValueError(f"counts must be (S, C), got shape {counts.shape}")
+    if counts.dtype != np.int16:
+        if counts.size and (counts.min() < -32768 or counts.max() > 32767):
+            raise ValueError("counts out of int16 range")
+        counts = counts.astype(np.int16)
+    if not 1 <= counts.shape[1] <= 255:
+        raise ValueError(f"channel count {counts.shape[1]} outside 1..255")
+    return counts
+
+
+def encode_samples(first_index: int, counts: np.ndarray) -> bytes:
+    """One SAMPLES frame; ``counts`` is (S, C) with 1 <= S <= 64."""
+    counts = _as_counts(counts)
+    s, c = counts.shape
+    if not 1 <= s <= MAX_SAMPLES_PER_FRAME:
+        raise ValueError(f"sample count {s} outside 1..{MAX_SAMPLES_PER_FRAME}")
+    payload = struct.pack("<IBB", first_index % INDEX_MOD, c, s) + counts.astype("<i2").tobytes()
+    return _frame(TYPE_SAMPLES, payload)
+
+
+def encode_sample_frames(first_index: int, counts: np.ndarray, per_frame: int = 10) -> bytes:
+    """Many SAMPLES frames of ``per_frame`` samples (the last may be shorter), built in bulk."""
+    counts = _as_counts(counts)
+    n, c = counts.shape
+    if not 1 <= per_frame <= MAX_SAMPLES_PER_FRAME:
+        raise ValueError(f"per_frame {per_frame} outside 1..{MAX_SAMPLES_PER_FRAME}")
+    if 6 + 2 * c * per_frame > MAX_PAYLOAD:
+        raise ValueError(f"{per_frame} samples of {c} channels exceed one frame")
+    full = n // per_frame
+    out = b""
+    if 0 < full < SCALAR_BELOW:  # a few frames: the scalar CRC is cheaper than numpy's per-call cost
+        out = b"".join(
+            encode_samples(first_index + a, counts[a : a + per_frame]) for a in range(0, full * per_frame, per_frame)
+        )
+    elif full:
+        payload_len = 6 + 2 * c * per_frame
+        flen = OVERHEAD + payload_len
+        rows = np.zeros((full, flen), dtype=np.uint8)
+        rows[:, 0] = 0xA5
+        rows[:, 1] = 0x5A
+        rows[:, 2] = TYPE_SAMPLES
+        rows[:, 3] = payload_len & 0xFF
+        rows[:, 4] = payload_len >> 8
+        idx = (first_index + per_frame * np.arange(full, dtype=np.int64)) % INDEX_MOD
+        rows[:, 5:9] = idx.astype("<u4").view(np.uint8).reshape(full, 4)
+        rows[:, 9] = c
+        rows[:, 10] = per_frame
+        body = counts[: full * per_frame].astype("<i2").reshape(full, per_frame * c)
+        rows[:, 11 : flen - 2] = body.view(np.uint8)
+        crc = crc16_modbus_rows(rows[:, 2 : flen - 2])
+        rows[:, flen - 2 :] = crc.astype("<u2").view(np.uint8).reshape(full, 2)
+        out = rows.tobytes()
+    if n > full * per_frame:
+        out += encode_samples(first_index + full * per_frame, counts[full * per_frame :])
+    return out
+
+
+def encode_descriptor(d: Descriptor) -> bytes:
+    parts = [struct.pack("<BHB", d.protocol_version, d.sample_rate_hz, d.channel_count)]
+    for ch in d.channels:
+        name = ch.name.encode("ascii")
+        if len(name) > 8:
+            raise ValueError(f"channel name {ch.name!r} longer than 8 characters")
+        parts.append(struct.pack("<B8s", int(ch.kind), name))
+    return _frame(TYPE_DESCRIPTOR, b"".join(parts))
+
+
+def encode_status(s: Status) -> bytes:
+    return _frame(TYPE_STATUS, struct.pack("<BBH", s.outputs & 0xFF, s.flags & 0xFF, s.last_heartbeat & 0xFFFF))
+
+
+def encode_command(c: Command) -> bytes:
+    if c.command == CMD_SET_OUTPUTS:
+        payload = struct.pack("<BB", c.command, (c.argument or 0) & 0xFF)
+    elif c.command == CMD_HEARTBEAT:
+        payload = struct.pack("<BH", c.command, (c.argument or 0) & 0xFFFF)
+    elif c.command == CMD_SEND_DESCRIPTOR:
+        payload = struct.pack("<B", c.command)
+    else:
+        raise ValueError(f"unknown command 0x{c.command:02x}")
+    return _frame(TYPE_COMMAND, payload)
+
+
+_DECODER_NAMES = ("DecoderStats", "Frame", "StreamDecoder")
+
+
+def __getattr__(name: str):
+    """``StreamDecoder`` and friends live in drivers/decoder.py (which imports this
+    module); they are public here, resolved on first use so there is no import cycle."""
+    if name in _DECODER_NAMES:
+        from millsense.drivers import decoder
+
+        return getattr(decoder, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+__all__ = [
+    "CMD_HEARTBEAT", "CMD_SEND_DESCRIPTOR", "CMD_SET_OUTPUTS", "FLAG_OVERRUN", "FLAG_WATCHDOG",
+    "OUT_ALARM_LAMP", "OUT_FEED_HOLD", "Channel", "ChannelKind", "Command", "DecoderStats", "Descriptor",
+    "Frame", "Samples", "Status", "StreamDecoder", "crc16_modbus", "crc16_modbus_rows", "encode_command",
+    "encode_descriptor", "encode_sample_frames", "encode_samples", "encode_status",
+]

@@ -1,0 +1,131 @@
+"""The simulated DAQ front end: sensor noise and offsets, the analog anti-alias
+filter, sampling and int16 quantisation (docs/architecture.md, "Simulated sensors").
+
+The filter is [P]'s 200 Hz analog low-pass, taken as a 2nd-order Butterworth and
+emulated at the internal rate by the bilinear transform with the cut-off
+pre-warped (so its gain at 200 Hz is exact and the gain at the electrical
+frequency is within 0.1 % of the analog one).  Noise is white at the internal
+rate: behind the filter most of it is removed, with ``filter_cutoff_hz=0`` it
+aliases into the 1 kHz samples undiminished, as on a real DAQ without one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal
+
+from millsense.drivers.protocol import Channel, ChannelKind
+
+ENCODER_COUNTS_PER_REV = 4096
+INT16_MIN, INT16_MAX = -32768, 32767
+
+
+@dataclass(frozen=True)
+class SensorSpec:
+    name: str
+    kind: ChannelKind
+    scale: float  # physical unit per count
+    noise_sigma: float  # broadband, physical units, white at the internal rate
+    max_offset: float  # |offset| bound, fixed per seed (uniform)
+
+
+BASE_SENSORS = (
+    SensorSpec("v_uv", ChannelKind.VOLTAGE, 0.02, 0.5, 0.2),
+    SensorSpec("v_vw", ChannelKind.VOLTAGE, 0.02, 0.5, 0.2),
+    SensorSpec("v_wu", ChannelKind.VOLTAGE, 0.02, 0.5, 0.2),
+    SensorSpec("i_u", ChannelKind.CURRENT, 0.002, 0.05, 0.05),
+    SensorSpec("i_v", ChannelKind.CURRENT, 0.002, 0.05, 0.05),
+    SensorSpec("i_w", ChannelKind.CURRENT, 0.002, 0.05, 0.05),
+    SensorSpec("sp_rpm", ChannelKind.SPEED, 0.1, 0.5, 0.2),
+    SensorSpec("sp_enc", ChannelKind.ENCODER, 1.0, 0.0, 0.0),
+)
+OPTIONAL_SENSORS = (
+    SensorSpec("mot_rpm", ChannelKind.SPEED, 0.2, 1.0, 0.5),
+    SensorSpec("ix_feed", ChannelKind.FEED_CURRENT, 0.001, 0.01, 0.005),
+    SensorSpec("fx_rate", ChannelKind.FEED_RATE, 0.1, 0.5, 0.0),
+    SensorSpec("fx", ChannelKind.FORCE, 0.5, 2.0, 1.0),
+    SensorSpec("fy", ChannelKind.FORCE, 0.5, 2.0, 1.0),
+    SensorSpec("fz", ChannelKind.FORCE, 0.5, 2.0, 1.0),
+)
+ALL_SENSORS = {s.name: s for s in BASE_SENSORS + OPTIONAL_SENSORS}
+
+
+def channel_scales() -> dict[str, dict]:
+    """Every channel the simulator can send: kind, scale (unit per count), offset in counts."""
+    out: dict[str, dict] = {}
+    for s in BASE_SENSORS + OPTIONAL_SENSORS:
+        if s.kind == ChannelKind.ENCODER:
+            out[s.name] = {"kind": s.kind.name.lower(), "counts_per_rev": ENCODER_COUNTS_PER_REV}
+        else:
+            out[s.name] = {"kind": s.kind.name.lower(), "scale": s.scale, "offset": 0}
+    return out
+
+
+def select_sensors(extra) -> tuple[SensorSpec, ...]:
+    """Base channels plus the optional ones asked for (True = all, names = those)."""
+    if extra is None or extra is False:
+        names: list[str] = []
+    elif extra is True:
+        names = [s.name for s in OPTIONAL_SENSORS]
+    else:
+        names = list(extra)
+        unknown = [n for n in names if n not in ALL_SENSORS or ALL_SENSORS[n] in BASE_SENSORS]
+        if unknown:
+            optional = ", ".join(s.name for s in OPTIONAL_SENSORS)
+            raise ValueError(f"unknown optional channel(s) {', '.join(unknown)} (choose from {optional})")
+    chosen = [s for s in OPTIONAL_SENSORS if s.name in names]
+    return BASE_SENSORS + tuple(chosen)
+
+
+def descriptor_channels(sensors: tuple[SensorSpec, ...]) -> tuple[Channel, ...]:
+    return tuple(Channel(s.kind, s.name) for s in sensors)
+
+
+class AntiAliasFilter:
+    """2nd-order Butterworth low-pass per channel, state carried across blocks."""
+
+    def __init__(self, cutoff_hz: float, internal_rate_hz: float, channels: int, order: int = 2) -> None:
+        self.cutoff_hz = float(cutoff_hz)
+        self.sos = None
+        self.zi = None
+        if self.cutoff_hz > 0:
+            if self.cutoff_hz >= internal_rate_hz / 2:
+                raise ValueError(f"filter cut-off {cutoff_hz} Hz must be below {internal_rate_hz / 2} Hz")
+            # scipy's digital butter = bilinear transform with the cut-off pre-warped
+            self.sos = signal.butter(order, self.cutoff_hz, btype="low", fs=internal_rate_hz, output="sos")
+            self.zi = np.zeros((self.sos.shape[0], channels, 2))
+
+    def prime(self, x0: np.ndarray) -> None:
+        """Start in steady state for a constant input x0 (C,)."""
+        if self.sos is not None:
+            self.zi = signal.sosfilt_zi(self.sos)[:, None, :] * np.asarray(x0, dtype=float)[None, :, None]
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """x: (C, n) at the internal rate."""
+        if self.sos is None:
+            return x
+        y, self.zi = signal.sosfilt(self.sos, x, axis=1, zi=self.zi)
+        return y
+
+
+def analog_gain(cutoff_hz: float, f_hz: np.ndarray, order: int = 2) -> np.ndarray:
+    """|H(f)| of the analog Butterworth the filter stands for."""
+    if cutoff_hz <= 0:
+        return np.ones_like(np.asarray(f_hz, dtype=float))
+    return 1.0 / np.sqrt(1.0 + (np.asarray(f_hz, dtype=float) / cutoff_hz) ** (2 * order))
+
+
+def quantise(values: np.ndarray, scale: float) -> np.ndarray:
+    """Round to counts and saturate at the int16 limits, like the A/D converter."""
+    counts = np.rint(np.asarray(values) / scale)
+    return np.clip(counts, INT16_MIN, INT16_MAX).astype(np.int16)
+
+
+def encoder_counts(theta_rad: np.ndarray, turns: np.ndarray) -> np.ndarray:
+    """Low 16 bits of the 4096-count encoder for angle θ (rad, within the turn) plus whole turns."""
+    total = turns.astype(np.int64) * ENCODER_COUNTS_PER_REV + np.floor(
+        theta_rad * (ENCODER_COUNTS_PER_REV / (2 * np.pi))
+    ).astype(np.int64)
+    return (total & 0xFFFF).astype(np.uint16).view(np.int16)
