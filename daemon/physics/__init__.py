@@ -1,0 +1,15 @@
+"""Pure, vectorised physics of millsense: samples → power → torque → force → depth.
+
+One module per step, each formula beside its equation number in the source
+papers ([P] spindle power → force; [D] average forces → depth of cut); see
+``shared/spec/physics.md``. No I/O, no state: numpy arrays or scalars in and out.
+
+- ``power``: stator power, phase currents, copper loss, electrical frequency,
+  anti-alias filter gain, air-gap power ([P] eq. 11)
+- ``torque``: cutting torque ([P] eq. 13), gear selection, σ ([P] eq. 20)
+- ``force``: resultant force ([P] eq. 18), C_f from r₁(t_a)
+- ``milling``: average forces of end milling ([D] eqs. 7–10, 12), down/up/slot
+- ``depth``: exact inversions with a status ([D] §3)
+- ``calibration``: least-squares friction and C_f ([P] §4.2)
+- ``table3``: [D] Table 3 polynomial, for comparison only
+"""

@@ -1,0 +1,47 @@
+"""`millsense check-config FILE`: validate a configuration without starting anything.
+
+Exit 0 with a one-line summary when the file is valid; otherwise `ConfigError`
+propagates to the CLI front door, which prints every problem (one per line,
+`section.key: what is wrong (what is expected)`) and exits 78. Only pydantic and
+the config modules are imported: this must stay quick enough for an editor hook.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", metavar="FILE", help="the TOML configuration to check")
+
+
+def summary(settings) -> str:
+    """One line saying what the file configures, so a user sees it was read as meant."""
+    daq = settings.daq
+    where = {
+        "serial": daq.port, "modbus-rtu": daq.port, "tcp": f"{daq.host}:{daq.tcp_port}",
+        "modbus-tcp": f"{daq.host}:{daq.tcp_port}", "sim": f"scenario {daq.scenario}",
+    }[daq.transport]
+    armed = [k for k, v in settings.alarms.model_dump().items() if k.endswith(("_nm", "_n", "_w")) and v is not None
+             and k not in ("breakage_min_torque_nm",)]
+    parts = [
+        f"machine {settings.machine}",
+        f"daq {daq.transport} {where}",
+        f"{len(settings.channels)} channels",
+        f"{len(settings.gears)} gear{'s' if len(settings.gears) != 1 else ''}",
+        f"depth {settings.depth.method}",
+        f"{len(armed)} alarm limit{'s' if len(armed) != 1 else ''} armed",
+        f"interlock {'on' if settings.interlock.enabled else 'off'}",
+        f"zenoh {settings.zenoh.mode}",
+    ]
+    if settings.calibration:
+        parts.append(f"calibration {settings.calibration}")
+    return ", ".join(parts)
+
+
+def run(args: argparse.Namespace) -> int:
+    from millsense.daemon.config import load_config
+
+    settings = load_config(args.file)  # ConfigError -> the CLI prints the problems, exit 78
+    print(f"{args.file}: OK ({summary(settings)})")
+    return 0

@@ -1,0 +1,236 @@
+"""`millsense run [--config FILE] [--seconds N]`: the daemon.
+
+Start-up, in this order, each step with one clear failure:
+
+1. configuration (`--config`, or the built-in demo: simulated DAQ playing the
+   step-cut scenario in a loop, Zenoh peer on loopback, a live summary line per
+   second on stdout) — a bad file exits 78;
+2. Zenoh (a client retries its router for 30 s, then exits 69);
+3. the DAQ: the driver reconnects with a doubling back-off; if it has not
+   connected within the **start window** (`--connect-timeout`, default
+   10 s) the daemon says where it tried and exits 69 (EX_UNAVAILABLE), so
+   systemd's restart policy, not a silent loop, handles an absent DAQ. Once
+   running, a lost link is reconnected forever (status `degraded`,
+   `daq_lost` alarm). A DAQ whose channels do not fit the config exits 78;
+4. the runner threads; sd_notify `READY=1` once samples flow.
+
+SIGTERM / SIGINT stop it within about a second: threads joined, liveliness
+token dropped, Zenoh closed, the DAQ link closed — and the feed hold output
+left exactly as it was (a stop is not a reset).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+import time
+from typing import Any
+
+CONNECT_WINDOW_S = 10.0
+DESCRIPTOR_WAIT_S = 3.0
+ZENOH_RETRY_S = 30.0
+PROG = "millsense run"
+EXIT_UNAVAILABLE = 69
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", "-c", metavar="FILE", default=None, help="configuration file (default: the built-in demo)")
+    parser.add_argument("--seconds", type=float, default=None, metavar="N", help="stop after N seconds (tests, demos)")
+    parser.add_argument(
+        "--connect-timeout",
+        type=float,
+        default=CONNECT_WINDOW_S,
+        metavar="S",
+        help=f"give up (exit 69) if the DAQ has not connected within S seconds of start (default {CONNECT_WINDOW_S:g})",
+    )
+
+
+def _fail(message: str, code: int) -> int:
+    print(f"{PROG}: error: {message}", file=sys.stderr)
+    return code
+
+
+def run(args: argparse.Namespace) -> int:
+    from millsense.daemon.config import ConfigError, check_against_descriptor, demo_config, load_config
+
+    if args.seconds is not None and args.seconds <= 0:
+        return _fail("--seconds must be positive", 2)
+    demo = args.config is None
+    settings = demo_config() if demo else load_config(args.config)
+
+    from millsense.daemon.logging_setup import configure_logging
+
+    configure_logging(settings.log.level, settings.log.format, stream=sys.stderr if demo else sys.stdout)
+
+    stop = threading.Event()
+    _install_signal_handlers(stop)
+
+    from millsense.drivers import DriverError, create_driver
+
+    try:
+        driver = create_driver(settings.daq.transport, **_driver_options(settings))
+    except DriverError as exc:
+        raise ConfigError([f"daq.transport: {exc}"]) from None
+    # Everything slow (Zenoh, imports, declarations) happens before the driver
+    # starts: from then on samples queue up, and a queued block's hand-over time
+    # is no longer its arrival time (which live `t` is built from).
+    session = _open_zenoh(settings, stop)
+    if session is None:
+        return EXIT_UNAVAILABLE if not stop.is_set() else 0
+    try:
+        daemon = _Daemon(settings, driver, session, demo)
+        try:
+            driver.start()
+            if not _wait(lambda: driver.wait_connected(0.1), args.connect_timeout, stop):
+                if stop.is_set():
+                    return 0
+                where = getattr(driver, "address", "?")
+                return _fail(
+                    f"DAQ unreachable: no connection to {settings.daq.transport} {where} within {args.connect_timeout:g} s",
+                    EXIT_UNAVAILABLE,
+                )
+            if not _wait(lambda: driver.descriptor is not None or time.sleep(0.01), DESCRIPTOR_WAIT_S, stop):
+                if stop.is_set():
+                    return 0
+                return _fail(f"the DAQ connected but sent no DESCRIPTOR within {DESCRIPTOR_WAIT_S:g} s", EXIT_UNAVAILABLE)
+            check_against_descriptor(settings, driver.descriptor)  # ConfigError -> 78
+            daemon.serve(args.seconds, stop)
+            return 0
+        finally:
+            daemon.close()
+            driver.close()
+    finally:
+        try:
+            session.close()
+        except Exception:  # noqa: BLE001 - closing at exit; nothing left to save
+            pass
+
+
+def _open_zenoh(settings: Any, stop: threading.Event) -> Any:
+    """The Zenoh session, or None (after saying why) if a client found no router in time."""
+    import structlog
+
+    from millsense.daemon.config import ConfigError
+    from millsense.daemon.publish.session import ZenohConfigError, ZenohUnavailable, open_session
+
+    log = structlog.get_logger("millsense.run")
+    try:
+        return open_session(
+            settings,
+            retry_for_s=ZENOH_RETRY_S,
+            stop=stop,
+            on_waiting=lambda event, fields: log.warning(event, **fields),
+        )
+    except ZenohConfigError as exc:
+        raise ConfigError([str(exc)]) from None
+    except ZenohUnavailable as exc:
+        _fail(str(exc), EXIT_UNAVAILABLE)
+        return None
+
+
+class _Daemon:
+    """Runner + Zenoh sink, built before the DAQ starts streaming; `close()` is idempotent."""
+
+    def __init__(self, settings: Any, driver: Any, session: Any, demo: bool):
+        import structlog
+
+        from millsense.daemon import sdnotify
+        from millsense.daemon.cli import _version
+        from millsense.daemon.config import effective_config_dict
+        from millsense.daemon.pipeline import estimator  # noqa: F401 - import numpy/scipy now, not on the first block
+        from millsense.daemon.pipeline.runner import Runner
+        from millsense.daemon.publish.sink import ZenohSink
+
+        self.log = structlog.get_logger("millsense.run")
+        self.summary = _Summary(sys.stdout) if demo else None
+        self.demo = demo
+        self.transport = settings.daq.transport
+        self.runner = Runner(
+            settings,
+            driver,
+            version=_version(),
+            notify=sdnotify.notify,
+            on_second=self.summary,
+            effective_config=lambda: effective_config_dict(settings),
+        )
+        self.sink = ZenohSink(session, self.runner.machine, self.runner, log=self.log, close_timeout_s=0.5)
+        self._closed = False
+
+    def serve(self, seconds: float | None, stop: threading.Event) -> None:
+        self.runner.start(self.sink)
+        self.log.info("daemon.started", machine=self.runner.machine, transport=self.transport, demo=self.demo)
+        deadline = None if seconds is None else time.monotonic() + seconds
+        while not stop.is_set():
+            left = 0.2 if deadline is None else min(0.2, deadline - time.monotonic())
+            if left <= 0:
+                break
+            stop.wait(left)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        t0 = time.monotonic()
+        self.runner.stop(timeout_s=0.5)
+        try:
+            self.sink.close()  # drops the liveliness token
+        except Exception as exc:  # noqa: BLE001
+            self.log.error("zenoh.close_failed", error=str(exc))
+        if self.summary is not None:
+            self.summary.end()
+        self.log.info("daemon.stopped", stop_s=round(time.monotonic() - t0, 3), interlock=self.runner.interlock.state)
+
+
+def _driver_options(settings: Any) -> dict[str, Any]:
+    """The `[daq]` section as driver options (a driver ignores what it does not use)."""
+    daq = settings.daq
+    raw = daq.model_dump() if hasattr(daq, "model_dump") else dict(vars(daq))
+    return {k: v for k, v in raw.items() if k != "transport" and v is not None}
+
+
+def _wait(done: Any, timeout_s: float, stop: threading.Event) -> bool:
+    deadline = time.monotonic() + max(0.0, timeout_s)
+    while not stop.is_set():
+        if done():
+            return True
+        if time.monotonic() >= deadline:
+            return False
+    return False
+
+
+def _install_signal_handlers(stop: threading.Event) -> None:
+    def handler(_signum: int, _frame: Any) -> None:
+        stop.set()
+
+    for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+        try:
+            signal.signal(sig, handler)
+        except (ValueError, OSError):  # not the main thread (embedded use)
+            pass
+
+
+class _Summary:
+    """The demo's live line: refreshed in place on a TTY, one line per second otherwise."""
+
+    def __init__(self, stream: Any):
+        self.stream = stream
+        self.tty = bool(getattr(stream, "isatty", lambda: False)())
+        self.wrote = False
+
+    def __call__(self, status: dict, estimate: dict | None, alarm_state: str) -> None:
+        from millsense.daemon.pipeline.status import summary_line
+
+        line = summary_line(estimate, alarm_state, status)
+        if self.tty:
+            self.stream.write("\r" + line + "\x1b[K")
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+        self.wrote = True
+
+    def end(self) -> None:
+        if self.tty and self.wrote:
+            self.stream.write("\n")
+            self.stream.flush()

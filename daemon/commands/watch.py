@@ -1,0 +1,209 @@
+"""`millsense watch`: a Zenoh subscriber showing live estimates, alarms, status and presence.
+
+On a terminal: one refreshing line per machine. Piped, or with `--json`: one
+JSON object per line, `{"key", "kind", "payload"}`, kind being estimate, alarm,
+status, alive or gone, so that scripts and tests can read it.
+
+Zenoh callbacks only put samples on a queue; the main thread prints, so lines
+never interleave and Ctrl-C / SIGTERM / `--seconds` end it cleanly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import queue
+import signal
+import sys
+import threading
+import time
+from typing import Any
+
+from millsense.daemon.publish.cli_args import add_zenoh_arguments, check_machine, zenoh_settings_from_args
+
+KINDS = ("estimate", "alarm", "status")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--machine", "-m", metavar="ID", default=None, help="only this machine (default: all)")
+    add_zenoh_arguments(parser)
+    parser.add_argument("--json", action="store_true", help="JSON lines even on a terminal")
+    parser.add_argument("--seconds", type=float, default=None, metavar="N", help="stop after N seconds")
+
+
+def run(args: argparse.Namespace) -> int:
+    from millsense.daemon.publish.session import ZenohConfigError, ZenohUnavailable, open_session
+
+    if check_machine(args.machine, "millsense watch"):
+        return 2
+    if args.seconds is not None and not (args.seconds > 0 and math.isfinite(args.seconds)):
+        print("millsense watch: error: --seconds must be a positive number", file=sys.stderr)
+        return 2
+
+    stop = threading.Event()
+    _install_signal_handlers(stop)
+    try:
+        session = open_session(
+            zenoh_settings_from_args(args),
+            retry_for_s=None if args.seconds is None else args.seconds,
+            stop=stop,
+            on_waiting=lambda event, f: print(
+                f"millsense watch: waiting for a Zenoh router at {', '.join(f['connect']) or '(scouting)'} ({f['error']})",
+                file=sys.stderr,
+            ),
+        )
+    except (ZenohUnavailable, ZenohConfigError) as exc:
+        print(f"millsense watch: error: {exc}", file=sys.stderr)
+        return 1
+
+    inbox: queue.SimpleQueue[tuple[str, str, Any]] = queue.SimpleQueue()
+    machine = args.machine or "*"
+    as_json = args.json or not sys.stdout.isatty()
+    entities = []
+    try:
+        for kind in KINDS:
+            entities.append(session.declare_subscriber(f"millsense/{machine}/{kind}", _on_sample(inbox, kind)))
+        entities.append(
+            session.liveliness().declare_subscriber(f"millsense/{machine}/alive", _on_alive(inbox), history=True)
+        )
+        view = _JsonView() if as_json else _TtyView()
+        deadline = None if args.seconds is None else time.monotonic() + args.seconds
+        try:
+            while not stop.is_set():
+                wait = 0.2 if deadline is None else min(0.2, deadline - time.monotonic())
+                if wait <= 0:
+                    break
+                try:
+                    key, kind, payload = inbox.get(timeout=wait)
+                except queue.Empty:
+                    view.tick()
+                    continue
+                view.show(key, kind, payload)
+        except KeyboardInterrupt:
+            pass
+        view.done()
+    finally:
+        for e in entities:
+            try:
+                e.undeclare()
+            except Exception:  # noqa: BLE001 - closing anyway
+                pass
+        session.close()
+    return 0
+
+
+def _install_signal_handlers(stop: threading.Event) -> None:
+    def handler(_signum: int, _frame: Any) -> None:
+        stop.set()
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, handler)
+        signal.signal(signal.SIGINT, handler)
+
+
+def _decode(sample: Any) -> Any:
+    data = sample.payload.to_bytes()
+    try:
+        return json.loads(data)
+    except (UnicodeDecodeError, ValueError):
+        return {"undecodable": data[:200].decode("utf-8", "replace")}
+
+
+def _on_sample(inbox: queue.SimpleQueue, kind: str):
+    def callback(sample: Any) -> None:
+        inbox.put((str(sample.key_expr), kind, _decode(sample)))
+
+    return callback
+
+
+def _on_alive(inbox: queue.SimpleQueue):
+    import zenoh
+
+    def callback(sample: Any) -> None:
+        key = str(sample.key_expr)
+        kind = "alive" if sample.kind == zenoh.SampleKind.PUT else "gone"
+        inbox.put((key, kind, {"machine": _machine_of(key)}))
+
+    return callback
+
+
+def _machine_of(key: str) -> str:
+    parts = key.split("/")
+    return parts[1] if len(parts) > 2 else key
+
+
+class _JsonView:
+    def show(self, key: str, kind: str, payload: Any) -> None:
+        sys.stdout.write(json.dumps({"key": key, "kind": kind, "payload": payload}) + "\n")
+        sys.stdout.flush()
+
+    def tick(self) -> None:
+        pass
+
+    def done(self) -> None:
+        pass
+
+
+def _num(value: Any, fmt: str) -> str:
+    return format(value, fmt) if isinstance(value, (int, float)) and not isinstance(value, bool) else "–"
+
+
+class _TtyView:
+    """One line per machine, redrawn in place at most 5 times a second."""
+
+    def __init__(self) -> None:
+        self.machines: dict[str, dict[str, Any]] = {}
+        self.drawn = 0
+        self.last_draw = 0.0
+        self.dirty = False
+
+    def show(self, key: str, kind: str, payload: Any) -> None:
+        m = self.machines.setdefault(_machine_of(key), {"alive": None})
+        if kind in ("alive", "gone"):
+            m["alive"] = kind == "alive"
+        else:
+            m[kind] = payload if isinstance(payload, dict) else {}
+        self.dirty = True
+        self.tick()
+
+    def tick(self) -> None:
+        now = time.monotonic()
+        if self.dirty and now - self.last_draw >= 0.2:
+            self._draw()
+            self.last_draw = now
+            self.dirty = False
+
+    def done(self) -> None:
+        if self.dirty:
+            self._draw()
+        sys.stdout.write("\n" if self.drawn else "no millsense publications seen\n")
+        sys.stdout.flush()
+
+    def _draw(self) -> None:
+        out = []
+        if self.drawn:
+            out.append(f"\x1b[{self.drawn}F")  # back to the first line drawn last time
+        for name in sorted(self.machines):
+            out.append("\x1b[2K" + self._line(name, self.machines[name]) + "\n")
+        self.drawn = len(self.machines)
+        sys.stdout.write("".join(out))
+        sys.stdout.flush()
+
+    @staticmethod
+    def _line(name: str, m: dict[str, Any]) -> str:
+        e = m.get("estimate", {})
+        a = m.get("alarm", {})
+        s = m.get("status", {})
+        presence = {True: "alive", False: "GONE", None: "?"}[m["alive"]]
+        level = a.get("level", "none")
+        alarm = f"{level} {a.get('quantity', '')} {_num(a.get('value'), '.1f')}".strip() if level not in ("none", "clear") else level
+        if a.get("interlock"):
+            alarm += f" [{a['interlock']}]"
+        return (
+            f"{name:<12} {presence:<5} {_num(e.get('spindle_rpm'), '6.0f')} rpm  "
+            f"T {_num(e.get('torque_nm'), '6.2f')}±{_num(e.get('torque_sigma_nm'), '.2f')} N·m  "
+            f"F {_num(e.get('force_n'), '7.1f')} N  "
+            f"ae {_num(e.get('radial_depth_mm'), '.2f')} ap {_num(e.get('axial_depth_mm'), '.2f')} mm "
+            f"({e.get('depth_status', '–')})  alarm: {alarm}  status: {s.get('state', '–')}"
+        )

@@ -1,0 +1,361 @@
+"""The pydantic model of the millsense TOML file (interfaces.md, "Configuration file").
+
+Field names are the TOML keys, units are in the names, every model forbids
+unknown keys (a typo must fail at start, not silently take a default) and is
+strict (``flutes = "2"`` or ``flutes = 2.5`` is refused rather than coerced).
+A section left out takes all its defaults; an alarm limit left out is an alarm
+not armed.
+
+Checks inside one section live here (they can see only that section) and report
+*every* problem they find at once through `problems_error`; checks across
+sections, the calibration file and the DAQ descriptor are in `config_checks`.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from typing import Annotated, Any, Literal
+
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, SecretStr, model_validator
+from pydantic_core import PydanticCustomError
+
+MACHINE_PATTERN = r"^[A-Za-z0-9_-]+$"
+CHANNEL_NAME_PATTERN = r"^[A-Za-z0-9_]{1,8}$"  # daq-protocol.md: ≤ 8 ASCII letters, digits, '_'
+CF_RANGE = (0.9, 1.5)  # [P] found 1.03–1.11; √(1+r1²) for r1 ≤ 1.1 stays below 1.5
+TRANSPORTS = ("serial", "tcp", "modbus-tcp", "modbus-rtu", "sim")
+
+# Zenoh endpoints: <protocol>/<address>[?metadata][#config]
+_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+_ENDPOINT_RE = re.compile(r"^(?P<proto>[a-z][a-z0-9-]*)/(?P<addr>[^?#]+)(?P<rest>[?#].*)?$")
+_HOST_PORT_RE = re.compile(r"^(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+):(?P<port>[0-9]{1,5})$")
+
+
+def problems_error(problems: list[tuple[str, str]]) -> PydanticCustomError:
+    """One pydantic error carrying several `(key, "what is wrong (expected)")` problems.
+
+    A validator can raise only one error; this keeps all of a section's
+    problems, and `config_errors` expands them under the section's location.
+    """
+    return PydanticCustomError("millsense_problems", "{count} problem(s)", {"count": len(problems), "problems": problems})
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, frozen=False)
+
+
+# --------------------------------------------------------------------------- [daq]
+class DaqSettings(_Section):
+    """`[daq]`: which transport reaches the DAQ, and the DAQ's analog filter.
+
+    serial / modbus-rtu need `port`; tcp / modbus-tcp need `host` and `tcp_port`;
+    sim takes `scenario` (default "step"). Keys of other transports may be
+    present and are ignored, as in the interfaces.md example.
+    """
+
+    transport: Literal["serial", "tcp", "modbus-tcp", "modbus-rtu", "sim"]
+    port: str | None = None
+    baudrate: int = Field(921600, gt=0)
+    host: str | None = None
+    tcp_port: int | None = Field(None, ge=1, le=65535)
+    unit: int = Field(1, ge=0, le=247)
+    scenario: str | None = None
+    poll_ms: int = Field(20, ge=1, le=10000)
+    filter_cutoff_hz: float = Field(200.0, ge=0)  # 0 = no anti-alias filter to divide out
+    filter_order: int = Field(2, ge=1, le=8)
+
+    @model_validator(mode="after")
+    def _transport_needs(self) -> DaqSettings:
+        problems: list[tuple[str, str]] = []
+        t = self.transport
+        if t in ("serial", "modbus-rtu") and not self.port:
+            problems.append(("port", f'missing (transport "{t}" needs a serial device, e.g. "/dev/ttyACM0")'))
+        if t in ("tcp", "modbus-tcp"):
+            if not self.host:
+                problems.append(("host", f'missing (transport "{t}" needs the DAQ\'s host name or IP address)'))
+            if self.tcp_port is None:
+                problems.append(("tcp_port", f"missing (transport \"{t}\" needs a TCP port, 1–65535{', usually 502' if t == 'modbus-tcp' else ''})"))
+        if problems:
+            raise problems_error(problems)
+        if t == "sim" and not self.scenario:
+            self.scenario = "step"
+        return self
+
+
+# --------------------------------------------------------------------------- [channels.*]
+def _nonzero(value: float) -> float:
+    if value == 0:
+        raise ValueError("must not be 0 (a non-zero number: physical = (raw - offset) * scale)")
+    return value
+
+
+class ChannelSettings(_Section):
+    """`[channels.NAME]`: physical = (raw − offset) · scale, in the unit of the channel's kind.
+
+    `counts_per_rev` is for an encoder channel (counts per spindle revolution).
+    """
+
+    scale: Annotated[float, AfterValidator(_nonzero)] = 1.0
+    offset: float = 0.0
+    counts_per_rev: int | None = Field(None, ge=1)
+
+
+ChannelName = Annotated[str, Field(pattern=CHANNEL_NAME_PATTERN)]
+
+
+# --------------------------------------------------------------------------- [motor], [[gears]]
+class MotorSettings(_Section):
+    """`[motor]`: the spindle motor's winding and stator resistance per phase ([P] Table 2)."""
+
+    winding: Literal["delta", "wye"]
+    stator_resistance_ohm: float = Field(gt=0)
+    pole_pairs: int | None = Field(None, ge=1)  # with it the gear follows from f_e / spindle speed
+
+
+class GearSettings(_Section):
+    """`[[gears]]`: one gear, friction referred to the spindle ([P] eq. 13).
+
+    `friction_torque_nm` (T_f') and `viscous_nms` (B') default to 0 until
+    `millsense calibrate` fits them; the calibration file overrides them by name.
+    """
+
+    name: str = Field(min_length=1)
+    ratio: float = Field(gt=0)  # motor speed / spindle speed
+    max_spindle_rpm: float = Field(gt=0)
+    friction_torque_nm: float = Field(0.0, ge=0)
+    viscous_nms: float = Field(0.0, ge=0)
+
+
+def _check_gears(gears: list[GearSettings]) -> list[GearSettings]:
+    problems: list[tuple[str, str]] = []
+    seen: dict[str, int] = {}
+    for i, gear in enumerate(gears):
+        if gear.name in seen:
+            problems.append((f"[{i}].name", f"{json.dumps(gear.name)} is already the name of gears[{seen[gear.name]}] (unique gear names)"))
+        seen.setdefault(gear.name, i)
+        if i and gear.max_spindle_rpm <= gears[i - 1].max_spindle_rpm:
+            problems.append(
+                (
+                    f"[{i}].max_spindle_rpm",
+                    f"{gear.max_spindle_rpm:g} is not above the previous gear's {gears[i - 1].max_spindle_rpm:g} "
+                    "(strictly increasing: list gears lowest max_spindle_rpm first)",
+                )
+            )
+    if problems:
+        raise problems_error(problems)
+    return gears
+
+
+GearList = Annotated[list[GearSettings], Field(min_length=1), AfterValidator(_check_gears)]
+
+
+# --------------------------------------------------------------------------- [tool], [material], [cut], [depth]
+def _cf_value(value: Any) -> Any:
+    lo, hi = CF_RANGE
+    expected = f'a number from {lo} to {hi}, or "model"'
+    if value == "model" and isinstance(value, str):
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{json.dumps(value) if isinstance(value, str) else type(value).__name__} is neither a number nor \"model\" ({expected})")
+    if not lo <= float(value) <= hi:
+        raise ValueError(f"{value!r} is outside {lo}–{hi} ({expected}; [P] measured 1.03–1.11)")
+    return float(value)
+
+
+class ToolSettings(_Section):
+    """`[tool]`: the end mill. `cf` is C_f of [P] eq. (18), or "model" to follow r_1(t_a)."""
+
+    diameter_mm: float = Field(gt=0)
+    flutes: int = Field(ge=1)
+    cf: Annotated[float | Literal["model"], BeforeValidator(_cf_value)] = 1.075
+    helix_deg: float | None = Field(None, gt=0, lt=90)
+
+
+class MaterialSettings(_Section):
+    """`[material]`: [D] eqs. (8)–(9) power laws, t_a in mm, K_s in N/mm². Defaults: [D] Table 2 (SB40)."""
+
+    ks: float = Field(646.08, gt=0)
+    ks_exp: float = -0.4362
+    r1: float = Field(0.2201, gt=0)
+    r1_exp: float = -0.2667
+    r2: float = Field(0.1244, ge=0)
+    r2_exp: float = 0.1702
+
+
+class CutSettings(_Section):
+    """`[cut]`: milling mode, programmed feed, and a known depth if there is one."""
+
+    mode: Literal["down", "up", "slot"] = "slot"
+    feed_mm_min: float | None = Field(None, gt=0)  # used when the DAQ has no feed_rate channel
+    axial_depth_mm: float | None = Field(None, gt=0)
+    radial_depth_mm: float | None = Field(None, gt=0)
+
+
+class DepthSettings(_Section):
+    """`[depth]`: how the depth of cut is found ([D] §3) and when a revolution is an air cut."""
+
+    method: Literal["auto", "dynamometer", "feed-drive", "torque-only", "off"] = "auto"
+    min_torque_nm: float = Field(0.5, ge=0)
+
+
+class FeedForceSettings(_Section):
+    """`[feed_force] CHANNEL = {...}`: force_feed_n = newton_per_amp · current_a − friction_n."""
+
+    newton_per_amp: float = Field(gt=0)
+    friction_n: float = Field(0.0, ge=0)
+
+
+# --------------------------------------------------------------------------- [alarms], [interlock]
+_PAIRS = (("torque_warn_nm", "torque_limit_nm"), ("force_warn_n", "force_limit_n"), ("power_warn_w", "power_limit_w"))
+
+
+class AlarmSettings(_Section):
+    """`[alarms]`: every limit is optional; one left out is not armed.
+
+    Additive keys (not in the first interfaces.md example):
+
+    - `hysteresis_pct` (default 10): a level is left only below
+      `limit · (1 − hysteresis_pct/100)`, so a cut hovering at a limit does not chatter;
+    - `breakage_drop_pct` (default 50, 0 = off): a revolution-to-revolution torque
+      drop (or the equal jump) this large while cutting is a `tool_breakage`;
+    - `breakage_min_torque_nm` (default 1.0): breakage is only judged when the
+      earlier revolution cut with at least this torque.
+    """
+
+    torque_warn_nm: float | None = Field(None, gt=0)
+    torque_limit_nm: float | None = Field(None, gt=0)
+    force_warn_n: float | None = Field(None, gt=0)
+    force_limit_n: float | None = Field(None, gt=0)
+    power_warn_w: float | None = Field(None, gt=0)
+    power_limit_w: float | None = Field(None, gt=0)
+    revolutions: int = Field(2, ge=1)
+    crash_power_w: float | None = Field(None, gt=0)
+    hysteresis_pct: float = Field(10.0, ge=0, lt=100)
+    breakage_drop_pct: float = Field(50.0, ge=0, lt=100)
+    breakage_min_torque_nm: float = Field(1.0, ge=0)
+
+    @model_validator(mode="after")
+    def _warn_below_limit(self) -> AlarmSettings:
+        problems = []
+        for warn, limit in _PAIRS:
+            w, lim = getattr(self, warn), getattr(self, limit)
+            if w is not None and lim is not None and w >= lim:
+                problems.append((warn, f"{w:g} is not below {limit} = {lim:g} (a warning level under the limit)"))
+        if problems:
+            raise problems_error(problems)
+        return self
+
+
+class InterlockSettings(_Section):
+    """`[interlock]`: feed hold on overload, DAQ watchdog fed by heartbeats.
+
+    Security keys (additive): `reset` says who may clear a latched feed hold over
+    Zenoh — "open" (anyone who can reach the queryable: fine behind the TLS/ACL
+    of config/zenoh-tls.json5), "token" (the query payload must carry the
+    secret `reset_token`, or the content of `reset_token_file`, read at load
+    and kept out of logs, `repr` and the `config` queryable), or "off" (clear it
+    at the machine and restart). A token given with a policy other than "token"
+    is refused: it would protect nothing.
+    """
+
+    enabled: bool = False
+    heartbeat_ms: int = Field(100, ge=10, le=60000)
+    watchdog_ms: int = Field(500, ge=10, le=600000)
+    reset: Literal["open", "token", "off"] = "open"
+    reset_token: SecretStr | None = None
+    reset_token_file: str | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> InterlockSettings:
+        problems = []
+        if self.watchdog_ms <= self.heartbeat_ms:
+            problems.append(
+                ("watchdog_ms", f"{self.watchdog_ms} is not above heartbeat_ms = {self.heartbeat_ms} (a watchdog longer than the heartbeat period, e.g. 5×)")
+            )
+        token = self.reset_token.get_secret_value() if self.reset_token is not None else ""
+        if token and self.reset_token_file:
+            problems.append(("reset_token", "given together with reset_token_file (one of the two)"))
+        if self.reset != "token":
+            for key in ("reset_token", "reset_token_file"):
+                if getattr(self, key):
+                    problems.append((key, f'set but reset = "{self.reset}" ignores it (reset = "token" to require it)'))
+        elif not token and not self.reset_token_file:
+            problems.append(("reset_token", 'missing: reset = "token" needs a secret (reset_token or reset_token_file)'))
+        if problems:
+            raise problems_error(problems)
+        return self
+
+    def token(self) -> str:
+        """The reset secret as plain text ("" if none); the only way to read it."""
+        return self.reset_token.get_secret_value() if self.reset_token is not None else ""
+
+
+# --------------------------------------------------------------------------- [zenoh], [log]
+def endpoint_problem(endpoint: str) -> str | None:
+    """Why `endpoint` is not a Zenoh endpoint like `tcp/10.0.0.5:7447`, or None if it is."""
+    m = _ENDPOINT_RE.match(endpoint)
+    expected = "like tcp/10.0.0.5:7447, udp/…, tls/host:7447, quic/…, ws/…, unixsock-stream/PATH"
+    shown = json.dumps(endpoint)
+    if not m:
+        return f"{shown} is not an endpoint ({expected})"
+    proto, addr = m.group("proto"), m.group("addr")
+    if proto == "unixsock-stream":
+        return None if addr else f"{shown} has no socket path ({expected})"
+    if proto not in _IP_PROTOCOLS:
+        return f"{shown}: unknown protocol {json.dumps(proto)} ({expected})"
+    hp = _HOST_PORT_RE.match(addr)
+    if not hp:
+        return f"{shown}: {json.dumps(addr)} is not host:port ({expected}; IPv6 in brackets)"
+    if int(hp.group("port")) > 65535:
+        return f"{shown}: port {hp.group('port')} is above 65535 ({expected})"
+    return None
+
+
+def _check_endpoints(endpoints: list[str]) -> list[str]:
+    problems = [(f"[{i}]", p) for i, e in enumerate(endpoints) if (p := endpoint_problem(e))]
+    if problems:
+        raise problems_error(problems)
+    return endpoints
+
+
+Endpoints = Annotated[list[str], AfterValidator(_check_endpoints)]
+
+
+class ZenohSettings(_Section):
+    """`[zenoh]`: session mode and endpoints; `config_file` is a Zenoh JSON5 (TLS, auth, ACL)
+    merged under these keys. `multicast_scouting` (additive, default true) — tests and
+    TLS deployments turn it off and give explicit endpoints."""
+
+    mode: Literal["peer", "client"] = "peer"
+    connect: Endpoints = Field(default_factory=list)
+    listen: Endpoints = Field(default_factory=list)
+    multicast_scouting: bool = True
+    config_file: str = ""
+
+
+class LogSettings(_Section):
+    """`[log]`: level, and format "auto" (console on a TTY, JSON otherwise), "json" or "console"."""
+
+    level: Literal["debug", "info", "warning", "error", "critical"] = "info"
+    format: Literal["auto", "json", "console"] = "auto"
+
+
+# --------------------------------------------------------------------------- the file
+class Settings(_Section):
+    """The whole configuration file. Required: machine, [daq], [channels.*], [motor], [[gears]], [tool]."""
+
+    machine: str = Field(pattern=MACHINE_PATTERN, max_length=64)
+    calibration: str = ""
+    daq: DaqSettings
+    channels: dict[ChannelName, ChannelSettings] = Field(min_length=1)
+    motor: MotorSettings
+    gears: GearList
+    tool: ToolSettings
+    material: MaterialSettings = Field(default_factory=MaterialSettings)
+    cut: CutSettings = Field(default_factory=CutSettings)
+    depth: DepthSettings = Field(default_factory=DepthSettings)
+    feed_force: dict[ChannelName, FeedForceSettings] = Field(default_factory=dict)
+    alarms: AlarmSettings = Field(default_factory=AlarmSettings)
+    interlock: InterlockSettings = Field(default_factory=InterlockSettings)
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    log: LogSettings = Field(default_factory=LogSettings)

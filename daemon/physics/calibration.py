@@ -1,0 +1,77 @@
+"""Least-squares calibration of friction and C_f ([P] §4.2, Table 2; eq. 13, eq. 18).
+
+Friction, per gear: with the cutting torque known (0 in an air cut, a
+dynamometer's value in a trial cut), eq. (13) rearranges into a straight line in
+the spindle speed,
+
+    P_g/ω_sp − T_c = T_f' + B'·ω_sp,
+
+fitted by linear least squares on ``[1, ω_sp]``. At least two distinct speeds are
+needed for a line. C_f: eq. (18) is a line through the origin, ``F_res = C_f·(T_c/R)``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from millsense.daemon.physics.force import tangential_force_n
+
+
+class FrictionFit(NamedTuple):
+    friction_torque_nm: float  # T_f', referred to the spindle
+    viscous_nms: float  # B', N·m·s/rad, referred to the spindle
+    r2: float  # coefficient of determination (nan if the load does not vary)
+    residuals_nm: np.ndarray  # measured − fitted load torque, per sample
+    samples: int
+
+
+class CfFit(NamedTuple):
+    cf: float
+    residuals_n: np.ndarray  # measured − fitted resultant force, per sample
+    r2: float
+    samples: int
+
+
+def _finite_pair(x, y, what: str) -> tuple[np.ndarray, np.ndarray]:
+    x, y = np.asarray(x, dtype=float).ravel(), np.asarray(y, dtype=float).ravel()
+    if x.shape != y.shape:
+        raise ValueError(f"{what}: {x.size} speeds/torques but {y.size} values; they must pair up")
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        raise ValueError(f"{what}: inputs contain nan or inf")
+    return x, y
+
+
+def _r2(y: np.ndarray, residuals: np.ndarray) -> float:
+    ss_tot = float(np.sum((y - y.mean()) ** 2))
+    return 1.0 - float(np.sum(residuals**2)) / ss_tot if ss_tot > 0.0 else float("nan")
+
+
+def fit_friction(spindle_omega_rad_s, load_torque_nm) -> FrictionFit:
+    """T_f' and B' from ``load_torque_nm = P_g/ω_sp − T_c`` at several spindle speeds ([P] eq. 13).
+
+    Raises ValueError unless there are at least two distinct speeds (relative spread > 1e-6).
+    """
+    omega, load = _finite_pair(spindle_omega_rad_s, load_torque_nm, "fit_friction")
+    if omega.size < 2 or np.ptp(omega) <= 1e-6 * max(float(np.max(np.abs(omega))), 1e-12):
+        raise ValueError("fit_friction: needs samples at two or more distinct spindle speeds to fit T_f' + B'·ω")
+    design = np.column_stack([np.ones_like(omega), omega])
+    (t_f, b), *_ = np.linalg.lstsq(design, load, rcond=None)
+    residuals = load - design @ np.array([t_f, b])
+    return FrictionFit(float(t_f), float(b), _r2(load, residuals), residuals, int(omega.size))
+
+
+def fit_cf(mean_resultant_force_n, torque_nm, tool_radius_mm: float) -> CfFit:
+    """C_f of eq. (18) by least squares through the origin: ``F_res ≈ C_f·T_c/R``.
+
+    r² is the usual centred one (1 − SS_res/SS_tot), nan when the forces do not vary.
+    """
+    force, torque = _finite_pair(mean_resultant_force_n, torque_nm, "fit_cf")
+    x = tangential_force_n(torque, tool_radius_mm)
+    sxx = float(np.dot(x, x))
+    if sxx <= 0.0:
+        raise ValueError("fit_cf: needs at least one revolution with non-zero cutting torque")
+    cf = float(np.dot(x, force)) / sxx
+    residuals = force - cf * x
+    return CfFit(cf, residuals, _r2(force, residuals), int(force.size))

@@ -1,0 +1,38 @@
+"""Resultant cutting force from cutting torque ([P] §2.2, eqs. 14–18).
+
+For one tooth in cut, ``F_T = K_s·a·S_t·sin φ`` and ``F_R = r₁·F_T`` (eq. 14), so the
+in-plane resultant is ``√(1 + r₁²)·F_T`` at every instant (eq. 17) and ``T_c = R·F_T``
+(eq. 16). Hence eq. (18): ``F_res = C_f·T_c/R``, with F_res the revolution mean of
+the instantaneous |(F_x, F_y)|. [P] fitted C_f = 1.03–1.11 (mean 1.075);
+``cf_model`` gives it from r₁(t_a) of [D] eq. (9) instead. That factor is exact
+only while one tooth at a time is in cut (a 2-flute slot); with overlapping teeth
+the true mean resultant is smaller.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from millsense.daemon.physics.milling import Material
+
+
+def tangential_force_n(torque_nm, tool_radius_mm):
+    """Mean tangential force, N: ``F_T = T_c/R`` ([P] eq. 16), R in metres."""
+    return np.asarray(torque_nm, dtype=float) / (np.asarray(tool_radius_mm, dtype=float) * 1e-3)
+
+
+def resultant_force_n(torque_nm, tool_radius_mm, cf):
+    """Mean in-plane resultant force, N: ``F_res = C_f·T_c/R`` ([P] eq. 18), R in metres."""
+    return np.asarray(cf, dtype=float) * tangential_force_n(torque_nm, tool_radius_mm)
+
+
+def cf_model(average_chip_thickness_mm, r1, r1_exp):
+    """C_f = √(1 + r₁²) with r₁ = k₁·t_a^p₁ ([P] eq. 17 with [D] eq. 9)."""
+    r1_t = r1 * np.asarray(average_chip_thickness_mm, dtype=float) ** r1_exp
+    return np.sqrt(1.0 + r1_t**2)
+
+
+def slot_cf(feed_per_tooth_mm, material: Material):
+    """C_f of a slot cut: t_a = 2·t_c/π ([D] eq. 8 over [0, π])."""
+    t_a = 2.0 * np.asarray(feed_per_tooth_mm, dtype=float) / np.pi
+    return cf_model(t_a, material.r1, material.r1_exp)

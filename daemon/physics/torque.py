@@ -1,0 +1,75 @@
+"""Cutting torque at the spindle from air-gap power ([P] eqs. 10–13, 20).
+
+[P] eq. (13), steady state, with the friction terms referred to the spindle:
+
+    T_c = P_g/ω_sp − T_f' − B'·ω_sp,    T_f' = T_f·g,   B' = B_m·g² + B_sp
+
+``P_g/ω_sp`` stands for ``T_e·g`` with ``T_e = P_g/ω_s ≈ P_g/ω_m`` (eqs. 10, 12).
+Eq. (10) is exact with the synchronous speed ω_s; eq. (12) drops the slip
+(< 5 %). When the electrical frequency is measured, ``power_omega_rad_s`` =
+ω_s referred to the spindle removes that slip error.
+
+Gear ratio g = ω_motor/ω_spindle; all speeds in rad/s.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+
+def cutting_torque_nm(p_gap_w, spindle_omega_rad_s, friction_torque_nm, viscous_nms, power_omega_rad_s=None):
+    """Cutting torque at the spindle, N·m ([P] eq. 13); nan where the dividing speed is not > 0.
+
+    ``power_omega_rad_s``: the speed P_g is divided by (default ω_sp; pass
+    ``synchronous_spindle_omega_rad_s(f_e, ...)`` for eq. 10's exact ω_s).
+    """
+    omega_sp = np.asarray(spindle_omega_rad_s, dtype=float)
+    omega_p = omega_sp if power_omega_rad_s is None else np.asarray(power_omega_rad_s, dtype=float)
+    safe = np.where(omega_p > 0.0, omega_p, np.nan)
+    return np.asarray(p_gap_w, dtype=float) / safe - friction_torque_nm - viscous_nms * omega_sp
+
+
+def synchronous_spindle_omega_rad_s(electrical_frequency_hz, pole_pairs: int, gear_ratio: float):
+    """Synchronous speed referred to the spindle, rad/s: ``2π·f_e/pole_pairs/g`` ([P] eq. 5)."""
+    return 2.0 * np.pi * np.asarray(electrical_frequency_hz, dtype=float) / pole_pairs / gear_ratio
+
+
+def torque_sigma_nm(power_sigma_w, spindle_omega_rad_s):
+    """Torque uncertainty from power noise, N·m: static sensitivity ΔP_g/ΔT_c = ω_sp ([P] eq. 20).
+
+    Worst at low spindle speed: the same watt of noise is more torque.
+    """
+    omega = np.asarray(spindle_omega_rad_s, dtype=float)
+    return np.asarray(power_sigma_w, dtype=float) / np.where(omega > 0.0, omega, np.nan)
+
+
+def rpm_to_rad_s(rpm):
+    """Speed in rev/min to rad/s."""
+    return np.asarray(rpm, dtype=float) * (2.0 * np.pi / 60.0)
+
+
+def select_gear(
+    spindle_rpm: float,
+    max_spindle_rpm: Sequence[float],
+    ratios: Sequence[float],
+    motor_to_spindle_ratio: float | None = None,
+) -> int:
+    """Index of the engaged gear.
+
+    With a measured motor/spindle speed ratio (motor-speed channel, or f_e and the
+    pole pairs): the gear whose ratio is nearest in log — the only certain way, since
+    both gears can run at the change-over speed. Otherwise by spindle speed: the
+    gear with the lowest ``max_spindle_rpm`` ≥ |rpm|, or the highest if above all.
+    """
+    if len(max_spindle_rpm) != len(ratios) or not ratios:
+        raise ValueError("select_gear: need one max_spindle_rpm per gear ratio, at least one gear")
+    if motor_to_spindle_ratio is not None and math.isfinite(motor_to_spindle_ratio) and motor_to_spindle_ratio > 0:
+        distance = np.abs(np.log(np.asarray(ratios, dtype=float) / motor_to_spindle_ratio))
+        return int(np.argmin(distance))
+    maxima = np.asarray(max_spindle_rpm, dtype=float)
+    order = np.argsort(maxima, kind="stable")
+    fits = np.nonzero(maxima[order] >= abs(spindle_rpm))[0]
+    return int(order[fits[0]] if fits.size else order[-1])

@@ -1,0 +1,283 @@
+"""Alarm decisions: pure state machines, no I/O, no clock, no threads.
+
+Why pure: the same engine runs live (runner) and on captures (replay), and the
+rules that stop a machine must be testable revolution by revolution.
+
+Four kinds of alarm, each a state; every *change* of state is one
+`AlarmEvent` (→ one `alarm` payload of interfaces.md):
+
+- **Per-revolution thresholds** on `torque_nm`, `force_n` and `p_gap_w`
+  (`[alarms] *_warn_*` → `warning`, `*_limit_*` → `overload`). A level is
+  entered after `revolutions` consecutive revolutions at or above it and left
+  after `revolutions` consecutive revolutions below its hysteresis band
+  (`limit · (1 − hysteresis_pct/100)`); so a single noisy revolution neither
+  raises nor clears. Leaving every level yields `clear`. The power limit is
+  on air-gap power (what the motor turns into torque), like the crash trip.
+- **Tool breakage**: a sudden relative change of torque between consecutive
+  valid revolutions while the earlier one was cutting with at least
+  `breakage_min_torque_nm`: a drop of `breakage_drop_pct` or more, or the
+  equally large jump in the other direction (a ratio of `1/(1 − drop)`, i.e.
+  the same step in log-torque). Latched until `reset()`. Not armed unless
+  `breakage_drop_pct` is set (like every limit left out).
+- **Crash** (sample level): the smoothed instantaneous air-gap power of a
+  block passing `crash_power_w`, found on the block as it arrives, without
+  waiting for the revolution to close. Latched until `reset()`.
+- **DAQ lost**: the link went down or samples stopped; `clear` when they flow.
+
+A damaged revolution (`valid` false) never raises or clears an alarm and does
+not break a run of consecutive revolutions either: it is skipped. A limit
+left out of the config (None) is an alarm not armed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+# Levels that ask the interlock for feed hold.
+TRIP_LEVELS = frozenset({"overload", "crash", "tool_breakage"})
+LEVELS = ("warning", "overload", "crash", "tool_breakage", "daq_lost", "clear")
+_RANK_NAMES = {1: "warning", 2: "overload"}
+
+DEFAULT_HYSTERESIS_PCT = 5.0
+DEFAULT_BREAKAGE_MIN_TORQUE_NM = 1.0
+
+
+@dataclass(frozen=True)
+class AlarmEvent:
+    """One alarm state change, before the runner adds machine, time and interlock."""
+
+    level: str  # one of LEVELS
+    quantity: str  # "torque_nm", "force_n", "p_gap_w", "daq"
+    value: float | None
+    limit: float | None
+    rev: int | None = None  # revolution that decided it, if any
+    seq: int | None = None  # sample (unwrapped index) that decided it, if known
+
+    @property
+    def trips(self) -> bool:
+        """Does this event ask for feed hold?"""
+        return self.level in TRIP_LEVELS
+
+
+def alarm_payload(event: AlarmEvent, machine: str, t: float | None, interlock: str | None) -> dict[str, Any]:
+    """The `alarm` payload of interfaces.md, keys in the documented order."""
+    return {
+        "machine": machine,
+        "t": t,
+        "rev": event.rev,
+        "level": event.level,
+        "quantity": event.quantity,
+        "value": event.value,
+        "limit": event.limit,
+        "interlock": interlock,
+    }
+
+
+def _setting(section: Any, name: str, default: float | None = None) -> float | None:
+    value = getattr(section, name, None) if section is not None else None
+    return default if value is None else float(value)
+
+
+def _finite(value: Any) -> float | None:
+    if value is None:
+        return None
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
+
+
+class ThresholdTrack:
+    """warning / overload state of one quantity, debounced over N revolutions."""
+
+    def __init__(self, quantity: str, warn: float | None, limit: float | None, revolutions: int, hysteresis_pct: float):
+        self.quantity = quantity
+        self._limits = {r: lim for r, lim in ((1, warn), (2, limit)) if lim is not None}
+        self._n = max(1, int(revolutions))
+        self._keep = 1.0 - hysteresis_pct / 100.0
+        self.rank = 0
+        self._above = {r: 0 for r in self._limits}
+        self._below = 0
+
+    @property
+    def armed(self) -> bool:
+        return bool(self._limits)
+
+    @property
+    def level(self) -> str | None:
+        return _RANK_NAMES.get(self.rank)
+
+    def _candidate(self, value: float) -> int:
+        """The level this one revolution argues for, hysteresis applied to held levels."""
+        up = max((r for r, lim in self._limits.items() if value > lim), default=0)
+        hold = max((r for r, lim in self._limits.items() if r <= self.rank and value >= lim * self._keep), default=0)
+        return max(up, hold)
+
+    def update(self, value: float, rev: int | None, seq: int | None) -> AlarmEvent | None:
+        if not self._limits:
+            return None
+        cand = self._candidate(value)
+        for r in self._above:
+            self._above[r] = self._above[r] + 1 if cand >= r else 0
+        self._below = self._below + 1 if cand < self.rank else 0
+        ups = [r for r in self._limits if r > self.rank and self._above[r] >= self._n]
+        if ups:
+            new = max(ups)
+        elif self._below >= self._n:
+            new = cand
+        else:
+            return None
+        old, self.rank, self._below = self.rank, new, 0
+        if new == 0:
+            return AlarmEvent("clear", self.quantity, value, self._limits[old], rev, seq)
+        return AlarmEvent(_RANK_NAMES[new], self.quantity, value, self._limits[new], rev, seq)
+
+
+    def rearm(self) -> AlarmEvent | None:
+        """Back to no level, counters cleared; a `clear` event if a level was active."""
+        old = self.rank
+        self.rank, self._below = 0, 0
+        self._above = {r: 0 for r in self._limits}
+        return AlarmEvent("clear", self.quantity, None, self._limits[old]) if old else None
+
+
+class BreakageTrack:
+    """Sudden torque change between consecutive valid revolutions while cutting."""
+
+    def __init__(self, drop_pct: float | None, min_torque_nm: float):
+        self._drop = 0.0 if drop_pct is None else min(max(drop_pct / 100.0, 0.0), 0.999)
+        self._min_torque_nm = min_torque_nm
+        self._prev: tuple[float, bool] | None = None
+        self.latched = False
+
+    @property
+    def armed(self) -> bool:
+        return self._drop > 0.0
+
+    def update(self, torque_nm: float, cutting: bool, rev: int | None, seq: int | None) -> AlarmEvent | None:
+        prev, self._prev = self._prev, (torque_nm, cutting)
+        if self.latched or not self.armed or prev is None:
+            return None
+        prev_torque_nm, prev_cutting = prev
+        if not prev_cutting or prev_torque_nm < self._min_torque_nm:
+            return None
+        ratio = torque_nm / prev_torque_nm
+        if ratio <= 1.0 - self._drop:
+            limit = prev_torque_nm * (1.0 - self._drop)
+        elif ratio >= 1.0 / (1.0 - self._drop):
+            limit = prev_torque_nm / (1.0 - self._drop)
+        else:
+            return None
+        self.latched = True
+        return AlarmEvent("tool_breakage", "torque_nm", torque_nm, limit, rev, seq)
+
+    def forget(self) -> None:
+        """Forget the previous revolution (after a gap in time it is not 'consecutive')."""
+        self._prev = None
+
+
+class AlarmEngine:
+    """All alarm state of one machine. Not thread-safe: one owner (the estimator thread)."""
+
+    def __init__(self, alarms: Any):
+        n = int(_setting(alarms, "revolutions", 2) or 1)
+        hyst = _setting(alarms, "hysteresis_pct", DEFAULT_HYSTERESIS_PCT)
+        self.tracks = [
+            ThresholdTrack("torque_nm", _setting(alarms, "torque_warn_nm"), _setting(alarms, "torque_limit_nm"), n, hyst),
+            ThresholdTrack("force_n", _setting(alarms, "force_warn_n"), _setting(alarms, "force_limit_n"), n, hyst),
+            ThresholdTrack("p_gap_w", _setting(alarms, "power_warn_w"), _setting(alarms, "power_limit_w"), n, hyst),
+        ]
+        self.breakage = BreakageTrack(
+            _setting(alarms, "breakage_drop_pct"),
+            _setting(alarms, "breakage_min_torque_nm", DEFAULT_BREAKAGE_MIN_TORQUE_NM),
+        )
+        self.crash_power_w = _setting(alarms, "crash_power_w")
+        self.crash_latched = False
+        self.daq_lost = False
+
+    # -- inputs -----------------------------------------------------------
+    def on_revolution(self, est: Mapping[str, Any]) -> list[AlarmEvent]:
+        """One estimate (interfaces.md fields, plus `valid`, `seq_end`)."""
+        if not est.get("valid", True):
+            return []
+        rev, seq = est.get("rev"), est.get("seq_end")
+        events: list[AlarmEvent] = []
+        for track in self.tracks:
+            value = _finite(est.get(track.quantity))
+            if value is not None:
+                ev = track.update(value, rev, seq)
+                if ev is not None:
+                    events.append(ev)
+        torque_nm = _finite(est.get("torque_nm"))
+        if torque_nm is not None:
+            ev = self.breakage.update(torque_nm, bool(est.get("cutting")), rev, seq)
+            if ev is not None:
+                events.append(ev)
+        return events
+
+    def on_power(self, p_gap_w: np.ndarray, first_seq: int) -> list[AlarmEvent]:
+        """Smoothed per-sample air-gap power of one block; `first_seq` = seq of p_gap_w[0]."""
+        if self.crash_power_w is None or self.crash_latched or len(p_gap_w) == 0:
+            return []
+        over = np.asarray(p_gap_w) > self.crash_power_w  # NaN compares False
+        if not over.any():
+            return []
+        i = int(np.argmax(over))
+        self.crash_latched = True
+        return [AlarmEvent("crash", "p_gap_w", float(p_gap_w[i]), self.crash_power_w, None, first_seq + i)]
+
+    def on_daq(self, ok: bool, seq: int | None = None) -> list[AlarmEvent]:
+        """Link/sample flow state; an event only when it changes."""
+        if ok == (not self.daq_lost):
+            return []
+        self.daq_lost = not ok
+        # Revolutions either side of an outage are not consecutive.
+        self.breakage.forget()
+        return [AlarmEvent("clear" if ok else "daq_lost", "daq", None, None, None, seq)]
+
+    def reset(self) -> list[AlarmEvent]:
+        """Operator reset: clears every alarm state and re-arms.
+
+        Threshold levels restart from nothing too, so an overload that is still
+        there after the reset is raised again (and trips again) after
+        `revolutions` revolutions instead of being silently accepted.
+        """
+        events = []
+        for track in self.tracks:
+            ev = track.rearm()
+            if ev is not None:
+                events.append(ev)
+        if self.crash_latched:
+            self.crash_latched = False
+            events.append(AlarmEvent("clear", "p_gap_w", None, self.crash_power_w))
+        if self.breakage.latched:
+            self.breakage.latched = False
+            self.breakage.forget()
+            events.append(AlarmEvent("clear", "torque_nm", None, None))
+        return events
+
+    # -- state ------------------------------------------------------------
+    def active(self) -> dict[str, str]:
+        """Active alarm states by name, for status and the live summary."""
+        out = {t.quantity: t.level for t in self.tracks if t.level is not None}
+        if self.crash_latched:
+            out["crash"] = "crash"
+        if self.breakage.latched:
+            out["tool_breakage"] = "tool_breakage"
+        if self.daq_lost:
+            out["daq"] = "daq_lost"
+        return out
+
+    def summary(self) -> str:
+        """The worst active state in one word ("ok" when none)."""
+        states = set(self.active().values())
+        for level in ("crash", "tool_breakage", "overload", "daq_lost", "warning"):
+            if level in states:
+                return level
+        return "ok"

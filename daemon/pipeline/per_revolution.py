@@ -1,0 +1,212 @@
+"""One closed revolution's means -> the `estimate` payload fields.
+
+The chain of `shared/spec/physics.md`, per revolution: filter gain divided out
+of the measured powers, air-gap power ([P] eq. 11), gear from the measured
+motor/spindle ratio, cutting torque ([P] eq. 13, slip-free power speed),
+its uncertainty ([P] eq. 20), resultant force ([P] eq. 18), feed-drive force,
+feed per tooth, and depths of cut ([D] §3) by the configured method.
+
+Kept apart from the sample-level code in `estimator.py` so that the physics of
+a revolution can be read (and tested) on plain floats.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from millsense.daemon.physics import depth as depth_mod
+from millsense.daemon.physics.force import cf_model, resultant_force_n
+from millsense.daemon.physics.milling import Material, average_chip_thickness_mm, engagement_angles_rad
+from millsense.daemon.physics.power import air_gap_power_w, butterworth_power_gain
+from millsense.daemon.physics.torque import (
+    cutting_torque_nm,
+    select_gear,
+    synchronous_spindle_omega_rad_s,
+    torque_sigma_nm,
+)
+
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class RevolutionMeans:
+    """What the sample-level stage measured over one whole revolution."""
+
+    spindle_rpm: float           # 60 / revolution duration (s)
+    p_in_meas_w: float           # mean measured input power (through the DAQ filter)
+    p_cu_meas_w: float           # mean copper loss from the measured currents
+    p_gap_sq_meas_w2: float      # mean of (p_in - p_cu)^2, measured
+    samples: int
+    f_e_hz: float | None         # electrical frequency from the voltages
+    motor_rpm: float | None      # mean motor speed channel, if any
+    feed_rate_mm_min: float | None   # mean feed-rate magnitude, if channels
+    feed_current_a: float | None     # mean feed-drive current of the configured channel
+    force_x_n: float | None          # dynamometer means
+    force_y_n: float | None
+
+
+@dataclass(frozen=True)
+class Gear:
+    name: str
+    ratio: float
+    max_spindle_rpm: float
+    friction_torque_nm: float
+    viscous_nms: float
+
+
+class RevolutionPhysics:
+    """Configuration-bound physics of one revolution (see module docstring)."""
+
+    def __init__(self, settings, *, has_dynamometer: bool, feed_force: tuple[str, float, float] | None,
+                 friction_zero: bool = False):
+        gears = sorted(settings.gears, key=lambda g: g.max_spindle_rpm)
+        self.gears = tuple(
+            Gear(g.name, float(g.ratio), float(g.max_spindle_rpm),
+                 0.0 if friction_zero else float(g.friction_torque_nm),
+                 0.0 if friction_zero else float(g.viscous_nms))
+            for g in gears
+        )
+        self._max_rpm = tuple(g.max_spindle_rpm for g in self.gears)
+        self._ratios = tuple(g.ratio for g in self.gears)
+        self.cutoff_hz = float(settings.daq.filter_cutoff_hz or 0.0)
+        self.filter_order = int(getattr(settings.daq, "filter_order", 2) or 2)
+        pp = getattr(settings.motor, "pole_pairs", None)
+        self.pole_pairs = int(pp) if pp else None
+        self.tool_radius_mm = float(settings.tool.diameter_mm) / 2.0
+        self.flutes = int(settings.tool.flutes)
+        cf = settings.tool.cf
+        self.cf_model = isinstance(cf, str)
+        self.cf = None if self.cf_model else float(cf)
+        m = settings.material
+        self.material = Material(float(m.ks), float(m.ks_exp), float(m.r1), float(m.r1_exp), float(m.r2), float(m.r2_exp))
+        cut = settings.cut
+        self.mode = str(cut.mode)
+        self.feed_mm_min = None if cut.feed_mm_min is None else float(cut.feed_mm_min)
+        self.known_axial_mm = None if getattr(cut, "axial_depth_mm", None) is None else float(cut.axial_depth_mm)
+        self.known_radial_mm = None if getattr(cut, "radial_depth_mm", None) is None else float(cut.radial_depth_mm)
+        self.min_torque_nm = float(settings.depth.min_torque_nm)
+        self.feed_force = feed_force            # (channel, newton_per_amp, friction_n) or None
+        self.method = self._resolve_method(str(settings.depth.method), has_dynamometer)
+        self.last_gain = 1.0
+
+    def _resolve_method(self, method: str, has_dynamometer: bool) -> str:
+        """`auto` -> the best source of a second force this configuration has ([D] §3)."""
+        if method != "auto":
+            return method
+        if has_dynamometer:
+            return "dynamometer"
+        if self.feed_force is not None:
+            return "feed-drive"
+        if self.known_axial_mm is not None or self.known_radial_mm is not None or self.mode == "slot":
+            return "torque-only"
+        return "none"
+
+    # ---------------------------------------------------------------------------------
+
+    def filter_gain(self, f_e_hz: float | None) -> float:
+        """|H(f_e)|² of the DAQ's anti-alias filter (physics.md §1); 1 with no filter."""
+        if self.cutoff_hz <= 0.0 or f_e_hz is None or not math.isfinite(f_e_hz):
+            return 1.0
+        return float(butterworth_power_gain(f_e_hz, self.cutoff_hz, self.filter_order))
+
+    def gear_index(self, r: RevolutionMeans) -> int:
+        """Gear from the motor/spindle speed ratio when measurable, else by spindle speed."""
+        ratio = None
+        if r.motor_rpm is not None and r.spindle_rpm > 0:
+            ratio = r.motor_rpm / r.spindle_rpm
+        elif self.pole_pairs and r.f_e_hz and r.spindle_rpm > 0:
+            ratio = (60.0 * r.f_e_hz / self.pole_pairs) / r.spindle_rpm   # synchronous speed / spindle
+        return int(select_gear(r.spindle_rpm, self._max_rpm, self._ratios, motor_to_spindle_ratio=ratio))
+
+    def estimate(self, r: RevolutionMeans) -> dict:
+        """All physical fields of one good revolution (payload of interfaces.md)."""
+        gain = self.filter_gain(r.f_e_hz)
+        self.last_gain = gain
+        gi = self.gear_index(r)
+        gear = self.gears[gi]
+        omega = TWO_PI * r.spindle_rpm / 60.0
+        p_in_w = r.p_in_meas_w / gain
+        p_gap_w = float(air_gap_power_w(r.p_in_meas_w, r.p_cu_meas_w, gain))               # eq. (11)
+        power_omega = None
+        if self.pole_pairs and r.f_e_hz:
+            power_omega = float(synchronous_spindle_omega_rad_s(r.f_e_hz, self.pole_pairs, gear.ratio))
+        torque_nm = float(cutting_torque_nm(p_gap_w, omega, gear.friction_torque_nm, gear.viscous_nms,
+                                            power_omega_rad_s=power_omega))              # eq. (13)
+        p_gap_meas = r.p_in_meas_w - r.p_cu_meas_w
+        var_w2 = max(r.p_gap_sq_meas_w2 - p_gap_meas * p_gap_meas, 0.0)
+        sigma_p_w = math.sqrt(var_w2 / max(r.samples, 1)) / gain                           # std. error of the mean
+        sigma_nm = float(torque_sigma_nm(sigma_p_w, power_omega or omega))                  # eq. (20)
+
+        feed_mm_min = r.feed_rate_mm_min if r.feed_rate_mm_min is not None else self.feed_mm_min
+        feed_per_tooth_mm = None
+        if feed_mm_min is not None and r.spindle_rpm > 0:
+            feed_per_tooth_mm = feed_mm_min / (self.flutes * r.spindle_rpm)
+        force_feed_n = None
+        if self.feed_force is not None and r.feed_current_a is not None:
+            _, n_per_a, friction_n = self.feed_force
+            force_feed_n = n_per_a * r.feed_current_a - friction_n
+        tangential_n = torque_nm / (self.tool_radius_mm * 1e-3)
+
+        cutting = torque_nm >= self.min_torque_nm
+        depth = self._depth(torque_nm, tangential_n, force_feed_n, feed_per_tooth_mm, r, cutting)
+        force_n = self._force(torque_nm, feed_per_tooth_mm, depth)
+        return {
+            "spindle_rpm": r.spindle_rpm,
+            "gear": gear.name,
+            "p_in_w": p_in_w,
+            "p_gap_w": p_gap_w,
+            "torque_nm": torque_nm,
+            "torque_sigma_nm": sigma_nm,
+            "force_n": force_n,
+            "force_tangential_n": tangential_n,
+            "force_feed_n": force_feed_n,
+            "feed_per_tooth_mm": feed_per_tooth_mm,
+            "radial_depth_mm": depth.radial_depth_mm,
+            "axial_depth_mm": depth.axial_depth_mm,
+            "depth_status": depth.status,
+            "cutting": bool(cutting),
+        }
+
+    def _depth(self, torque_nm, tangential_n, force_feed_n, t_c, r: RevolutionMeans, cutting: bool):
+        if self.method == "off":
+            return depth_mod.DepthResult(None, None, None)
+        if not cutting:
+            return depth_mod.DepthResult(None, None, depth_mod.AIR_CUT)
+        if t_c is None or not t_c > 0:
+            return depth_mod.DepthResult(None, None, depth_mod.OUT_OF_RANGE)
+        common = dict(feed_per_tooth_mm=t_c, tool_radius_mm=self.tool_radius_mm, flutes=self.flutes,
+                      material=self.material, mode=self.mode)
+        try:
+            if self.method == "dynamometer":
+                if r.force_x_n is None or r.force_y_n is None:
+                    return depth_mod.DepthResult(None, None, depth_mod.NO_SECOND_FORCE)
+                return depth_mod.depths_from_forces(fx_n=r.force_x_n, fy_n=r.force_y_n, **common)
+            if self.method == "feed-drive":
+                if force_feed_n is None:
+                    return depth_mod.DepthResult(None, None, depth_mod.NO_SECOND_FORCE)
+                return depth_mod.depths_from_forces(tangential_n=tangential_n, feed_n=force_feed_n, **common)
+            if self.method == "torque-only":
+                known_radial = self.known_radial_mm
+                known_axial = self.known_axial_mm if known_radial is None else None
+                return depth_mod.depth_from_torque(torque_nm, known_radial_mm=known_radial,
+                                                   known_axial_mm=known_axial, **common)
+        except ValueError:   # a known depth outside the tool, etc.: no estimate, not a crash
+            return depth_mod.DepthResult(None, None, depth_mod.OUT_OF_RANGE)
+        return depth_mod.DepthResult(None, None, depth_mod.NO_SECOND_FORCE)
+
+    def _force(self, torque_nm: float, t_c: float | None, depth) -> float | None:
+        """Resultant in-plane force, [P] eq. (18); C_f constant or from r_1(t_a) ([D] eqs. 8-9)."""
+        if not self.cf_model:
+            return float(resultant_force_n(torque_nm, self.tool_radius_mm, self.cf))
+        radial_mm = depth.radial_depth_mm if depth.radial_depth_mm is not None else self.known_radial_mm
+        if self.mode == "slot":
+            radial_mm = 2.0 * self.tool_radius_mm
+        if radial_mm is None or t_c is None or not t_c > 0:
+            return None
+        entry, exit_ = engagement_angles_rad(radial_mm / self.tool_radius_mm, self.mode)
+        t_a = float(average_chip_thickness_mm(t_c, entry, exit_))
+        if not (math.isfinite(t_a) and t_a > 0):
+            return None
+        cf = float(cf_model(t_a, self.material.r1, self.material.r1_exp))
+        return float(resultant_force_n(torque_nm, self.tool_radius_mm, cf))

@@ -1,0 +1,143 @@
+"""Estimator + alarm engine for one machine: the part `run` and `replay` share.
+
+Why one class: replay must give the same estimates and alarms as the live
+daemon on the same samples, so both feed blocks through this and differ only
+in where time comes from and where results go.
+
+The per-block order matters for the interlock: `Step.trips` lists the events
+that ask for feed hold (the sample-level crash on the block's smoothed
+air-gap power, overloads, breakage) so that the caller acts on them before it
+publishes anything. `Step.items` is in time order: each closed revolution
+followed by the alarms it caused, a crash after the revolutions that ended
+before its sample.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from millsense.daemon.pipeline.alarms import AlarmEngine, AlarmEvent
+
+# Internal fields of the estimator's dicts that are not part of the `estimate` payload.
+_INTERNAL = ("seq_end",)
+
+
+@dataclass
+class Step:
+    """What one block produced, in publication order."""
+
+    items: list[tuple[str, Any]] = field(default_factory=list)  # ("estimate", dict) | ("alarm", AlarmEvent)
+    trips: list[AlarmEvent] = field(default_factory=list)
+    revolutions: int = 0
+
+
+def p_gap_of(result: Any) -> tuple[np.ndarray | None, int | None]:
+    """The block's smoothed per-sample air-gap power and the seq of its first sample."""
+    p = getattr(result, "p_gap_w", None)
+    if p is None:
+        return None, None
+    for name in ("p_gap_seq", "p_gap_first_seq", "p_gap_seq_first", "seq_first", "seq"):
+        seq = getattr(result, name, None)
+        if seq is not None:
+            return np.asarray(p), int(seq)
+    return np.asarray(p), None
+
+
+def estimate_payload(est: dict[str, Any], machine: str, t: float | None) -> dict[str, Any]:
+    """interfaces.md `estimate`: machine, rev, t first, then the estimator's fields."""
+    out: dict[str, Any] = {"machine": machine, "rev": est.get("rev"), "t": t}
+    for key, value in est.items():
+        if key not in out and key not in _INTERNAL:
+            out[key] = value
+    return out
+
+
+class PipelineCore:
+    """Owns the estimator (re-made when the descriptor changes) and the alarm engine."""
+
+    def __init__(self, settings: Any, estimator_factory: Any = None, check_descriptor: Any = None):
+        self.settings = settings
+        self.alarms = AlarmEngine(getattr(settings, "alarms", None))
+        self._factory = estimator_factory
+        self._check = check_descriptor
+        self.estimator: Any = None
+        self.descriptor: Any = None
+        self.last_rev: int | None = None
+        self.lost_samples_before = 0  # lost samples counted by estimators replaced since
+
+    def on_descriptor(self, descriptor: Any) -> bool:
+        """A (new) descriptor: check the config against it, make the estimator. True if re-made.
+
+        Raises `ConfigError` when the configuration does not fit the DAQ's channels.
+        """
+        if descriptor is None or descriptor == self.descriptor:
+            return False
+        check = self._check
+        if check is None:
+            from millsense.daemon.config import check_against_descriptor as check
+        check(self.settings, descriptor)
+        factory = self._factory
+        if factory is None:
+            from millsense.daemon.pipeline.estimator import Estimator as factory
+        if self.estimator is not None:
+            self.lost_samples_before += self.lost_samples_total
+        self.estimator = factory(self.settings, descriptor, descriptor.sample_rate_hz)
+        self.descriptor = descriptor
+        return True
+
+    @property
+    def lost_samples_total(self) -> int:
+        return int(getattr(self.estimator, "lost_samples_total", 0) or 0) + self.lost_samples_before
+
+    @property
+    def spindle_stopped(self) -> bool:
+        return bool(getattr(self.estimator, "spindle_stopped", False))
+
+    def _rev_at(self, seq: int, estimates: list[dict]) -> int | None:
+        return _rev_at_seq(seq, self.last_rev, estimates)
+
+    def process(self, block: Any) -> Step:
+        """Run one SampleBlock through estimator and alarms."""
+        step = Step()
+        result = self.estimator.process(block)
+        p_gap_w, first_seq = p_gap_of(result)
+        crashes: list[AlarmEvent] = []
+        if p_gap_w is not None and p_gap_w.size:
+            if first_seq is None:  # the power covers the block's last samples
+                first_seq = block.seq + len(block.counts) - p_gap_w.size
+            for ev in self.alarms.on_power(p_gap_w, first_seq):
+                crashes.append(_with_rev(ev, self._rev_at(ev.seq, result.estimates)))
+        step.trips.extend(crashes)  # the caller trips on these before it publishes anything
+        for est in result.estimates:
+            # publication stays in time order: a crash goes out after the revolutions that ended before it
+            while crashes and est.get("seq_end") is not None and int(est["seq_end"]) >= crashes[0].seq:
+                step.items.append(("alarm", crashes.pop(0)))
+            step.items.append(("estimate", est))
+            step.revolutions += 1
+            if est.get("rev") is not None:
+                self.last_rev = int(est["rev"])
+            for ev in self.alarms.on_revolution(est):
+                step.items.append(("alarm", ev))
+                if ev.trips:
+                    step.trips.append(ev)
+        step.items.extend(("alarm", ev) for ev in crashes)
+        return step
+
+
+def _rev_at_seq(seq: int, last_rev: int | None, estimates: list[dict]) -> int | None:
+    """The revolution in progress at sample `seq`: one after the last that closed before it."""
+    rev = last_rev
+    for est in estimates:
+        end, r = est.get("seq_end"), est.get("rev")
+        if end is not None and r is not None and int(end) < seq:
+            rev = int(r)
+    return None if rev is None else rev + 1
+
+
+def _with_rev(ev: AlarmEvent, rev: int | None) -> AlarmEvent:
+    if ev.rev is not None or rev is None:
+        return ev
+    return AlarmEvent(ev.level, ev.quantity, ev.value, ev.limit, rev, ev.seq)

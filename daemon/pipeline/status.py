@@ -1,0 +1,122 @@
+"""Small pure helpers of the runtime: live time of a sample, latency percentiles, the status line.
+
+Kept apart from the threads so that each can be tested with a fake clock.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+from typing import Any
+
+import numpy as np
+
+STATES = ("starting", "running", "degraded", "stopping")
+
+
+class SeqClock:
+    """Unix time of a sample from its unwrapped index (seq).
+
+    Why not simply "now": a revolution's estimate is computed after its last
+    sample arrived, and the DAQ sends samples in frames (TCP) or is polled
+    (Modbus every `poll_ms`), so arrival time is late by a variable transport
+    delay. Each block gives one observation `offset = arrival − seq_last/rate`
+    (the arrival time belongs to the block's last sample); every observation is
+    late by its own delay, never early, so the smallest offset of the last
+    `window_s` seconds is the best estimate of when samples were taken:
+    `t(seq) = offset_min + seq/rate`. The window lets the estimate follow the
+    drift between the DAQ's crystal and the host clock (≈ 50 ppm: 0.5 ms per
+    10 s). A discontinuity (device restart, lost samples) starts a new window.
+    So live `t` is late only by the *smallest* transport delay (≈ 1 ms on TCP).
+    The runner feeds it only blocks that did not wait in the driver's queue
+    behind others (their hand-over time is not their arrival time).
+    """
+
+    def __init__(self, sample_rate_hz: float, window_s: float = 10.0):
+        self.rate = float(sample_rate_hz)
+        self.window_s = window_s
+        self._mins: collections.deque[tuple[float, float]] = collections.deque()  # (wall, offset), offsets increasing
+
+    def note_block(self, seq_first: int, n: int, wall_s: float, restart: bool = False) -> None:
+        offset = wall_s - (seq_first + n - 1) / self.rate
+        q = self._mins
+        if restart:
+            q.clear()
+        while q and q[-1][1] >= offset:
+            q.pop()
+        q.append((wall_s, offset))
+        while q[0][0] < wall_s - self.window_s and len(q) > 1:
+            q.popleft()
+
+    @property
+    def empty(self) -> bool:
+        return not self._mins
+
+    def time_of(self, seq: int) -> float | None:
+        if not self._mins:
+            return None
+        return self._mins[0][1] + seq / self.rate
+
+
+class LatencyStats:
+    """Processing latencies of the last `size` revolutions (seconds in, ms out). Thread-safe."""
+
+    def __init__(self, size: int = 4096):
+        self._values: collections.deque[float] = collections.deque(maxlen=size)
+        self._lock = threading.Lock()
+
+    def add(self, seconds: float) -> None:
+        with self._lock:
+            self._values.append(seconds)
+
+    def percentiles_ms(self) -> dict[str, float | None]:
+        with self._lock:
+            values = np.fromiter(self._values, dtype=float)
+        if values.size == 0:
+            return {"p50": None, "p99": None, "max": None, "n": 0}
+        p50, p99 = np.percentile(values, [50, 99]) * 1e3
+        return {"p50": round(float(p50), 3), "p99": round(float(p99), 3), "max": round(float(values.max() * 1e3), 3), "n": int(values.size)}
+
+
+BAD_FRAME_KEYS = ("bad_crc", "unknown_type", "bad_length", "descriptor_mismatch")
+
+
+def bad_frames(driver_stats: dict[str, Any]) -> int:
+    """Frames the DAQ link refused (bad CRC, unknown type, impossible length, wrong channel count).
+
+    Stream drivers report their decoder's counters as `decoder_<name>`.
+    """
+    return sum(int(driver_stats.get(k, 0) or 0) + int(driver_stats.get(f"decoder_{k}", 0) or 0) for k in BAD_FRAME_KEYS)
+
+
+def _fmt(value: Any, spec: str) -> str:
+    if value is None:
+        return "–"
+    try:
+        return format(float(value), spec)
+    except (TypeError, ValueError):
+        return "–"
+
+
+def summary_line(estimate: dict[str, Any] | None, alarm_state: str, status: dict[str, Any]) -> str:
+    """The demo's one-line live summary: rpm, torque, force, depths, alarm state."""
+    e = estimate or {}
+    return (
+        f"{status.get('state', '?'):<8} rev {e.get('rev', '–')!s:>6}  "
+        f"{_fmt(e.get('spindle_rpm'), '6.0f')} rpm  "
+        f"T {_fmt(e.get('torque_nm'), '6.2f')} N·m  "
+        f"F {_fmt(e.get('force_n'), '7.1f')} N  "
+        f"ae {_fmt(e.get('radial_depth_mm'), '5.2f')} ap {_fmt(e.get('axial_depth_mm'), '5.2f')} mm  "
+        f"alarm {alarm_state}  interlock {status.get('interlock', '?')}"
+    )
+
+
+def status_line(status: dict[str, Any]) -> str:
+    """One-line health for sd_notify STATUS= and the debug stats line."""
+    lat = status.get("latency_ms") or {}
+    return (
+        f"{status.get('state')}; DAQ {status.get('daq_link')}; {status.get('samples_received')} samples, "
+        f"{status.get('lost_samples')} lost, {status.get('bad_frames')} bad frames; "
+        f"{status.get('revolutions')} revs, p99 {_fmt(lat.get('p99'), '.2f')} ms; "
+        f"alarm {status.get('alarm')}; interlock {status.get('interlock')}"
+    )

@@ -1,0 +1,328 @@
+"""ZenohSink: the pipeline's `Sink` on Zenoh, plus the queryables and the presence token.
+
+Publishing never blocks the estimator. `estimate()` and `status()` append to a
+bounded deque (the oldest entry goes when it is full, and is counted) and wake
+one publisher thread; `alarm()` goes to its own queue, which the thread always
+empties first, and is never dropped (alarms are rare: one per state change).
+Serialisation to JSON happens on the publisher thread too.
+
+Keys (interfaces.md), prefix `millsense/<machine>`:
+
+| key | QoS |
+| --- | --- |
+| `estimate` | publisher, CongestionControl.DROP, Priority.DATA, batched |
+| `alarm` | publisher, CongestionControl.BLOCK, Priority.REAL_TIME, express |
+| `status` | publisher (DROP) and queryable |
+| `config` | queryable: `controls.config()` |
+| `cmd/reset` | queryable: `controls.reset(payload)` → the new interlock state |
+| `alive` | liveliness token |
+
+Queryable callbacks run on Zenoh's threads. Whatever a query carries and
+whatever `controls` raises, the answer is a JSON error reply, never an
+exception escaping into Zenoh.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from typing import Any, Protocol
+
+import zenoh
+
+from millsense.daemon.publish.payload import JSON_ENCODING, dumps, loads_object
+
+
+class Controls(Protocol):
+    """What the queryables ask of the running daemon (docs/architecture.md)."""
+
+    def status(self) -> dict: ...
+    def config(self) -> dict: ...
+    def reset(self, payload: bytes) -> dict: ...
+
+
+def key_prefix(machine: str) -> str:
+    return f"millsense/{machine}"
+
+
+_ESTIMATE, _STATUS = 0, 1
+
+
+class ZenohSink:
+    """Publishes estimates, alarms and status; answers status/config/cmd-reset queries.
+
+    `session`: an open `zenoh.Session` (the caller owns it and closes it after
+    `close()`). `controls`: an object with `status()`, `config()` and
+    `reset(payload: bytes)`, or None (then `config` and `cmd/reset` reply with
+    an error and `status` with the latest published status).
+    `queue_size`: how many estimates/status may wait before the oldest is dropped.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        machine: str,
+        controls: Controls | None = None,
+        *,
+        queue_size: int = 1024,
+        close_timeout_s: float = 2.0,
+        log: Any = None,
+    ) -> None:
+        if queue_size < 1:
+            raise ValueError("queue_size must be >= 1")
+        self.machine = machine
+        self.prefix = key_prefix(machine)
+        self._session = session
+        self._controls = controls
+        self._close_timeout_s = close_timeout_s
+        self._log = log
+
+        self._queue: collections.deque[tuple[int, dict]] = collections.deque()
+        self._queue_size = queue_size
+        self._alarms: collections.deque[dict] = collections.deque()
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._closing = False
+        self._closed = False
+        self._latest_status: dict | None = None
+
+        self._published = 0
+        self._alarms_published = 0
+        self._dropped = 0
+        self._errors = 0
+        self._queries = 0
+        self._query_errors = 0
+
+        encoding = zenoh.Encoding.APPLICATION_JSON
+        self._declared: list[Any] = []
+        try:
+            self._pub_estimate = self._keep(
+                session.declare_publisher(
+                    f"{self.prefix}/estimate",
+                    encoding=encoding,
+                    congestion_control=zenoh.CongestionControl.DROP,
+                    priority=zenoh.Priority.DATA,
+                    express=False,
+                )
+            )
+            self._pub_alarm = self._keep(
+                session.declare_publisher(
+                    f"{self.prefix}/alarm",
+                    encoding=encoding,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    priority=zenoh.Priority.REAL_TIME,
+                    express=True,
+                )
+            )
+            self._pub_status = self._keep(
+                session.declare_publisher(
+                    f"{self.prefix}/status",
+                    encoding=encoding,
+                    congestion_control=zenoh.CongestionControl.DROP,
+                    priority=zenoh.Priority.DATA,
+                    express=False,
+                )
+            )
+            self._keep(session.declare_queryable(f"{self.prefix}/status", self._on_status_query))
+            self._keep(session.declare_queryable(f"{self.prefix}/config", self._on_config_query))
+            self._keep(session.declare_queryable(f"{self.prefix}/cmd/reset", self._on_reset_query))
+            self._token = self._keep(session.liveliness().declare_token(f"{self.prefix}/alive"))
+        except BaseException:
+            self._undeclare_all()
+            raise
+
+        self._thread = threading.Thread(target=self._run, name=f"zenoh-sink-{machine}", daemon=True)
+        self._thread.start()
+
+    def _keep(self, entity: Any) -> Any:
+        self._declared.append(entity)
+        return entity
+
+    # ---- Sink protocol: every method returns at once -------------------------------
+
+    def estimate(self, payload: dict) -> None:
+        self._enqueue(_ESTIMATE, payload)
+
+    def status(self, payload: dict) -> None:
+        """Published, and kept as the answer to status queries when there are no controls."""
+        self._latest_status = dict(payload)
+        self._enqueue(_STATUS, payload)
+
+    def alarm(self, payload: dict) -> None:
+        """Never dropped: its own queue, published before any waiting estimate."""
+        if self._closed:
+            with self._lock:
+                self._dropped += 1
+            return
+        self._alarms.append(dict(payload))
+        self._wake.set()
+
+    def _enqueue(self, kind: int, payload: dict) -> None:
+        item = (kind, dict(payload))  # a shallow copy: the caller may reuse its dict
+        with self._lock:
+            if self._closing:
+                self._dropped += 1
+                return
+            if len(self._queue) >= self._queue_size:
+                self._queue.popleft()
+                self._dropped += 1
+            self._queue.append(item)
+        self._wake.set()
+
+    def close(self) -> None:
+        """Flush what is queued (bounded by `close_timeout_s`), then undeclare everything.
+
+        Idempotent. The liveliness token goes last but one step: subscribers of
+        `millsense/*/alive` see DELETE once this returns.
+        """
+        with self._lock:
+            if self._closing:
+                already = True
+            else:
+                already = False
+                self._closing = True
+        if already:
+            self._thread.join(self._close_timeout_s)
+            return
+        self._wake.set()
+        self._thread.join(self._close_timeout_s)
+        self._closed = True
+        self._undeclare_all()
+
+    def __enter__(self) -> ZenohSink:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def stats(self) -> dict[str, int]:
+        """Counters for status payloads and the diagnostic dump."""
+        return {
+            "published": self._published,
+            "alarms_published": self._alarms_published,
+            "dropped": self._dropped,
+            "queue_depth": len(self._queue),
+            "alarm_queue_depth": len(self._alarms),
+            "publish_errors": self._errors,
+            "queries": self._queries,
+            "query_errors": self._query_errors,
+        }
+
+    # ---- publisher thread ----------------------------------------------------------
+
+    def _run(self) -> None:
+        queue, alarms = self._queue, self._alarms
+        while True:
+            if alarms:
+                self._put(self._pub_alarm, alarms.popleft(), alarm=True)
+                continue
+            if queue:
+                try:
+                    kind, payload = queue.popleft()
+                except IndexError:  # emptied by the producer's drop-oldest in between
+                    continue
+                self._put(self._pub_estimate if kind == _ESTIMATE else self._pub_status, payload)
+                continue
+            if self._closing:
+                return
+            self._wake.wait(0.5)
+            self._wake.clear()
+            # set() may have come between the emptiness checks and clear(): look again
+            # before sleeping (the loop does, since it re-checks both queues first).
+
+    def _put(self, publisher: Any, payload: dict, *, alarm: bool = False) -> None:
+        try:
+            publisher.put(dumps(payload))
+        except Exception as exc:  # a payload that cannot be serialised, or a closed session
+            self._errors += 1
+            self._warn("zenoh.publish_failed", key=str(publisher.key_expr), error=f"{type(exc).__name__}: {exc}")
+            return
+        if alarm:
+            self._alarms_published += 1
+        else:
+            self._published += 1
+
+    # ---- queryables (called on Zenoh threads) -------------------------------------------
+
+    def _on_status_query(self, query: zenoh.Query) -> None:
+        def answer() -> dict:
+            if self._controls is not None:
+                return self._controls.status()
+            if self._latest_status is None:
+                raise LookupError("no status published yet")
+            return self._latest_status
+
+        self._answer(query, f"{self.prefix}/status", answer)
+
+    def _on_config_query(self, query: zenoh.Query) -> None:
+        def answer() -> dict:
+            if self._controls is None:
+                raise LookupError("this daemon exposes no configuration")
+            return self._controls.config()
+
+        self._answer(query, f"{self.prefix}/config", answer)
+
+    def _on_reset_query(self, query: zenoh.Query) -> None:
+        def answer() -> dict:
+            if self._controls is None:
+                raise LookupError("this daemon has no interlock to reset")
+            payload = query.payload
+            data = payload.to_bytes() if payload is not None else b""
+            if data.strip():
+                loads_object(data)  # refuse garbage here, with the reason, before the interlock sees it
+            else:
+                data = b""  # blank means "no token": one spelling for the interlock
+            result = self._controls.reset(data)
+            self._info("interlock.reset_requested", result=result)
+            return result
+
+        self._answer(query, f"{self.prefix}/cmd/reset", answer)
+
+    def _answer(self, query: zenoh.Query, key: str, produce: Any) -> None:
+        self._queries += 1
+        try:
+            with query:
+                try:
+                    result = produce()
+                    if not isinstance(result, dict):
+                        raise TypeError(f"controls returned {type(result).__name__}, expected a dict")
+                    body = dumps(result)
+                except Exception as exc:  # noqa: BLE001 - a query must never kill the daemon
+                    self._query_errors += 1
+                    reason = str(exc) if isinstance(exc, (ValueError, LookupError)) else f"{type(exc).__name__}: {exc}"
+                    self._warn("zenoh.query_refused", key=key, error=reason)
+                    query.reply_err(dumps({"ok": False, "error": reason}), encoding=JSON_ENCODING)
+                    return
+                query.reply(key, body, encoding=JSON_ENCODING)
+        except Exception as exc:  # noqa: BLE001 - the querier went away, or the session closed
+            self._query_errors += 1
+            self._warn("zenoh.reply_failed", key=key, error=f"{type(exc).__name__}: {exc}")
+
+    # ---- teardown and logging ------------------------------------------------------
+
+    def _undeclare_all(self) -> None:
+        deadline = time.monotonic() + self._close_timeout_s
+        for entity in reversed(self._declared):
+            if time.monotonic() > deadline:
+                self._warn("zenoh.undeclare_timeout", left=len(self._declared))
+                break
+            try:
+                entity.undeclare()
+            except Exception as exc:  # noqa: BLE001 - already undeclared, or session closed
+                self._warn("zenoh.undeclare_failed", error=f"{type(exc).__name__}: {exc}")
+        self._declared.clear()
+
+    def _warn(self, event: str, **fields: Any) -> None:
+        if self._log is not None:
+            try:
+                self._log.warning(event, **fields)
+            except Exception:  # noqa: BLE001 - logging must not break publication
+                pass
+
+    def _info(self, event: str, **fields: Any) -> None:
+        if self._log is not None:
+            try:
+                self._log.info(event, **fields)
+            except Exception:  # noqa: BLE001
+                pass
