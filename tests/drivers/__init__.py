@@ -1,0 +1,1 @@
+"""Tests of the DAQ codec, drivers and emulator."""

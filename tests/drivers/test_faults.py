@@ -1,0 +1,160 @@
+"""Faults on the wire, each against the real emulator subprocess and the real driver."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from tests.drivers.emulator_proc import Emulator, ramp, rss_kb
+from tests.drivers.test_contract import Collector, check_every_sample_once, open_transport
+
+
+def _values_right(blocks) -> None:
+    for b in blocks:
+        np.testing.assert_array_equal(b.counts, ramp(b.index, len(b.counts)))
+
+
+@pytest.mark.parametrize("transport", ["pty", "tcp", "modbus-tcp"])
+def test_unplug_restart_reconnect_counts_the_gap(transport, tmp_path, port):
+    emu, make = open_transport(transport, tmp_path, port)
+    emu2 = None
+    driver = make()
+    try:
+        emu.start()
+        driver.start()
+        assert driver.wait_connected(10.0)
+        col = Collector(driver)
+        col.pump(2.0)
+        emu.kill()  # unplugged: no goodbye
+        assert col.pump(3.0, until=lambda: any(not e.up for e in col.links)), "link down not reported"
+        before = [b for _, b in col.blocks]
+        n_before = len(before)
+        last_end = before[-1].index + len(before[-1].counts)
+        # the device comes back having counted on by 10000 samples while unplugged
+        # (more than a Modbus ring of 4096 holds)
+        restart_index = last_end + 10000
+        args = emu.args[emu.args.index("--status-log") + 2 :]
+        emu2 = Emulator(tmp_path, *args, "--start-index", str(restart_index), name="sim2")
+        emu2.start()
+        assert col.pump(10.0, until=lambda: [e.up for e in col.links][-1:] == [True]), "no reconnect"
+        col.pump(2.0)
+        blocks = [b for _, b in col.blocks]
+        after = blocks[n_before:]
+        assert after, "no samples after reconnect"
+        _values_right(blocks)
+        check_every_sample_once(before)
+        if len(after) > 1:
+            check_every_sample_once(after[1:])
+        first = after[0]
+        # the gap is exactly what the device indices say: nothing invented, nothing hidden
+        if transport == "modbus-tcp":  # the ring still held the last D samples: read back from H - D
+            assert first.index >= restart_index - 4096
+        else:  # a stream starts where it is
+            assert first.index >= restart_index
+        assert first.lost_before == first.index - last_end >= 10000 - 4096
+        assert first.seq == before[-1].seq + len(before[-1].counts) + first.lost_before
+        assert not first.discontinuity
+        assert [e.up for e in col.links] == [True, False, True]
+    finally:
+        driver.close()
+        emu.stop()
+        if emu2 is not None:
+            emu2.stop()
+
+
+def test_corrupted_frames_lose_exactly_those_samples(tmp_path, port):
+    emu, make = open_transport("tcp", tmp_path, port, "--corrupt-fraction", "0.01", "--seed", "4")
+    driver = make()
+    try:
+        emu.start()
+        driver.start()
+        assert driver.wait_connected(10.0)
+        col = Collector(driver)
+        col.pump(6.0)
+        driver.close()
+        emu.stop()
+        blocks = [b for _, b in col.blocks]
+        _values_right(blocks)  # none delivered wrong
+        lo = blocks[0].index
+        hi = blocks[-1].index + len(blocks[-1].counts)
+        received = np.concatenate([b.index + np.arange(len(b.counts)) for b in blocks])
+        assert len(np.unique(received)) == len(received)
+        missing = set(range(lo, hi)) - set(received.tolist())
+        corrupted = set()
+        for e in emu.events("corrupt"):
+            if e["frame_type"] == "samples":
+                corrupted.update(range(e["first_index"], e["first_index"] + e["samples"]))
+        expected = {k for k in corrupted if lo <= k < hi}
+        assert len(expected) >= 30, "too few corrupted frames for a meaningful test"
+        assert missing == expected
+        assert sum(b.lost_before for b in blocks[1:]) == len(expected)
+        stats = driver.stats()
+        assert stats["decoder_bad_crc"] + stats["decoder_bad_length"] + stats["decoder_unknown_type"] > 0
+    finally:
+        driver.close()
+        emu.stop()
+
+
+def test_modbus_reader_behind_the_ring_counts_overrun_and_resumes_at_h_minus_d(tmp_path, port):
+    depth = 500
+    emu, make = open_transport("modbus-tcp", tmp_path, port, "--ring-depth", str(depth))
+    driver = make()
+    try:
+        emu.start()
+        driver.start()
+        assert driver.wait_connected(10.0)
+        col = Collector(driver)
+        col.pump(1.0)
+        n_before = len(col.blocks)
+        with driver._io_lock:  # the reader thread stalls for 2 D worth of samples
+            time.sleep(2 * depth / 1000)
+        col.pump(1.0)
+        blocks = [b for _, b in col.blocks]
+        _values_right(blocks)
+        check_every_sample_once(blocks[:n_before])
+        gaps = [i for i, b in enumerate(blocks) if b.lost_before]
+        assert len(gaps) == 1 and gaps[0] >= n_before
+        resumed = blocks[gaps[0]]
+        stats = driver.stats()
+        assert stats["overruns"] == 1
+        # it read the whole ring from H - D; only what the device overwrote meanwhile is cut
+        assert len(resumed.counts) == depth - stats.get("overwritten_during_read", 0)
+        assert len(resumed.counts) >= depth - 100
+        prev = blocks[gaps[0] - 1]
+        assert resumed.lost_before == resumed.index - (prev.index + len(prev.counts))
+        assert resumed.lost_before >= depth // 2
+        if len(blocks) > gaps[0] + 1:
+            check_every_sample_once(blocks[gaps[0] + 1 :])
+    finally:
+        driver.close()
+        emu.stop()
+
+
+def test_garbage_at_1_mb_s_no_crash_memory_bounded(tmp_path, port):
+    emu, make = open_transport("tcp", tmp_path, port, "--garbage-bps", "1000000")
+    driver = make()
+    try:
+        emu.start()
+        driver.start()
+        assert driver.wait_connected(10.0)
+        col = Collector(driver)
+        col.pump(1.0)
+        rss0 = rss_kb()
+        biggest = 0
+        for _ in range(40):
+            col.pump(0.1)
+            biggest = max(biggest, driver.stats()["decoder_buffered"])
+        rss1 = rss_kb()
+        stats = driver.stats()
+        assert driver.link_up
+        assert stats["decoder_dropped_bytes"] >= 3_000_000  # the garbage really came through
+        assert biggest <= 4096 + 7
+        assert rss1 - rss0 < 20_000, f"RSS grew by {rss1 - rss0} kB"
+        blocks = [b for _, b in col.blocks]
+        assert sum(len(b.counts) for b in blocks) >= 4500
+        check_every_sample_once(blocks)
+    finally:
+        driver.close()
+        emu.stop()

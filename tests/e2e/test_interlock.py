@@ -1,0 +1,171 @@
+"""Feed hold on real processes: overload and crash trips, measured on the emulator's side.
+
+The emulator's status log records each output change with its monotonic time;
+its truth gives the revolution ends (sample indices) and the crash-power
+event. `tests/e2e/truth.Timebase` turns an index into the monotonic time the
+sample was due (nominal) and the earliest it can have left the emulator (its
+pacer sends samples in 10 ms batches, as a DAQ sending 10-sample frames does).
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import time
+
+import numpy as np
+
+from millsense.drivers.base import StreamDriver
+
+from tests.conftest import free_tcp_port
+from tests.e2e.helpers import CMD, Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
+from tests.e2e.truth import Timebase, match_estimates, truth_events, truth_revs
+
+TOKEN = "s3cret-token"
+CRASH_SCENARIO = "crash"
+
+
+def _holds(log, on=True):
+    return [e for e in log if e.get("event") == "outputs" and bool(e.get("feed_hold")) == on]
+
+
+def _reset(machine, z_port, token):
+    return subprocess.run(
+        CMD + ["reset", "--machine", machine, "--connect", tcp(z_port), "--no-scouting", "--token", token, "--timeout", "5"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+def _plateaus(truth):
+    """Torque of the steady cutting revolutions, in order of first appearance (rounded to 0.1 N·m)."""
+    seen: list[float] = []
+    for r in truth_revs(truth):
+        if r.get("steady") and r.get("cutting"):
+            v = round(float(r["torque_nm"]), 1)
+            if not any(abs(v - s) < 0.3 for s in seen):
+                seen.append(v)
+    return seen
+
+
+def _start(procs, tmp_path, scenario, machine, alarms, watchdog_ms=1000):
+    daq_port, z_port = free_tcp_port(), free_tcp_port()
+    cfg = write_config(
+        tmp_path / "d.toml",
+        machine=machine,
+        daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}',
+        zenoh_listen=[tcp(z_port)],
+        alarms=alarms,
+        interlock=f'enabled = true\nheartbeat_ms = 50\nwatchdog_ms = {watchdog_ms}\nreset = "token"\nreset_token = "{TOKEN}"',
+    )
+    truth_path, log_path = tmp_path / "truth.jsonl", tmp_path / "status.jsonl"
+    sim = procs.start(
+        "sim",
+        ["sim", "--scenario", scenario, "--tcp", f"127.0.0.1:{daq_port}", "--realtime", "--truth", str(truth_path),
+         "--status-log", str(log_path), "--watchdog-ms", str(watchdog_ms)],
+    )
+    wait_for(lambda: "serving" in procs.text("sim"), 30.0, "emulator serving")
+    daemon = procs.start("daemon", ["run", "--config", str(cfg)])
+    sub = Subscriber([tcp(z_port)], machine)
+    return sim, daemon, sub, z_port, truth_path, log_path
+
+
+def test_overload_trips_within_a_revolution_and_reset_clears_it(tmp_path, step_capture):
+    _, truth0 = step_capture
+    levels = _plateaus(truth0)
+    assert len(levels) >= 2, f"the step scenario has no second cutting plateau in its first seconds: {levels}"
+    limit = (levels[0] + levels[1]) / 2  # over the limit from the second plateau on
+    machine = "ilk-ovl"
+    with Procs(tmp_path) as procs:
+        sim, daemon, sub, z_port, truth_path, log_path = _start(
+            procs, tmp_path, "step", machine, f"torque_limit_nm = {limit:.3f}\nrevolutions = 2\nbreakage_drop_pct = 95"
+        )
+        try:
+            alarm = wait_for(
+                lambda: next((a for a in sub.get("alarm") if a["level"] == "overload"), None) or daemon.poll() is not None,
+                60.0,
+                "overload alarm at the subscriber",
+            )
+            assert daemon.poll() is None, procs.text("daemon")
+            hold = wait_for(lambda: _holds(read_jsonl(log_path)), 2.0, "feed hold on the emulator")[0]
+            assert alarm["interlock"] == "feed_hold" and alarm["quantity"] == "torque_nm" and alarm["value"] > limit
+
+            wrong = _reset(machine, z_port, "not-the-token")
+            assert wrong.returncode == 1, wrong.stdout + wrong.stderr
+            time.sleep(0.3)
+            assert not _holds(read_jsonl(log_path), on=False), "a wrong token released the feed"
+            ok = _reset(machine, z_port, TOKEN)
+            assert ok.returncode == 0, ok.stdout + ok.stderr
+            wait_for(lambda: _holds(read_jsonl(log_path), on=False), 2.0, "feed hold released by reset")
+            estimates = sub.get("estimate")
+            t_term = time.monotonic()
+            daemon.send_signal(signal.SIGTERM)
+            assert daemon.wait(5) == 0
+            time.sleep(0.3)
+            assert not [e for e in _holds(read_jsonl(log_path), on=False) if e["mono"] > t_term], "a stop must not release the feed"
+        finally:
+            sub.close()
+        sim.send_signal(signal.SIGTERM)
+        sim.wait(10)
+    truth, log = read_jsonl(truth_path), read_jsonl(log_path)
+    tb = Timebase.from_status_log(log)
+    matched = match_estimates(estimates, truth, tb)
+    (offset,) = {e["rev"] - r["rev"] for e, r, _ in matched}
+    # The daemon splits revolutions at the encoder phase it first saw, so its revolution k
+    # ends inside truth revolution k - offset, up to half a revolution either side of its end.
+    over = next(r for r in truth_revs(truth) if r["rev"] == alarm["rev"] - offset)
+    period_s = 60.0 / over["spindle_rpm"]
+    delay_s = hold["mono"] - tb.nominal_mono(int(over["index_end"]))
+    own_end_mono = alarm["t"] - tb.wall0 + tb.mono0  # the daemon's own end of that revolution
+    print(
+        f"overload: feed hold {delay_s * 1e3:.1f} ms after the matching truth revolution ended, "
+        f"{(hold['mono'] - own_end_mono) * 1e3:.1f} ms after the daemon's revolution ended (rev {period_s * 1e3:.0f} ms)"
+    )
+    assert -period_s / 2 < delay_s <= period_s + 0.020
+
+
+def test_crash_trips_at_sample_level_and_alarm_reaches_subscriber(tmp_path):
+    machine = "ilk-crash"
+    with Procs(tmp_path) as procs:
+        sim, daemon, sub, z_port, truth_path, log_path = _start(procs, tmp_path, CRASH_SCENARIO, machine, CRASH_ALARMS)
+        try:
+            alarm = wait_for(
+                lambda: next((a for a in sub.get("alarm") if a["level"] == "crash"), None) or daemon.poll() is not None,
+                60.0,
+                "crash alarm at the subscriber",
+            )
+            assert daemon.poll() is None, procs.text("daemon")
+            hold = wait_for(lambda: _holds(read_jsonl(log_path)), 2.0, "feed hold on the emulator")[0]
+            assert alarm["interlock"] == "feed_hold" and alarm["value"] > alarm["limit"]
+            (st,) = sub.query(f"millsense/{machine}/status")
+            ok = _reset(machine, z_port, TOKEN)
+            assert ok.returncode == 0, ok.stdout + ok.stderr
+            wait_for(lambda: _holds(read_jsonl(log_path), on=False), 2.0, "feed hold released by reset")
+            daemon.send_signal(signal.SIGTERM)
+            assert daemon.wait(5) == 0
+        finally:
+            sub.close()
+        sim.send_signal(signal.SIGTERM)
+        sim.wait(10)
+    truth, log = read_jsonl(truth_path), read_jsonl(log_path)
+    tb = Timebase.from_status_log(log)
+    (crossing, *_) = truth_events(truth, "crash_power")
+    idx = int(crossing["index"])
+    after_due = hold["mono"] - tb.nominal_mono(idx)
+    after_sent = hold["mono"] - tb.emitted_mono(idx)
+    print(
+        f"crash: feed hold {after_due * 1e3:.1f} ms after the crossing sample was due, {after_sent * 1e3:.1f} ms after "
+        f"it was sent; inside the daemon {st['last_trip_ms']} ms from block hand-over to the output written"
+    )
+    # Budget: 10 ms from the crossing to feed hold, plus the stream reader's spacing of its
+    # reads (drivers.base.StreamDriver.read_interval_s, 10 ms today): a frame that lands just
+    # after a read waits for the next one before the daemon can see it. With that spacing at 0
+    # the same test measured 1.4–3.7 ms; the budget tightens by itself when it is lowered.
+    budget_s = 0.010 + StreamDriver.read_interval_s
+    assert 0 < after_sent <= budget_s, f"{after_sent * 1e3:.1f} ms from the crossing sample leaving the DAQ to feed hold"
+    assert st["last_trip_ms"] is not None and st["last_trip_ms"] < 10.0, st["last_trip_ms"]
+    assert np.isfinite(after_due)
+
+
+CRASH_ALARMS = "crash_power_w = 15000.0\nbreakage_drop_pct = 95"

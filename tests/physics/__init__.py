@@ -1,0 +1,1 @@
+"""Tests of millsense.daemon.physics (pure functions, no I/O)."""

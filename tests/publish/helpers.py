@@ -1,0 +1,128 @@
+"""Real Zenoh sessions on loopback for the publication tests (multicast scouting off)."""
+
+from __future__ import annotations
+
+import json
+import queue
+import subprocess
+import threading
+import time
+from collections.abc import Callable
+from types import SimpleNamespace
+from typing import Any
+
+import zenoh
+
+from millsense.daemon.publish.session import open_session
+
+
+def zsettings(mode: str = "peer", *, listen: list[str] | None = None, connect: list[str] | None = None, **extra: Any) -> SimpleNamespace:
+    fields = {"mode": mode, "listen": listen or [], "connect": connect or [], "multicast_scouting": False, "config_file": ""}
+    fields.update(extra)
+    return SimpleNamespace(**fields)
+
+
+def tcp(port: int) -> str:
+    return f"tcp/127.0.0.1:{port}"
+
+
+def open_pair(port: int) -> tuple[zenoh.Session, zenoh.Session]:
+    """Two peers: the first listens on `port`, the second connects to it; returns once linked."""
+    a = open_session(zsettings(listen=[tcp(port)]), retry_for_s=0)
+    b = open_session(zsettings(connect=[tcp(port)]), retry_for_s=0)
+    wait_for(lambda: len(list(b.info.peers_zid())) > 0, 5.0, "second peer never connected")
+    return a, b
+
+
+def wait_for(predicate: Callable[[], Any], timeout_s: float, what: str) -> Any:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s: {what}")
+        time.sleep(0.01)
+
+
+class Collector:
+    """Subscriber callback that keeps (key, decoded JSON, sample) in arrival order."""
+
+    def __init__(self) -> None:
+        self.items: list[tuple[str, Any, Any]] = []
+        self.lock = threading.Lock()
+
+    def __call__(self, sample: Any) -> None:
+        entry = (str(sample.key_expr), json.loads(sample.payload.to_bytes()), sample)
+        with self.lock:
+            self.items.append(entry)
+
+    def payloads(self, suffix: str = "") -> list[Any]:
+        with self.lock:
+            return [p for k, p, _ in self.items if k.endswith(suffix)]
+
+
+class FakeInterlock:
+    """A Controls object with real behaviour: a latched feed hold that a valid token clears."""
+
+    def __init__(self, token: str | None = "s3cret") -> None:
+        self.token = token
+        self.latched = True
+        self.reset_payloads: list[bytes] = []
+        self.fail_with: Exception | None = None
+
+    def status(self) -> dict:
+        return {"state": "running", "interlock": "feed_hold" if self.latched else "clear"}
+
+    def config(self) -> dict:
+        return {"machine": "m1", "interlock": {"enabled": True}}
+
+    def reset(self, payload: bytes) -> dict:
+        self.reset_payloads.append(payload)
+        if self.fail_with is not None:
+            raise self.fail_with
+        given = json.loads(payload or b"{}").get("token")
+        if self.token is not None and given != self.token:
+            return {"ok": False, "error": "bad token", "interlock": "feed_hold" if self.latched else "clear"}
+        self.latched = False
+        return {"ok": True, "interlock": "clear"}
+
+
+class LineReader:
+    """Reads a subprocess's stdout lines on a thread, so waits can have deadlines."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.lines: queue.SimpleQueue[str] = queue.SimpleQueue()
+        self.seen: list[str] = []
+        self.proc = proc
+        self.thread = threading.Thread(target=self._pump, args=(proc,), daemon=True)
+        self.thread.start()
+
+    def _pump(self, proc: subprocess.Popen) -> None:
+        for line in proc.stdout:
+            self.lines.put(line)
+
+    def wait_json(self, predicate: Callable[[dict], bool], timeout_s: float, what: str) -> dict:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                line = self.lines.get(timeout=0.05)
+            except queue.Empty:
+                if not self.thread.is_alive() and self.lines.empty():  # stdout closed: it exited
+                    err = self.proc.stderr.read() if self.proc.stderr else ""
+                    raise AssertionError(f"process ended (rc={self.proc.wait(5)}) before {what}; stderr: {err[-800:]}")
+                continue
+            self.seen.append(line)
+            obj = json.loads(line)
+            if predicate(obj):
+                return obj
+        raise AssertionError(f"timed out after {timeout_s} s waiting for {what}; saw {self.seen[-5:]}")
+
+
+def kill(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.kill()
+    try:
+        proc.wait(5)
+    except subprocess.TimeoutExpired:
+        pass

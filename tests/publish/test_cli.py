@@ -1,0 +1,231 @@
+"""`millsense watch` and `millsense reset` as real subprocesses against sessions in the test."""
+
+from __future__ import annotations
+
+import json
+import os
+import pty
+import select
+import signal
+import subprocess
+import time
+
+import pytest
+
+from millsense.daemon.publish.session import open_session
+from millsense.daemon.publish.sink import ZenohSink
+
+from .helpers import FakeInterlock, LineReader, kill, tcp, zsettings
+
+
+@pytest.fixture
+def daemon_session(port):
+    """The daemon's side: a peer listening on loopback."""
+    s = open_session(zsettings(listen=[tcp(port)]), retry_for_s=0)
+    yield s
+    s.close()
+
+
+def _watch(millsense_cmd, port, *extra):
+    return subprocess.Popen(
+        [*millsense_cmd, "watch", "--no-scouting", "--connect", tcp(port), *extra],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+
+
+def test_watch_json_shows_presence_estimates_alarms_and_departure(millsense_cmd, port, daemon_session):
+    sink = ZenohSink(daemon_session, "mch10-01", None)
+    proc = _watch(millsense_cmd, port, "--json", "--seconds", "30")
+    try:
+        out = LineReader(proc)
+        alive = out.wait_json(lambda o: o["kind"] == "alive", 15.0, "alive (liveliness history)")
+        assert alive == {"key": "millsense/mch10-01/alive", "kind": "alive", "payload": {"machine": "mch10-01"}}
+
+        # The watcher's subscriptions reach us a moment after its token query: publish until seen.
+        deadline = time.monotonic() + 10
+        rev = 0
+        while True:
+            rev += 1
+            sink.estimate({"machine": "mch10-01", "rev": rev, "torque_nm": float("nan"), "force_n": 452.6})
+            try:
+                est = out.wait_json(lambda o: o["kind"] == "estimate", 0.2, "estimate")
+                break
+            except AssertionError:
+                if time.monotonic() > deadline:
+                    raise
+        assert est["key"] == "millsense/mch10-01/estimate"
+        assert est["payload"]["torque_nm"] is None and est["payload"]["force_n"] == 452.6
+
+        sink.alarm({"machine": "mch10-01", "level": "overload", "quantity": "torque_nm", "value": 31.7, "limit": 30.0, "interlock": "feed_hold"})
+        alarm = out.wait_json(lambda o: o["kind"] == "alarm", 5.0, "alarm")
+        assert alarm["payload"]["level"] == "overload" and alarm["payload"]["interlock"] == "feed_hold"
+
+        sink.status({"state": "running"})
+        assert out.wait_json(lambda o: o["kind"] == "status", 5.0, "status")["payload"] == {"state": "running"}
+
+        sink.close()
+        gone = out.wait_json(lambda o: o["kind"] == "gone", 5.0, "gone after the sink closed")
+        assert gone["key"] == "millsense/mch10-01/alive"
+
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
+        assert "Traceback" not in proc.stderr.read()
+    finally:
+        sink.close()
+        kill(proc)
+
+
+def test_watch_filters_by_machine(millsense_cmd, port, daemon_session):
+    other = ZenohSink(daemon_session, "other", None)
+    mine = ZenohSink(daemon_session, "mine", None)
+    proc = _watch(millsense_cmd, port, "--machine", "mine", "--seconds", "30")  # piped: JSON without --json
+    try:
+        out = LineReader(proc)
+        out.wait_json(lambda o: o["kind"] == "alive", 15.0, "alive")
+        deadline = time.monotonic() + 10
+        while True:
+            other.estimate({"rev": 1})
+            mine.estimate({"rev": 2})
+            try:
+                out.wait_json(lambda o: o["kind"] == "estimate", 0.2, "estimate")
+                break
+            except AssertionError:
+                if time.monotonic() > deadline:
+                    raise
+        time.sleep(0.3)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
+        rest = [json.loads(line) for line in out.seen]
+        while not out.lines.empty():
+            rest.append(json.loads(out.lines.get()))
+        assert {o["key"].split("/")[1] for o in rest} == {"mine"}
+    finally:
+        other.close()
+        mine.close()
+        kill(proc)
+
+
+def test_watch_stops_by_itself_after_seconds(millsense_cmd, port, daemon_session):
+    started = time.monotonic()
+    proc = _watch(millsense_cmd, port, "--seconds", "1")
+    try:
+        assert proc.wait(20) == 0
+        assert time.monotonic() - started >= 1.0
+    finally:
+        kill(proc)
+
+
+def test_watch_bad_machine_id_is_a_usage_error(millsense_cmd, port):
+    proc = subprocess.run([*millsense_cmd, "watch", "--machine", "a/b", "--seconds", "1"], capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 2
+    assert "--machine 'a/b'" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def _reset(millsense_cmd, port, *extra, timeout=30):
+    return subprocess.run(
+        [*millsense_cmd, "reset", "--no-scouting", "--connect", tcp(port), *extra],
+        capture_output=True, text=True, timeout=timeout,
+    )
+
+
+def test_reset_gets_the_daemons_reply(millsense_cmd, port, daemon_session, tmp_path):
+    controls = FakeInterlock(token="s3cret")
+    sink = ZenohSink(daemon_session, "mch10-01", controls)
+    try:
+        token_file = tmp_path / "token"
+        token_file.write_text("s3cret\n")
+        proc = _reset(millsense_cmd, port, "--machine", "mch10-01", "--token-file", str(token_file))
+        assert proc.returncode == 0, proc.stderr
+        assert json.loads(proc.stdout) == {"ok": True, "interlock": "clear"}
+        assert [json.loads(p) for p in controls.reset_payloads] == [{"token": "s3cret"}]
+        assert not controls.latched
+    finally:
+        sink.close()
+
+
+def test_reset_refused_exits_1_with_the_reason(millsense_cmd, port, daemon_session):
+    controls = FakeInterlock(token="s3cret")
+    sink = ZenohSink(daemon_session, "mch10-01", controls)
+    try:
+        proc = _reset(millsense_cmd, port, "--machine", "mch10-01", "--token", "guess")
+        assert proc.returncode == 1
+        assert "mch10-01 refused the reset: bad token" in proc.stderr
+        assert controls.latched
+
+        controls.fail_with = PermissionError("interlock disabled in config")
+        proc = _reset(millsense_cmd, port, "--machine", "mch10-01")
+        assert proc.returncode == 1
+        assert "refused the reset: PermissionError: interlock disabled in config" in proc.stderr
+        assert "Traceback" not in proc.stderr
+    finally:
+        sink.close()
+
+
+def test_reset_without_machine_asks_the_only_daemon_alive(millsense_cmd, port, daemon_session):
+    controls = FakeInterlock(token=None)
+    sink = ZenohSink(daemon_session, "solo", controls)
+    try:
+        proc = _reset(millsense_cmd, port)
+        assert proc.returncode == 0, proc.stderr
+        assert json.loads(proc.stdout)["interlock"] == "clear"
+        assert controls.reset_payloads == [b"{}"]
+        second = ZenohSink(daemon_session, "duo", FakeInterlock(token=None))
+        try:
+            proc = _reset(millsense_cmd, port)
+            assert proc.returncode == 1
+            assert "several daemons are alive (duo, solo); choose one with --machine" in proc.stderr
+        finally:
+            second.close()
+    finally:
+        sink.close()
+
+
+def test_reset_with_no_daemon_says_so(millsense_cmd, port, daemon_session):
+    started = time.monotonic()
+    proc = _reset(millsense_cmd, port, "--machine", "mch10-01")
+    assert proc.returncode == 1
+    assert proc.stderr.strip() == "millsense reset: no daemon answered on millsense/mch10-01/cmd/reset within 2 s"
+    assert proc.stdout == ""
+    assert time.monotonic() - started < 20
+
+
+def test_reset_client_with_no_router_says_so(millsense_cmd, port):
+    proc = _reset(millsense_cmd, port, "--machine", "m1", "--mode", "client", "--timeout", "0.5")
+    assert proc.returncode == 1
+    assert f"could not open a session to {tcp(port)}" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_watch_on_a_terminal_draws_one_line_per_machine(millsense_cmd, port, daemon_session):
+    sink = ZenohSink(daemon_session, "mch10-01", None)
+    master, slave = pty.openpty()
+    proc = subprocess.Popen(
+        [*millsense_cmd, "watch", "--no-scouting", "--connect", tcp(port), "--seconds", "30"],
+        stdout=slave, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
+    )
+    os.close(slave)
+    screen = b""
+    try:
+        deadline = time.monotonic() + 15
+        while b"alarm: overload" not in screen:
+            assert time.monotonic() < deadline, f"no live line; terminal got {screen[-300:]!r}"
+            sink.estimate({"spindle_rpm": 600.2, "torque_nm": 4.21, "torque_sigma_nm": 0.05, "force_n": 452.6,
+                           "radial_depth_mm": 20.0, "axial_depth_mm": 2.03, "depth_status": "ok"})
+            sink.alarm({"level": "overload", "quantity": "torque_nm", "value": 31.7, "interlock": "feed_hold"})
+            while select.select([master], [], [], 0.1)[0]:
+                try:
+                    screen += os.read(master, 4096)
+                except OSError:
+                    break
+        text = screen.decode("utf-8", "replace")
+        last = text.split("\x1b[2K")[-1]
+        assert last.startswith("mch10-01") and "alive" in last
+        assert "600 rpm" in last and "T   4.21±0.05 N·m" in last and "F   452.6 N" in last
+        assert "ae 20.00 ap 2.03 mm (ok)" in last and "alarm: overload torque_nm 31.7 [feed_hold]" in last
+        assert "{" not in text  # not JSON on a terminal
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
+    finally:
+        sink.close()
+        kill(proc)
+        os.close(master)

@@ -1,0 +1,194 @@
+"""The runner's threads against the real in-process DAQ (`SimDriver`, the emulator's device model).
+
+The DAQ is real: its outputs, heartbeat counter and watchdog are the
+emulator's `DeviceModel`, paced at 1 kHz. The estimator is replaced by a
+scripted one (a revolution every 100 samples, torque and power chosen by the
+test) so that the runner's own behaviour — trip before publish, latching,
+reset, heartbeats that stop when the estimator stalls — is checked on exact
+numbers; the real estimator runs in tests/e2e.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from millsense.daemon.pipeline.runner import Runner
+from millsense.drivers.sim_driver import SimDriver
+
+REV_SAMPLES = 100
+
+
+class ScriptedEstimator:
+    """Closes a revolution every 100 samples; torque_nm(rev) and p_gap_w(seq) come from the test."""
+
+    def __init__(self, torque_nm, p_gap_w=None, stall_at_rev=None, stall_s=0.0):
+        self.torque_nm = torque_nm
+        self.p_gap = p_gap_w or (lambda seq: np.full(seq.shape, 100.0))
+        self.stall_at_rev, self.stall_s = stall_at_rev, stall_s
+        self.rev = 0
+        self.next_end: int | None = None
+        self.lost_samples_total = 0
+        self.spindle_stopped = False
+
+    def __call__(self, settings, descriptor, rate):  # the factory
+        return self
+
+    def process(self, block):
+        n = len(block.counts)
+        self.lost_samples_total += block.lost_before
+        if self.next_end is None:
+            self.next_end = block.seq + REV_SAMPLES - 1
+        estimates = []
+        while self.next_end < block.seq + n:
+            self.rev += 1
+            if self.rev == self.stall_at_rev:
+                time.sleep(self.stall_s)
+            estimates.append({"rev": self.rev, "seq_end": self.next_end, "torque_nm": float(self.torque_nm(self.rev)),
+                              "cutting": True, "valid": True, "samples": REV_SAMPLES, "lost_samples": 0})
+            self.next_end += REV_SAMPLES
+        seq = block.seq + np.arange(n)
+        return SimpleNamespace(estimates=estimates, p_gap_w=self.p_gap(seq), seq=block.seq, spindle_stopped=False)
+
+
+class RecordingSink:
+    """The Sink protocol; records what was published and the DAQ's feed-hold output at that moment."""
+
+    def __init__(self, device_ref):
+        self.device_ref = device_ref
+        self.items: list[tuple[str, dict, bool]] = []
+        self.lock = threading.Lock()
+
+    def _add(self, kind, payload):
+        with self.lock:
+            self.items.append((kind, dict(payload), self.device_ref().feed_hold))
+
+    def estimate(self, payload):
+        self._add("estimate", payload)
+
+    def alarm(self, payload):
+        self._add("alarm", payload)
+
+    def status(self, payload):
+        self._add("status", payload)
+
+    def close(self):
+        pass
+
+    def of(self, kind):
+        with self.lock:
+            return [(p, held) for k, p, held in self.items if k == kind]
+
+
+def settings(**alarms):
+    a = dict(torque_limit_nm=30.0, revolutions=2, crash_power_w=15000.0, hysteresis_pct=5.0, breakage_drop_pct=0.0)
+    a.update(alarms)
+    return SimpleNamespace(
+        machine="rt-01",
+        alarms=SimpleNamespace(**a),
+        interlock=SimpleNamespace(enabled=True, heartbeat_ms=20, watchdog_ms=200, reset="open", reset_token=""),
+    )
+
+
+def wait_for(pred, timeout_s, what):
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out: {what}")
+        time.sleep(0.01)
+
+
+@pytest.fixture
+def rig():
+    made = []
+
+    def make(estimator, **alarms):
+        drv = SimDriver("ramp", realtime=True)
+        drv.start()
+        assert drv.wait_connected(5)
+        wait_for(lambda: drv.descriptor is not None, 5, "descriptor")
+        runner = Runner(settings(**alarms), drv, estimator_factory=estimator, check_descriptor=lambda s, d: None)
+        sink = RecordingSink(lambda: drv.device)
+        made.append((runner, drv))
+        runner.start(sink)
+        return runner, drv, sink
+
+    yield make
+    for runner, drv in made:
+        runner.stop(1.0)
+        drv.close()
+
+
+def test_overload_asserts_feed_hold_before_anything_is_published(rig):
+    est = ScriptedEstimator(lambda rev: 35.0 if rev >= 5 else 10.0)
+    runner, drv, sink = rig(est)
+    wait_for(lambda: sink.of("alarm"), 5, "overload alarm")
+    (alarm, held), *_ = sink.of("alarm")
+    assert alarm["level"] == "overload" and alarm["rev"] == 6 and alarm["interlock"] == "feed_hold"
+    assert held, "feed hold must be on the DAQ before the alarm is handed to the sink"
+    by_rev = {p["rev"]: h for p, h in sink.of("estimate")}
+    assert by_rev[6] is True and by_rev[4] is False
+    assert drv.device.feed_hold and runner.status()["interlock"] == "feed_hold"
+    # latched: it stays although the torque stays over the limit and nothing new trips
+    time.sleep(0.3)
+    assert [p["level"] for p, _ in sink.of("alarm")] == ["overload"]
+    result = runner.reset(b"{}")
+    assert result["ok"] and result["interlock"] == "armed"
+    wait_for(lambda: not drv.device.feed_hold, 1, "feed hold released on the DAQ")
+    # reset re-arms: the overload still there trips again two revolutions later
+    wait_for(lambda: [p["level"] for p, _ in sink.of("alarm")].count("overload") == 2, 3, "second overload")
+    assert drv.device.feed_hold
+    revs = [p["rev"] for p, _ in sink.of("estimate")]
+    assert revs == list(range(1, len(revs) + 1))
+
+
+def test_crash_trips_on_the_block_with_the_time_of_the_crossing_sample(rig):
+    crash_seq = {}
+
+    def p_gap(seq):
+        if "at" not in crash_seq:
+            crash_seq["at"] = int(seq[0]) + 1234
+        return np.where(seq >= crash_seq["at"], 20000.0, 500.0)
+
+    runner, drv, sink = rig(ScriptedEstimator(lambda rev: 5.0, p_gap_w=p_gap))
+    wait_for(lambda: sink.of("alarm"), 5, "crash alarm")
+    (alarm, held), *_ = sink.of("alarm")
+    assert alarm["level"] == "crash" and alarm["quantity"] == "p_gap_w" and alarm["value"] == 20000.0
+    assert held and alarm["interlock"] == "feed_hold"
+    # t is the crossing sample's time: between the estimates around it (rev k ends at seq0 + 100k - 1)
+    est = {p["rev"]: p["t"] for p, _ in sink.of("estimate")}
+    k = 1234 // REV_SAMPLES + 1  # the revolution in which the crossing lies
+    assert alarm["rev"] == k
+    assert est[k - 1] < alarm["t"] <= est[k] if k in est else est[k - 1] < alarm["t"]
+    assert abs(alarm["t"] - (est[k - 1] + (1234 - (REV_SAMPLES * (k - 1) - 1)) / 1000.0)) < 1e-6
+
+
+def test_heartbeats_flow_while_healthy_and_stop_when_the_estimator_stalls(rig):
+    est = ScriptedEstimator(lambda rev: 5.0, stall_at_rev=15, stall_s=0.9)
+    runner, drv, sink = rig(est)
+    wait_for(lambda: drv.device.last_heartbeat > 5, 2, "heartbeats")
+    assert not drv.device.feed_hold and runner.status()["heartbeating"]
+    # rev 15 closes after ~1.5 s and then the estimator hangs for 0.9 s (> watchdog 200 ms)
+    wait_for(lambda: drv.device.feed_hold, 4, "the DAQ's watchdog tripping")
+    assert drv.device.flags & 0x01, "feed hold must come from the watchdog"
+    wait_for(lambda: runner.state == "running" and runner.interlock.heartbeating, 3, "recovery after the stall")
+    assert runner.interlock.state == "held_by_device"  # not cleared by the daemon
+
+
+def test_status_and_stop(rig):
+    runner, drv, sink = rig(ScriptedEstimator(lambda rev: 5.0))
+    wait_for(lambda: len(sink.of("status")) >= 1, 3, "a status publication")
+    st, _ = sink.of("status")[-1]
+    for key in ("state", "daq_link", "samples_received", "bad_frames", "lost_samples", "revolutions", "latency_ms", "interlock", "version"):
+        assert key in st
+    assert st["state"] == "running" and st["daq_link"] == "up" and st["samples_received"] > 500
+    assert st["latency_ms"]["n"] > 0 and st["latency_ms"]["p99"] < 50
+    t0 = time.monotonic()
+    runner.stop(1.0)
+    assert time.monotonic() - t0 < 1.2
+    assert all(not t.is_alive() for t in runner._threads)
+    assert runner.state == "stopping"

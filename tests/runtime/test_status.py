@@ -1,0 +1,76 @@
+"""Live time of samples and latency percentiles."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from millsense.daemon.pipeline.status import LatencyStats, SeqClock, bad_frames, status_line, summary_line
+
+
+def test_seq_clock_uses_the_least_delayed_block():
+    rate = 1000.0
+    c = SeqClock(rate)
+    t0 = 1_700_000_000.0  # Unix time of sample 0
+    assert c.time_of(0) is None
+    # Blocks of 10 samples, each arriving 1..9 ms after its last sample was taken.
+    delays = [0.009, 0.001, 0.005, 0.003]
+    for k, d in enumerate(delays):
+        c.note_block(10 * k, 10, t0 + (10 * k + 9) / rate + d)
+    assert abs(c.time_of(123) - (t0 + 0.123 + 0.001)) < 1e-9
+
+
+def test_seq_clock_forgets_old_blocks_and_restarts():
+    c = SeqClock(1000.0, window_s=1.0)
+    c.note_block(0, 10, 100.009 - 0.008)  # fast block, offset 100.0 - 0.008
+    c.note_block(5000, 10, 105.009)  # 5 s later, delay 0
+    assert abs(c.time_of(5009) - 105.009) < 1e-9
+    c.note_block(10, 10, 50.0, restart=True)
+    assert abs(c.time_of(19) - 50.0) < 1e-9
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(0.0, 0.02), min_size=1, max_size=50))
+def test_seq_clock_is_never_later_than_any_observed_arrival(delays):
+    c = SeqClock(1000.0, window_s=1e9)
+    t0 = 1000.0
+    for k, d in enumerate(delays):
+        c.note_block(10 * k, 10, t0 + (10 * k + 9) / 1000.0 + d)
+    for k, d in enumerate(delays):
+        t = c.time_of(10 * k + 9)
+        assert t <= t0 + (10 * k + 9) / 1000.0 + d + 1e-9
+        assert abs(t - (t0 + (10 * k + 9) / 1000.0 + min(delays))) < 1e-9
+
+
+def test_latency_percentiles():
+    s = LatencyStats(size=1000)
+    assert s.percentiles_ms() == {"p50": None, "p99": None, "max": None, "n": 0}
+    values = np.linspace(0.0, 0.01, 1001)  # 0..10 ms; the first value falls out of the ring
+    for v in values:
+        s.add(float(v))
+    got = s.percentiles_ms()
+    assert got["n"] == 1000
+    assert abs(got["p50"] - np.percentile(values[1:], 50) * 1e3) < 1e-3
+    assert abs(got["max"] - 10.0) < 1e-9
+
+
+def test_lines_tolerate_missing_values():
+    assert "–" in summary_line(None, "ok", {})
+    line = summary_line({"rev": 5, "spindle_rpm": 600.0, "torque_nm": 4.2, "force_n": None}, "warning", {"state": "running"})
+    assert "600 rpm" in line and "4.20" in line and "warning" in line
+    assert "running" in status_line({"state": "running", "latency_ms": {"p99": 0.5}})
+
+
+def test_bad_frames_counts_decoder_refusals():
+    assert bad_frames({"decoder_bad_crc": 3, "decoder_bad_length": 1, "decoder_frames": 100, "samples": 5}) == 4
+    assert bad_frames({}) == 0
+
+
+def test_crash_rev_is_the_revolution_in_progress_at_the_crossing():
+    from millsense.daemon.pipeline.run_core import _rev_at_seq
+
+    ests = [{"rev": 79, "seq_end": 8100}, {"rev": 80, "seq_end": 8200}, {"rev": 81, "seq_end": 8300}]
+    assert _rev_at_seq(8229, 78, ests) == 81  # revs 79, 80 closed before it, 81 was open
+    assert _rev_at_seq(8050, 78, ests) == 79
+    assert _rev_at_seq(8050, None, []) is None
