@@ -1,0 +1,176 @@
+"""The daemon's run-time budget, measured on real processes.
+
+Prints four figures and the budget of each:
+
+1. per-revolution processing p99 — from the running daemon's own status
+   (`latency_ms`: block that closes a revolution handed over by the driver →
+   its estimate handed to the sink), budget ≤ 1 ms;
+2. publication to a loopback subscriber p99 — a `ZenohSink` in this process
+   publishing estimate payloads at 100 Hz to a subscriber in another process
+   connected over loopback TCP (scouting off): `sink.estimate()` call →
+   subscriber callback, budget ≤ 3 ms;
+3. the daemon's CPU at 1 kHz real time — `millsense run` against
+   `millsense sim --tcp --realtime`, user + system time from /proc over a
+   measurement window after warm-up, in % of one core, budget ≤ 5 %;
+4. the daemon's RSS (peak, VmHWM), budget ≤ 120 MB.
+
+Run: /work/venv/bin/python bench/daemon_budget.py [--seconds 20] [--scenario step]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from tests.conftest import free_tcp_port  # noqa: E402
+from tests.e2e.helpers import Procs, Subscriber, tcp, wait_for, write_config  # noqa: E402
+
+
+def _proc_cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    utime, stime = int(fields[11]), int(fields[12])
+    return (utime + stime) / os.sysconf("SC_CLK_TCK")
+
+
+def _proc_mem_kb(pid: int, key: str) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1])
+    return 0
+
+
+def daemon_figures(seconds: float, scenario: str) -> dict:
+    tmp = Path(tempfile.mkdtemp(prefix="millsense-bench-"))
+    daq_port, z_port = free_tcp_port(), free_tcp_port()
+    cfg = write_config(
+        tmp / "bench.toml",
+        machine="bench",
+        daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}',
+        zenoh_listen=[tcp(z_port)],
+        extra="",
+    )
+    with Procs(tmp) as procs:
+        procs.start("sim", ["sim", "--scenario", scenario, "--loop", "--tcp", f"127.0.0.1:{daq_port}", "--realtime"])
+        time.sleep(0.5)
+        daemon = procs.start("daemon", ["run", "--config", str(cfg)])
+        sub = Subscriber([tcp(z_port)], "bench")
+        try:
+            wait_for(lambda: len(sub.get("estimate")) >= 5, 30.0, "estimates from the daemon")
+            time.sleep(2.0)  # warm-up: imports, first descriptor, caches
+            cpu0, t0 = _proc_cpu_s(daemon.pid), time.monotonic()
+            rss_kb = []
+            while time.monotonic() - t0 < seconds:
+                time.sleep(0.5)
+                rss_kb.append(_proc_mem_kb(daemon.pid, "VmRSS"))
+            cpu1, t1 = _proc_cpu_s(daemon.pid), time.monotonic()
+            hwm_kb = _proc_mem_kb(daemon.pid, "VmHWM")
+            status = sub.query("millsense/bench/status")[0]
+            revs = [e["rev"] for e in sub.get("estimate")]
+        finally:
+            sub.close()
+    return {
+        "cpu_pct": 100.0 * (cpu1 - cpu0) / (t1 - t0),
+        "rss_mb": max(rss_kb) / 1024.0,
+        "hwm_mb": hwm_kb / 1024.0,
+        "latency": status.get("latency_ms", {}),
+        "revs": len(revs),
+        "window_s": t1 - t0,
+        "lost": status.get("lost_samples"),
+    }
+
+
+_SUBSCRIBER = r"""
+import json, sys, time, threading, zenoh
+port, n = sys.argv[1], int(sys.argv[2])
+conf = zenoh.Config()
+conf.insert_json5("mode", '"peer"')
+conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+conf.insert_json5("scouting/multicast/enabled", "false")
+got, done = {}, threading.Event()
+def cb(sample):
+    t = time.monotonic()
+    got[json.loads(sample.payload.to_bytes())["rev"]] = t
+    if len(got) >= n:
+        done.set()
+with zenoh.open(conf) as s:
+    sub = s.declare_subscriber("millsense/pubbench/estimate", cb)
+    print("ready", flush=True)
+    done.wait(float(sys.argv[3]))
+    print(json.dumps(got), flush=True)
+"""
+
+
+def publication_figures(n: int = 1000, rate_hz: float = 100.0) -> dict:
+    """`ZenohSink.estimate()` in this process → a subscriber in another process, over loopback TCP.
+
+    Both sides read CLOCK_MONOTONIC, which is system-wide on Linux, so the
+    difference is the one-way time.
+    """
+    import subprocess
+
+    import numpy as np
+
+    from millsense.daemon.publish.session import open_session
+    from millsense.daemon.publish.sink import ZenohSink
+
+    port = free_tcp_port()
+    zs = type("Z", (), {"mode": "peer", "listen": [tcp(port)], "connect": [], "multicast_scouting": False, "config_file": ""})()
+    pub_session = open_session(zs, retry_for_s=0)
+    sink = ZenohSink(pub_session, "pubbench")
+    sub = subprocess.Popen([sys.executable, "-c", _SUBSCRIBER, str(port), str(n), str(n / rate_hz + 30)],
+                           stdout=subprocess.PIPE, text=True)
+    sent: dict[int, float] = {}
+    try:
+        assert sub.stdout.readline().strip() == "ready"
+        wait_for(lambda: len(list(pub_session.info.peers_zid())) > 0, 10.0, "subscriber linked")
+        time.sleep(1.0)
+        payload = {"machine": "pubbench", "rev": 0, "t": 0.0, "spindle_rpm": 600.0, "gear": "low-speed", "p_in_w": 612.4,
+                   "p_gap_w": 598.1, "torque_nm": 4.21, "torque_sigma_nm": 0.05, "force_n": 452.6,
+                   "force_tangential_n": 421.0, "force_feed_n": None, "feed_per_tooth_mm": 0.1667,
+                   "radial_depth_mm": 20.0, "axial_depth_mm": 2.03, "depth_status": "ok", "cutting": True,
+                   "samples": 100, "lost_samples": 0}
+        next_t = time.monotonic()
+        for i in range(n):
+            payload["rev"] = i
+            sent[i] = time.monotonic()
+            sink.estimate(payload)
+            next_t += 1.0 / rate_hz
+            time.sleep(max(0.0, next_t - time.monotonic()))
+        out, _ = sub.communicate(timeout=n / rate_hz + 40)
+        got = {int(k): v for k, v in json.loads(out.strip().splitlines()[-1]).items()}
+    finally:
+        if sub.poll() is None:
+            sub.kill()
+        sink.close()
+        pub_session.close()
+    lat = np.array([got[i] - sent[i] for i in sent if i in got]) * 1e3
+    return {"n": len(lat), "sent": n, "p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)), "max": float(lat.max())}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seconds", type=float, default=20.0, help="CPU/RSS measurement window (default 20)")
+    ap.add_argument("--scenario", default="step")
+    args = ap.parse_args()
+
+    pub = publication_figures()
+    d = daemon_figures(args.seconds, args.scenario)
+    lat = d["latency"]
+    print(f"daemon budget (scenario {args.scenario}, 1 kHz real time, {d['window_s']:.0f} s window, {d['revs']} estimates received)")
+    print(f"  per-revolution processing  p50 {lat.get('p50')} ms  p99 {lat.get('p99')} ms  max {lat.get('max')} ms  (n={lat.get('n')})   budget p99 <= 1 ms")
+    print(f"  publication to subscriber  p50 {pub['p50']:.3f} ms  p99 {pub['p99']:.3f} ms  max {pub['max']:.3f} ms  ({pub['n']}/{pub['sent']} received)   budget p99 <= 3 ms")
+    print(f"  daemon CPU                 {d['cpu_pct']:.2f} % of one core   budget <= 5 %")
+    print(f"  daemon RSS                 {d['rss_mb']:.1f} MB (peak VmHWM {d['hwm_mb']:.1f} MB)   budget <= 120 MB")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

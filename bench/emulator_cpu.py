@@ -1,0 +1,88 @@
+"""CPU of the emulator and of the reader at 1 kHz real time, per transport (~10 s each).
+
+The emulator runs as a subprocess (`millsense sim --scenario ramp`); its CPU time
+comes from /proc/<pid>/stat (utime + stime).  The reader is the real driver in this
+process, its thread consuming the queue; its CPU time is this process's
+`resource.getrusage` delta.  Both are printed as % of one core.
+Run: python bench/emulator_cpu.py [seconds]
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+
+from millsense.drivers import create_driver
+from millsense.drivers.base import SampleBlock
+
+TICK = os.sysconf("SC_CLK_TCK")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def proc_cpu_s(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as fh:
+        fields = fh.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / TICK  # utime, stime
+
+
+def self_cpu_s() -> float:
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return ru.ru_utime + ru.ru_stime
+
+
+def measure(transport: str, seconds: float) -> None:
+    tmp = tempfile.mkdtemp()
+    port = free_port()
+    if transport == "pty":
+        link = os.path.join(tmp, "link")
+        sim_args, make = ["--pty", link], lambda: create_driver("serial", port=link)
+    elif transport == "tcp":
+        sim_args, make = ["--tcp", f"127.0.0.1:{port}"], lambda: create_driver("tcp", host="127.0.0.1", tcp_port=port)
+    else:
+        sim_args = ["--modbus-tcp", f"127.0.0.1:{port}"]
+        make = lambda: create_driver("modbus-tcp", host="127.0.0.1", tcp_port=port, poll_ms=20)  # noqa: E731
+    cmd = [sys.executable, "-m", "millsense.daemon", "sim", "--scenario", "ramp", *sim_args]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    driver = None
+    try:
+        proc.stderr.readline()
+        driver = make()
+        driver.start()
+        if not driver.wait_connected(10):
+            raise SystemExit(f"{transport}: driver did not connect")
+        settle = time.monotonic() + 1.0
+        while time.monotonic() < settle or driver.get(0) is not None:  # settle, then start with an empty queue
+            driver.get(0.05)
+        e0, r0, w0 = proc_cpu_s(proc.pid), self_cpu_s(), time.monotonic()
+        n = 0
+        while time.monotonic() - w0 < seconds:
+            ev = driver.get(0.1)
+            if isinstance(ev, SampleBlock):
+                n += len(ev.counts)
+        e1, r1, w1 = proc_cpu_s(proc.pid), self_cpu_s(), time.monotonic()
+        wall = w1 - w0
+        print(
+            f"{transport:<10} emulator {100 * (e1 - e0) / wall:5.1f} %  reader {100 * (r1 - r0) / wall:5.1f} %  "
+            f"of one core ({n / wall:.0f} samples/s over {wall:.1f} s)"
+        )
+    finally:
+        if driver is not None:
+            driver.close()
+        proc.terminate()
+        proc.wait(5)
+
+
+if __name__ == "__main__":
+    secs = float(sys.argv[1]) if len(sys.argv) > 1 else 10.0
+    for t in ("pty", "tcp", "modbus-tcp"):
+        measure(t, secs)
