@@ -7,7 +7,7 @@ Torque and force are compared on steady revolutions (truth `steady`), depths on
 settled revolutions of a cut (tests/estimator/simcase.py `settled`: away from
 entry, exit and steps). Errors: torque in N·m, the rest in % of the truth.
 
-    /work/venv/bin/python bench/accuracy.py [--seed 11]
+    .venv/bin/python bench/accuracy.py [--seed 11]
 """
 
 from __future__ import annotations

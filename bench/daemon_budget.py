@@ -14,7 +14,7 @@ Prints four figures and the budget of each:
    measurement window after warm-up, in % of one core, budget ≤ 5 %;
 4. the daemon's RSS (peak, VmHWM), budget ≤ 120 MB.
 
-Run: /work/venv/bin/python bench/daemon_budget.py [--seconds 20] [--scenario step]
+Run: .venv/bin/python bench/daemon_budget.py [--seconds 20] [--scenario step]
 """
 
 from __future__ import annotations

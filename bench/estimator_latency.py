@@ -5,7 +5,7 @@ estimate dict being ready. The simulator's samples are fed in 10-sample blocks
 (what a 1 kHz DAQ sends per frame); every `process` call that closed a
 revolution is timed whole (scaling, power, splitting, f_e, physics, depth).
 
-    /work/venv/bin/python bench/estimator_latency.py [--seconds 20]
+    .venv/bin/python bench/estimator_latency.py [--seconds 20]
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Physics acceptance figures: [D] Table 3 vs the exact model, C_f on [P]'s trial grid, solve time.
 
-Run: /work/venv/bin/python bench/physics_table3.py
+Run: .venv/bin/python bench/physics_table3.py
 """
 
 from __future__ import annotations

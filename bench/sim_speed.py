@@ -1,7 +1,7 @@
 """How fast the plant simulator runs: capture generation (x real time) and the
 CPU share of pacing it at 1 kHz in 10-sample steps, as the emulator does.
 
-Run: /work/venv/bin/python bench/sim_speed.py [scenario ...]
+Run: .venv/bin/python bench/sim_speed.py [scenario ...]
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Publication latency: `ZenohSink.estimate()` call → sample in a subscriber in another process.
 
-    /work/venv/bin/python bench/zenoh_latency.py [--count 2000] [--rate 500]
+    .venv/bin/python bench/zenoh_latency.py [--count 2000] [--rate 500]
 
 Two processes on loopback (TCP, multicast scouting off). The publisher stamps
 each estimate with CLOCK_MONOTONIC (shared by all processes on Linux) at the

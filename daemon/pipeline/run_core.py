@@ -34,18 +34,6 @@ class Step:
     revolutions: int = 0
 
 
-def p_gap_of(result: Any) -> tuple[np.ndarray | None, int | None]:
-    """The block's smoothed per-sample air-gap power and the seq of its first sample."""
-    p = getattr(result, "p_gap_w", None)
-    if p is None:
-        return None, None
-    for name in ("p_gap_seq", "p_gap_first_seq", "p_gap_seq_first", "seq_first", "seq"):
-        seq = getattr(result, name, None)
-        if seq is not None:
-            return np.asarray(p), int(seq)
-    return np.asarray(p), None
-
-
 def estimate_payload(est: dict[str, Any], machine: str, t: float | None) -> dict[str, Any]:
     """interfaces.md `estimate`: machine, rev, t first, then the estimator's fields."""
     out: dict[str, Any] = {"machine": machine, "rev": est.get("rev"), "t": t}
@@ -103,12 +91,9 @@ class PipelineCore:
         """Run one SampleBlock through estimator and alarms."""
         step = Step()
         result = self.estimator.process(block)
-        p_gap_w, first_seq = p_gap_of(result)
         crashes: list[AlarmEvent] = []
-        if p_gap_w is not None and p_gap_w.size:
-            if first_seq is None:  # the power covers the block's last samples
-                first_seq = block.seq + len(block.counts) - p_gap_w.size
-            for ev in self.alarms.on_power(p_gap_w, first_seq):
+        if result.p_gap_w.size:  # BlockResult: smoothed per-sample air-gap power from sample `seq` on
+            for ev in self.alarms.on_power(result.p_gap_w, result.seq):
                 crashes.append(_with_rev(ev, self._rev_at(ev.seq, result.estimates)))
         step.trips.extend(crashes)  # the caller trips on these before it publishes anything
         for est in result.estimates:
