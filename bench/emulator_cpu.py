@@ -48,6 +48,10 @@ def measure(transport: str, seconds: float) -> None:
         sim_args, make = ["--pty", link], lambda: create_driver("serial", port=link)
     elif transport == "tcp":
         sim_args, make = ["--tcp", f"127.0.0.1:{port}"], lambda: create_driver("tcp", host="127.0.0.1", tcp_port=port)
+    elif transport == "modbus-rtu":
+        link = os.path.join(tmp, "link")
+        sim_args = ["--modbus-rtu", link]
+        make = lambda: create_driver("modbus-rtu", port=link, poll_ms=20)  # noqa: E731
     else:
         sim_args = ["--modbus-tcp", f"127.0.0.1:{port}"]
         make = lambda: create_driver("modbus-tcp", host="127.0.0.1", tcp_port=port, poll_ms=20)  # noqa: E731
@@ -84,5 +88,5 @@ def measure(transport: str, seconds: float) -> None:
 
 if __name__ == "__main__":
     secs = float(sys.argv[1]) if len(sys.argv) > 1 else 10.0
-    for t in ("pty", "tcp", "modbus-tcp"):
+    for t in ("pty", "tcp", "modbus-tcp", "modbus-rtu"):
         measure(t, secs)

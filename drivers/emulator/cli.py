@@ -34,6 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     out.add_argument("--pty", metavar="LINK", help="serve the stream on a pseudo-terminal; LINK is a symlink to it")
     out.add_argument("--tcp", metavar="HOST:PORT", type=_host_port, help="serve the stream to TCP clients")
     out.add_argument("--modbus-tcp", metavar="HOST:PORT", type=_host_port, help="serve the Modbus register map")
+    out.add_argument("--modbus-rtu", metavar="LINK",
+                     help="serve the Modbus register map as RTU on a pseudo-terminal; LINK is a symlink to it")
     out.add_argument("--capture", metavar="FILE", help="write the frames to FILE")
     pace = parser.add_mutually_exclusive_group()
     pace.add_argument("--realtime", dest="realtime", action="store_true", default=None,
@@ -69,8 +71,9 @@ def run(args: argparse.Namespace) -> int:
     if not args.scenario:
         print("millsense sim: error: --scenario is required (see --list)", file=sys.stderr)
         return 2
-    if not (args.pty or args.tcp or args.modbus_tcp or args.capture):
-        print("millsense sim: error: choose one of --pty, --tcp, --modbus-tcp or --capture", file=sys.stderr)
+    if not (args.pty or args.tcp or args.modbus_tcp or args.modbus_rtu or args.capture):
+        print("millsense sim: error: choose one of --pty, --tcp, --modbus-tcp, --modbus-rtu or --capture",
+              file=sys.stderr)
         return 2
     try:
         return serve(args)

@@ -1,4 +1,4 @@
-"""The device as a Modbus TCP server (register map of daq-protocol.md).
+"""The device as a Modbus server (register map of daq-protocol.md): TCP, or RTU on a pty.
 
 Built on ``pymodbus.simulator.SimDevice`` (the old datastore classes are
 deprecated in 3.16 and only a shim over it).  Its ``action`` hook runs before every
@@ -15,9 +15,11 @@ import contextlib
 import logging
 import time
 
-from pymodbus.server import ModbusTcpServer
+from pymodbus import FramerType
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from millsense.drivers.emulator.pty import PtyBridge
 from millsense.drivers.protocol import OUT_ALARM_LAMP, OUT_FEED_HOLD
 
 RING_BASE = 1000
@@ -39,11 +41,16 @@ def channel_table(descriptor) -> list[int]:
 
 
 class ModbusDeviceServer:
-    def __init__(self, device, pacer, host: str, port: int, *, unit: int = 1, duration_samples: int | None = None):
+    """Modbus TCP on ``host:port``, or with ``rtu_link`` Modbus RTU on a pty reachable at that path."""
+
+    def __init__(self, device, pacer, host: str = "", port: int = 0, *, rtu_link: str | None = None,
+                 unit: int = 1, duration_samples: int | None = None):
         self.device = device
         self.pacer = pacer
         self.host = host
         self.port = port
+        self.rtu_link = rtu_link
+        self._bridge: PtyBridge | None = None
         self.duration_samples = duration_samples
         c = device.channel_count
         self._table = channel_table(device.descriptor)
@@ -56,7 +63,7 @@ class ModbusDeviceServer:
         )
         # unit id 0 = answer every id, as a single device on its own TCP port does
         self.simdevice = SimDevice(id=0, simdata=simdata, action=self._action)
-        self._server: ModbusTcpServer | None = None
+        self._server: ModbusTcpServer | ModbusSerialServer | None = None
         self.stop = asyncio.Event()
 
     async def _action(self, fc, start, address, count, registers, values):
@@ -143,11 +150,26 @@ class ModbusDeviceServer:
     async def open(self) -> None:
         """Listen; returns once clients can connect."""
         logging.getLogger("pymodbus").setLevel(logging.ERROR)
-        self._server = ModbusTcpServer(self.simdevice, address=(self.host, self.port))
+        if self.rtu_link is not None:
+            self._bridge = PtyBridge(self.rtu_link)
+            self._bridge.start()
+            # a pty has no line rate; the baud rate only sets pymodbus' inter-frame timing
+            self._server = ModbusSerialServer(self.simdevice, framer=FramerType.RTU, port=self._bridge.inner_path,
+                                              baudrate=921600)
+            where = f"the pty {self._bridge.inner_path}"
+        else:
+            self._server = ModbusTcpServer(self.simdevice, address=(self.host, self.port))
+            where = f"{self.host}:{self.port} (in use or not a local address)"
         try:
             await self._server.serve_forever(background=True)
-        except RuntimeError as exc:  # pymodbus' way of saying the bind failed
-            raise OSError(f"cannot listen on {self.host}:{self.port} (in use or not a local address)") from exc
+        except RuntimeError as exc:  # pymodbus' way of saying the bind or open failed
+            self._close_bridge()
+            raise OSError(f"cannot serve Modbus on {where}") from exc
+
+    def _close_bridge(self) -> None:
+        if self._bridge is not None:
+            self._bridge.close()
+            self._bridge = None
 
     async def run(self) -> None:
         if self._server is None:
@@ -164,3 +186,4 @@ class ModbusDeviceServer:
         finally:
             with contextlib.suppress(Exception):
                 await self._server.shutdown()
+            self._close_bridge()

@@ -71,11 +71,17 @@ def serve(args) -> int:
 
 async def _main(args, device, pacer, duration_samples) -> int:
     loop = asyncio.get_running_loop()
+    modbus = bool(args.modbus_tcp or args.modbus_rtu)
     if args.modbus_tcp:
         from millsense.drivers.emulator.modbus_server import ModbusDeviceServer
 
         server = ModbusDeviceServer(device, pacer, *args.modbus_tcp, duration_samples=duration_samples)
         where = f"modbus-tcp {args.modbus_tcp[0]}:{args.modbus_tcp[1]}"
+    elif args.modbus_rtu:
+        from millsense.drivers.emulator.modbus_server import ModbusDeviceServer
+
+        server = ModbusDeviceServer(device, pacer, rtu_link=args.modbus_rtu, duration_samples=duration_samples)
+        where = f"modbus-rtu {args.modbus_rtu}"
     else:
         from millsense.drivers.emulator.stream_server import StreamServer
 
@@ -91,7 +97,7 @@ async def _main(args, device, pacer, duration_samples) -> int:
         loop.add_signal_handler(sig, server.stop.set)
     capture_fh = None
     try:
-        if args.modbus_tcp:
+        if modbus:
             await server.open()
         elif args.pty:
             server.open_pty(args.pty)

@@ -11,58 +11,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
-import termios
 import time
-import tty
 
+from millsense.drivers.emulator.pty import Pty
 from millsense.drivers.protocol import CMD_SEND_DESCRIPTOR, Command, StreamDecoder
 
 MAX_CLIENT_BACKLOG = 1 << 20
-
-
-class _Pty:
-    """A pseudo-terminal whose slave is reachable at a stable symlink ``link``.
-
-    The emulator keeps its own descriptor of the slave open, so a reader closing
-    the port does not hang the master up (no EIO) and a new reader can open it again.
-    """
-
-    def __init__(self, link: str) -> None:
-        self.link = link
-        self.master, self._slave = os.openpty()
-        tty.setraw(self._slave)
-        attrs = termios.tcgetattr(self._slave)
-        attrs[3] &= ~termios.ECHO
-        termios.tcsetattr(self._slave, termios.TCSANOW, attrs)
-        os.set_blocking(self.master, False)
-        name = os.ttyname(self._slave)
-        tmp = f"{link}.tmp{os.getpid()}"
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        try:
-            os.symlink(name, tmp)
-            os.replace(tmp, link)  # atomic: a reader never sees the link missing or half-made
-        except OSError as exc:
-            self.close()
-            raise OSError(f"cannot make the pty link {link}: {exc.strerror}") from exc
-        self.dropped_bytes = 0
-
-    def write(self, data: bytes) -> None:
-        try:
-            n = os.write(self.master, data)
-        except BlockingIOError:
-            n = 0
-        except OSError:
-            n = 0
-        self.dropped_bytes += len(data) - n
-
-    def close(self) -> None:
-        with contextlib.suppress(OSError):
-            if os.path.islink(self.link) and os.readlink(self.link) == os.ttyname(self._slave):
-                os.unlink(self.link)
-        for fd in (self.master, self._slave):
-            with contextlib.suppress(OSError):
-                os.close(fd)
 
 
 class StreamServer:
@@ -75,7 +29,7 @@ class StreamServer:
         self.duration_samples = duration_samples
         self._writers: list = []  # callables taking bytes
         self._clients: set[asyncio.StreamWriter] = set()
-        self._pty: _Pty | None = None
+        self._pty: Pty | None = None
         self._capture = None
         self._tcp_server: asyncio.AbstractServer | None = None
         self.stop = asyncio.Event()
@@ -84,7 +38,7 @@ class StreamServer:
     # -- sinks ----------------------------------------------------------------
 
     def open_pty(self, link: str) -> None:
-        self._pty = _Pty(link)
+        self._pty = Pty(link)
         decoder = StreamDecoder()
         loop = asyncio.get_running_loop()
 

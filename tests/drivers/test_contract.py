@@ -1,4 +1,4 @@
-"""One contract, three transports: the emulator as a subprocess, the real driver here.
+"""One contract, four transports: the emulator as a subprocess, the real driver here.
 
 In one 10-s window per transport: every sample arrives once, in order, with the
 ramp's values; the rate is 1000 Hz +- 1 %; feed hold round-trips; then the
@@ -31,6 +31,10 @@ def open_transport(transport: str, tmp_path, port: int, *extra: str):
     if transport == "tcp":
         emu = Emulator(tmp_path, "--tcp", f"127.0.0.1:{port}", "--watchdog-ms", str(WATCHDOG_MS), *extra)
         return emu, lambda: create_driver("tcp", host="127.0.0.1", tcp_port=port)
+    if transport == "modbus-rtu":
+        link = str(tmp_path / "rtu-link")
+        emu = Emulator(tmp_path, "--modbus-rtu", link, *extra)
+        return emu, lambda: create_driver("modbus-rtu", port=link, baudrate=921600, unit=1, poll_ms=20)
     emu = Emulator(tmp_path, "--modbus-tcp", f"127.0.0.1:{port}", *extra)
     return emu, lambda: create_driver("modbus-tcp", host="127.0.0.1", tcp_port=port, unit=1, poll_ms=20)
 
@@ -72,14 +76,14 @@ def check_every_sample_once(blocks: list[SampleBlock]) -> int:
     return expected_seq - blocks[0].seq
 
 
-@pytest.mark.parametrize("transport", ["pty", "tcp", "modbus-tcp"])
+@pytest.mark.parametrize("transport", ["pty", "tcp", "modbus-tcp", "modbus-rtu"])
 def test_contract(transport, tmp_path, port):
     emu, make = open_transport(transport, tmp_path, port, "--start-index", str(2**32 - 3000))
     driver = None
     try:
         emu.start()
         driver = make()
-        if transport == "modbus-tcp":
+        if transport.startswith("modbus"):
             driver.set_watchdog_ms(WATCHDOG_MS)  # holding register 101, written on connect
         driver.start()
         assert driver.wait_connected(10.0), "driver never connected"
