@@ -216,10 +216,13 @@ class AlarmSettings(_Section):
 
     - `hysteresis_pct` (default 10): a level is left only below
       `limit · (1 − hysteresis_pct/100)`, so a cut hovering at a limit does not chatter;
-    - `breakage_drop_pct` (default 50, 0 = off): a revolution-to-revolution torque
-      drop (or the equal jump) this large while cutting is a `tool_breakage`;
-    - `breakage_min_torque_nm` (default 1.0): breakage is only judged when the
-      earlier revolution cut with at least this torque.
+    - `breakage_drop_pct` (default 20, 0 = off): a step of the revolution torque
+      from one steady level to another this large (or the equal jump), within one
+      revolution, at constant speed and feed, is a `tool_breakage`
+      (pipeline/alarms.py `BreakageTrack`). A 2-flute cutter that loses a flute
+      drops about 25 %, a 4-flute one about 12 %: set it below that;
+    - `breakage_min_torque_nm` (default 1.0): breakage is only judged after
+      steady revolutions cutting with at least this torque.
     """
 
     torque_warn_nm: float | None = Field(None, gt=0)
@@ -231,7 +234,7 @@ class AlarmSettings(_Section):
     revolutions: int = Field(2, ge=1)
     crash_power_w: float | None = Field(None, gt=0)
     hysteresis_pct: float = Field(10.0, ge=0, lt=100)
-    breakage_drop_pct: float = Field(50.0, ge=0, lt=100)
+    breakage_drop_pct: float = Field(20.0, ge=0, lt=100)
     breakage_min_torque_nm: float = Field(1.0, ge=0)
 
     @model_validator(mode="after")

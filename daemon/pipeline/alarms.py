@@ -13,12 +13,14 @@ Four kinds of alarm, each a state; every *change* of state is one
   (`limit · (1 − hysteresis_pct/100)`); so a single noisy revolution neither
   raises nor clears. Leaving every level yields `clear`. The power limit is
   on air-gap power (what the motor turns into torque), like the crash trip.
-- **Tool breakage**: a sudden relative change of torque between consecutive
-  valid revolutions while the earlier one was cutting with at least
-  `breakage_min_torque_nm`: a drop of `breakage_drop_pct` or more, or the
-  equally large jump in the other direction (a ratio of `1/(1 − drop)`, i.e.
-  the same step in log-torque). Latched until `reset()`. Not armed unless
-  `breakage_drop_pct` is set (like every limit left out).
+- **Tool breakage**: a step of the revolution torque from one steady level to
+  another within one revolution, while cutting (`BreakageTrack`): three steady
+  revolutions cutting with at least `breakage_min_torque_nm`, one revolution of
+  transition, then two revolutions that agree with each other at a level
+  `breakage_drop_pct` or more below (or the same log-step above) the first.
+  Spindle speed and feed per tooth must not change across the window. Latched
+  until `reset()`. Not armed unless `breakage_drop_pct` is set (like every limit
+  left out).
 - **Crash** (sample level): the smoothed instantaneous air-gap power of a
   block passing `crash_power_w`, found on the block as it arrives, without
   waiting for the revolution to close. Latched until `reset()`.
@@ -148,38 +150,76 @@ class ThresholdTrack:
 
 
 class BreakageTrack:
-    """Sudden torque change between consecutive valid revolutions while cutting."""
+    """A step of the revolution torque between two steady levels, while cutting.
+
+    Why a window and not two consecutive revolutions: a flute that breaks leaves
+    the tool cutting at a new, steady torque from the next revolution on (about
+    25 % lower for a 2-flute cutter, 12 % for a 4-flute one: the next flute takes
+    the double chip at a lower specific force, [D] eq. 9). A tool leaving the
+    part, entering it, or crossing a step changes torque just as much, but over
+    several revolutions and without settling in between. So the decision needs
+    the level before (`BEFORE` steady revolutions), one revolution for the break
+    itself (it happens mid-revolution), and the level after (`AFTER`
+    revolutions that agree). The price is `AFTER` revolutions of latency (0.2 s at
+    600 rpm) — a crash, which must stop the feed at once, is the sample-level
+    trip, not this one. A level after of nearly zero (the tool snapped off) is a
+    breakage too.
+
+    Speed and feed per tooth must hold across the window: a programmed change of
+    either changes torque by a step as well. Without a feed-rate channel the feed
+    is the configured constant, so a programmed feed change can raise a false
+    `tool_breakage`.
+    """
+
+    BEFORE, TRANSITION, AFTER = 3, 1, 2
+    STEADY_TOL = 0.05    # steady: every revolution within 5 % of the level before
+    SPEED_TOL = 0.02     # speed and feed per tooth within 2 % across the window
 
     def __init__(self, drop_pct: float | None, min_torque_nm: float):
         self._drop = 0.0 if drop_pct is None else min(max(drop_pct / 100.0, 0.0), 0.999)
         self._min_torque_nm = min_torque_nm
-        self._prev: tuple[float, bool] | None = None
+        self._window = self.BEFORE + self.TRANSITION + self.AFTER
+        self._history: list[tuple[float, bool, float | None, float | None]] = []
         self.latched = False
 
     @property
     def armed(self) -> bool:
         return self._drop > 0.0
 
-    def update(self, torque_nm: float, cutting: bool, rev: int | None, seq: int | None) -> AlarmEvent | None:
-        prev, self._prev = self._prev, (torque_nm, cutting)
-        if self.latched or not self.armed or prev is None:
+    def update(self, torque_nm: float, cutting: bool, rev: int | None, seq: int | None,
+               spindle_rpm: float | None = None, feed_per_tooth_mm: float | None = None) -> AlarmEvent | None:
+        self._history.append((torque_nm, cutting, spindle_rpm, feed_per_tooth_mm))
+        del self._history[: -self._window]
+        if self.latched or not self.armed or len(self._history) < self._window:
             return None
-        prev_torque_nm, prev_cutting = prev
-        if not prev_cutting or prev_torque_nm < self._min_torque_nm:
+        before = self._history[: self.BEFORE]
+        after = self._history[-self.AFTER :]
+        if not all(c and t >= self._min_torque_nm for t, c, _, _ in before):
             return None
-        ratio = torque_nm / prev_torque_nm
-        if ratio <= 1.0 - self._drop:
-            limit = prev_torque_nm * (1.0 - self._drop)
-        elif ratio >= 1.0 / (1.0 - self._drop):
-            limit = prev_torque_nm / (1.0 - self._drop)
+        level_nm = sum(t for t, *_ in before) / self.BEFORE
+        tol_nm = self.STEADY_TOL * level_nm
+        if any(abs(t - level_nm) > tol_nm for t, *_ in before):
+            return None  # not steady before: entering, leaving, ramping
+        after_nm = [t for t, *_ in after]
+        if max(after_nm) - min(after_nm) > tol_nm:
+            return None  # not settled after
+        for column in (2, 3):  # spindle speed, feed per tooth
+            values = [h[column] for h in self._history if h[column] is not None]
+            if values and max(values) - min(values) > self.SPEED_TOL * max(abs(v) for v in values):
+                return None
+        new_nm = sum(after_nm) / self.AFTER
+        if new_nm <= level_nm * (1.0 - self._drop):
+            limit = level_nm * (1.0 - self._drop)
+        elif new_nm >= level_nm / (1.0 - self._drop):
+            limit = level_nm / (1.0 - self._drop)
         else:
             return None
         self.latched = True
         return AlarmEvent("tool_breakage", "torque_nm", torque_nm, limit, rev, seq)
 
     def forget(self) -> None:
-        """Forget the previous revolution (after a gap in time it is not 'consecutive')."""
-        self._prev = None
+        """Forget the revolutions seen (after a gap in time they are not consecutive)."""
+        self._history.clear()
 
 
 class AlarmEngine:
@@ -216,7 +256,8 @@ class AlarmEngine:
                     events.append(ev)
         torque_nm = _finite(est.get("torque_nm"))
         if torque_nm is not None:
-            ev = self.breakage.update(torque_nm, bool(est.get("cutting")), rev, seq)
+            ev = self.breakage.update(torque_nm, bool(est.get("cutting")), rev, seq,
+                                      _finite(est.get("spindle_rpm")), _finite(est.get("feed_per_tooth_mm")))
             if ev is not None:
                 events.append(ev)
         return events

@@ -38,7 +38,7 @@ def test_sections_left_out_take_the_documented_defaults():
         646.08, -0.4362, 0.2201, -0.2667, 0.1244, 0.1702)
     assert s.cut.mode == "slot" and s.depth.method == "auto"
     assert s.alarms.torque_limit_nm is None and s.alarms.crash_power_w is None  # not armed
-    assert (s.alarms.hysteresis_pct, s.alarms.breakage_drop_pct) == (10.0, 50.0)
+    assert (s.alarms.hysteresis_pct, s.alarms.breakage_drop_pct) == (10.0, 20.0)
     assert s.interlock.enabled is False and s.interlock.reset == "open"
     assert s.zenoh.mode == "peer" and s.zenoh.multicast_scouting is True and s.zenoh.connect == []
     assert s.log.format == "auto"
