@@ -11,6 +11,11 @@ over the sample rate, so results are reproducible. Alarms carry
 A corrupt or truncated capture is decoded as far as it goes (the stream
 decoder drops bad bytes and hunts for the next sync, exactly as live); the
 counts of what was dropped go to stderr, one line, after the output.
+
+`--plot OUT.png` also draws the run (`daemon/plot.py`: rpm, torque, force,
+depths, alarms, lost-sample spans) once the input is read; stdout is the same
+with or without it. matplotlib is the optional `plot` extra: it is checked
+before anything is read, so a missing extra is one error line and exit 1.
 """
 
 from __future__ import annotations
@@ -26,6 +31,9 @@ PROG = "millsense replay"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", metavar="CAPTURE", help="a capture file (the DAQ byte stream)")
     parser.add_argument("--config", "-c", metavar="FILE", required=True, help="the daemon's configuration file")
+    parser.add_argument("--plot", metavar="OUT.png", default=None,
+                        help="also draw rpm, torque, force and depths over time, alarms marked, to a PNG "
+                             "(needs the plot extra: pip install 'millsense[plot]')")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -33,13 +41,26 @@ def run(args: argparse.Namespace) -> int:
 
     settings = load_config(args.config)  # ConfigError -> exit 78 in the CLI
     path = Path(args.capture)
+    plot = None
+    if args.plot:
+        from millsense.daemon.plot import PlotUnavailable, ReplayPlot, require_matplotlib
+
+        try:
+            require_matplotlib()
+        except PlotUnavailable as exc:
+            print(f"{PROG}: error: {exc}", file=sys.stderr)
+            return 1
+        if not Path(args.plot).resolve().parent.is_dir():
+            print(f"{PROG}: error: --plot {args.plot}: no such directory", file=sys.stderr)
+            return 1
+        plot = ReplayPlot()
     try:
         fh = path.open("rb")
     except OSError as exc:
         print(f"{PROG}: error: cannot read {path}: {exc.strerror or exc}", file=sys.stderr)
         return 1
     with fh:
-        replay = Replay(settings, sys.stdout)
+        replay = Replay(settings, sys.stdout, on_payload=plot.add if plot else None)
         while chunk := fh.read(CHUNK_BYTES):
             replay.feed(chunk)
     sys.stdout.flush()
@@ -47,13 +68,20 @@ def run(args: argparse.Namespace) -> int:
     if replay.core.descriptor is None:
         print(f"{PROG}: error: {path}: no DAQ descriptor frame found (is this a millsense capture?)", file=sys.stderr)
         return 1
+    if plot is not None:
+        try:
+            plot.write(args.plot, title=f"millsense replay {path.name} ({replay.machine})")
+        except OSError as exc:
+            print(f"{PROG}: error: cannot write {args.plot}: {exc.strerror or exc}", file=sys.stderr)
+            return 1
+        print(f"{PROG}: wrote {args.plot}", file=sys.stderr)
     return 0
 
 
 class Replay:
     """Bytes in (any chunking), JSON lines out."""
 
-    def __init__(self, settings, out):
+    def __init__(self, settings, out, on_payload=None):
         from millsense.daemon.pipeline.run_core import PipelineCore
         from millsense.drivers.base import IndexTracker
         from millsense.drivers.protocol import StreamDecoder
@@ -63,6 +91,7 @@ class Replay:
         self.decoder = StreamDecoder()
         self.tracker = IndexTracker()
         self.out = out
+        self.on_payload = on_payload        # e.g. the --plot recorder; sees every payload written
         self.first_seq: int | None = None
         self.rate: float | None = None
         self.counts = {"estimates": 0, "invalid_estimates": 0, "alarms": 0, "discontinuities": 0, "lost_samples": 0}
@@ -100,6 +129,8 @@ class Replay:
                     payload = {"type": "alarm", **alarm_payload(item, self.machine, self._t(item.seq), None)}
                     self.counts["alarms"] += 1
                 lines.append(dumps(payload))
+                if self.on_payload is not None:
+                    self.on_payload(payload)
         if lines:
             self.out.write(b"\n".join(lines).decode() + "\n")
 

@@ -88,6 +88,26 @@ def _aircut(name, description, speeds, hold_s) -> Scenario:
                     ((-math.inf, 0.0),))
 
 
+# Static sensitivity ([P] eq. 20: torque noise = power noise / spindle speed): one constant slot cut
+# at each spindle speed of [P] Table 1's trial grid, with the feed per tooth (hence the cutting
+# torque) the same at every speed, so only the speed changes between them.
+SWEEP_RPM = (300, 500, 700, 900, 1000, 1500, 2000, 2500)
+SWEEP_TC_MM = 0.15
+SWEEP_DOC_MM = 2.0
+SWEEP_PART_MM = 50.0  # 30 mm of full engagement: ~100 steady revolutions at every speed, <= 60 s at 300 rpm
+
+
+def _speed_sweep(material) -> list[Scenario]:
+    out = []
+    for rpm in SWEEP_RPM:
+        feed = SWEEP_TC_MM * TOOL_P.flutes * rpm
+        out.append(_cut(f"speed-{rpm}", f"[P] Table 1 speed, constant slot: SM45C, {rpm} rpm, t_c {SWEEP_TC_MM} mm "
+                        f"({feed:g} mm/min), d.o.c. {SWEEP_DOC_MM:g} mm (static sensitivity, eq. 20)",
+                        TOOL_P, material, rpm, ((-math.inf, feed),),
+                        ((0.0, SWEEP_DOC_MM), (SWEEP_PART_MM, SWEEP_DOC_MM)), part_end=SWEEP_PART_MM))
+    return out
+
+
 def _build() -> dict[str, Scenario]:
     sm45c, ss41, sb40 = MATERIALS["SM45C"], MATERIALS["SS41"], MATERIALS["SB40"]
     step3 = _steps([0, 25, 50, 75], [1.0, 2.0, 3.0])
@@ -130,6 +150,7 @@ def _build() -> dict[str, Scenario]:
                 [300, 450, 600, 750, 900], 4.0),
         _aircut("aircut-high", "air cut, high-speed gear, 1000/1375/1750/2125/2500 rpm, 3 s each "
                 "(friction calibration)", [1000, 1375, 1750, 2125, 2500], 3.0),
+        *_speed_sweep(sm45c),
     ]
     for s in out:
         _ = s.gear  # one gear per scenario, checked at import
