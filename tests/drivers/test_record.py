@@ -9,6 +9,7 @@ import numpy as np
 
 from millsense.drivers.protocol import Descriptor, Samples, StreamDecoder
 from tests.drivers.emulator_proc import Emulator, ramp
+from tests.e2e.helpers import SIM_CHANNELS, SIM_MACHINE
 
 CONFIG = """
 machine = "rec-test"
@@ -19,41 +20,7 @@ host = "127.0.0.1"
 tcp_port = {port}
 unit = 1
 poll_ms = 20
-
-[channels.v_uv]
-scale = 0.02
-[channels.v_vw]
-scale = 0.02
-[channels.v_wu]
-scale = 0.02
-[channels.i_u]
-scale = 0.002
-[channels.i_v]
-scale = 0.002
-[channels.i_w]
-scale = 0.002
-[channels.sp_rpm]
-scale = 0.1
-[channels.sp_enc]
-counts_per_rev = 4096
-
-[motor]
-winding = "delta"
-stator_resistance_ohm = 0.349
-pole_pairs = 2
-
-[[gears]]
-name = "low-speed"
-ratio = 4.81
-max_spindle_rpm = 900
-friction_torque_nm = 2.6629
-viscous_nms = 0.0400
-
-[tool]
-diameter_mm = 20.0
-flutes = 2
-cf = 1.075
-"""
+""" + SIM_CHANNELS + SIM_MACHINE
 
 RECORD = [sys.executable, "-m", "millsense.daemon", "record"]
 

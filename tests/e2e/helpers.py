@@ -19,48 +19,20 @@ from typing import Any
 
 import zenoh
 
+from tests.estimator import configs
+
 CMD = [sys.executable, "-m", "millsense.daemon"]
 
-# The simulated DAQ's sensors (docs/architecture.md, "drivers.sim").
-SIM_CHANNELS = """
-[channels.v_uv]
-scale = 0.02
-[channels.v_vw]
-scale = 0.02
-[channels.v_wu]
-scale = 0.02
-[channels.i_u]
-scale = 0.002
-[channels.i_v]
-scale = 0.002
-[channels.i_w]
-scale = 0.002
-[channels.sp_rpm]
-scale = 0.1
-[channels.sp_enc]
-counts_per_rev = 4096
-"""
+# The simulated DAQ's sensors and machine (docs/architecture.md, "drivers.sim"): one copy, in
+# tests/estimator/configs.py.
+SIM_CHANNELS = configs.SIM_CHANNELS + configs.ENCODER
 
 SIM_MACHINE = """
 [motor]
 winding = "delta"
 stator_resistance_ohm = 0.349
 pole_pairs = 2
-
-[[gears]]
-name = "low-speed"
-ratio = 4.81
-max_spindle_rpm = 900
-friction_torque_nm = 2.6629
-viscous_nms = 0.0400
-
-[[gears]]
-name = "high-speed"
-ratio = 1.157
-max_spindle_rpm = 4500
-friction_torque_nm = 1.6160
-viscous_nms = 0.0022
-
+""" + configs.GEARS + """
 [tool]
 diameter_mm = 20.0
 flutes = 2
