@@ -55,6 +55,11 @@ class LinkDown(Exception):
     """Raised by a transport when its link is gone; the message is the reason."""
 
 
+class CommandRefused(Exception):
+    """Raised by a transport when the DAQ answered a command with a refusal (a Modbus
+    exception response): the link is fine, the command did not take effect."""
+
+
 class IndexTracker:
     """Unwraps the device's 32-bit sample index into a 64-bit ``seq`` and finds gaps.
 
@@ -189,19 +194,21 @@ class Driver:
     def wait_connected(self, timeout_s: float) -> bool:
         return self._connected.wait(timeout_s)
 
-    def set_outputs(self, feed_hold: bool, alarm_lamp: bool = False) -> None:
+    def set_outputs(self, feed_hold: bool, alarm_lamp: bool = False) -> bool:
+        """Write the outputs; False if the command could not be sent or the DAQ refused it."""
         bits = (1 if feed_hold else 0) | (2 if alarm_lamp else 0)
-        self._send("outputs", self._send_outputs, bits)
+        return self._send("outputs", self._send_outputs, bits)
 
-    def heartbeat(self) -> None:
+    def heartbeat(self) -> bool:
+        """Send a changing heartbeat counter; False if it could not be sent or was refused."""
         self._heartbeat_counter = (self._heartbeat_counter + 1) & 0xFFFF
-        self._send("heartbeat", self._send_heartbeat, self._heartbeat_counter)
+        return self._send("heartbeat", self._send_heartbeat, self._heartbeat_counter)
 
     def set_watchdog_ms(self, ms: int) -> None:
         """Stream transports: a device setting, nothing to send."""
 
-    def request_descriptor(self) -> None:
-        self._send("descriptor request", self._send_request_descriptor)
+    def request_descriptor(self) -> bool:
+        return self._send("descriptor request", self._send_request_descriptor)
 
     def stats(self) -> dict[str, int]:
         out = dict(self._stats)
@@ -234,18 +241,24 @@ class Driver:
 
     # -- the reader thread ----------------------------------------------------
 
-    def _send(self, what: str, fn, *args) -> None:
-        """Outputs from any thread; a failure is counted (the reader notices the link)."""
+    def _send(self, what: str, fn, *args) -> bool:
+        """Outputs from any thread; True if sent (and, where the transport answers, accepted).
+
+        A failure is counted and returned, never raised (the reader notices a lost link).
+        """
         if not self.link_up:
             self._stats["commands_not_sent"] += 1
-            return
+            return False
         try:
             with self._io_lock:
                 fn(*args)
             self._stats["commands_sent"] += 1
+            return True
         except Exception as exc:  # noqa: BLE001 - a write must never kill the caller
-            self._stats["commands_failed"] += 1
+            key = "commands_refused" if isinstance(exc, CommandRefused) else "commands_failed"
+            self._stats[key] += 1
             log.debug("daq command failed", transport=self.transport, command=what, error=str(exc))
+            return False
 
     def _run(self) -> None:
         backoff = self._backoff_initial_s

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from millsense.drivers.base import Driver, LinkDown
+from millsense.drivers.base import CommandRefused, Driver, LinkDown
 from millsense.drivers.protocol import (
     FLAG_WATCHDOG,
     INDEX_MOD,
@@ -86,7 +86,18 @@ class ModbusDriver(Driver):
         return rr
 
     def _input(self, address: int, count: int) -> list[int]:
-        return self._call(lambda c, **kw: c.read_input_registers(address, count=count, **kw)).registers
+        regs = self._call(lambda c, **kw: c.read_input_registers(address, count=count, **kw)).registers
+        if len(regs) != count:  # a malformed answer: never guess which registers these are
+            raise LinkDown(
+                f"DAQ at {self.address} answered {len(regs)} registers to a read of {count} at {address}"
+            )
+        return regs
+
+    def _bits(self, rr, count: int, what: str) -> list[bool]:
+        bits = list(rr.bits)
+        if len(bits) < count:
+            raise LinkDown(f"DAQ at {self.address} answered {len(bits)} bits to a read of {count} {what}")
+        return bits[:count]
 
     def _head(self) -> int:
         hi, lo = self._input(4, 2)
@@ -132,9 +143,12 @@ class ModbusDriver(Driver):
         return Descriptor(rate, tuple(channels), version)
 
     def _read_status(self) -> Status:
-        coils = self._call(lambda c, **kw: c.read_coils(0, count=2, **kw)).bits
-        active = self._call(lambda c, **kw: c.read_discrete_inputs(0, count=1, **kw)).bits[0]
-        hb = self._call(lambda c, **kw: c.read_holding_registers(HR_HEARTBEAT, count=1, **kw)).registers[0]
+        coils = self._bits(self._call(lambda c, **kw: c.read_coils(0, count=2, **kw)), 2, "coils")
+        active = self._bits(self._call(lambda c, **kw: c.read_discrete_inputs(0, count=1, **kw)), 1, "inputs")[0]
+        regs = self._call(lambda c, **kw: c.read_holding_registers(HR_HEARTBEAT, count=1, **kw)).registers
+        if len(regs) != 1:
+            raise LinkDown(f"DAQ at {self.address} answered {len(regs)} registers to a read of 1 at {HR_HEARTBEAT}")
+        hb = regs[0]
         outputs = (OUT_FEED_HOLD if active else 0) | (OUT_ALARM_LAMP if coils[1] else 0)
         # feed hold active although not commanded: the device's watchdog asserted it
         flags = FLAG_WATCHDOG if active and not coils[0] else 0
@@ -149,10 +163,12 @@ class ModbusDriver(Driver):
         if self._want_descriptor:
             self._want_descriptor = False
             out.append(self._read_descriptor())
-        out.extend(self._read_ring())
+        # The status poll goes before the ring: samples read from the ring must be handed
+        # over, and a request failing after them would throw them away (and count them lost).
         if time.monotonic() >= self._next_status:  # outputs change rarely: poll them at 10 Hz
             self._next_status = time.monotonic() + STATUS_PERIOD_S
             out.append(self._read_status())
+        out.extend(self._read_ring())
         return out
 
     def _read_ring(self) -> list[Samples]:
@@ -200,11 +216,17 @@ class ModbusDriver(Driver):
 
     # -- outputs --------------------------------------------------------------
 
+    def _checked(self, what: str, rr) -> None:
+        """A write the DAQ answered with an exception response did not happen: say so."""
+        if rr is None or rr.isError():
+            raise CommandRefused(f"DAQ at {self.address} refused the {what} write: {rr}")
+
     def _send_outputs(self, bits: int) -> None:
-        self._client.write_coils(0, [bool(bits & OUT_FEED_HOLD), bool(bits & OUT_ALARM_LAMP)], device_id=self.unit)
+        rr = self._client.write_coils(0, [bool(bits & OUT_FEED_HOLD), bool(bits & OUT_ALARM_LAMP)], device_id=self.unit)
+        self._checked("outputs", rr)
 
     def _send_heartbeat(self, counter: int) -> None:
-        self._client.write_register(HR_HEARTBEAT, counter, device_id=self.unit)
+        self._checked("heartbeat", self._client.write_register(HR_HEARTBEAT, counter, device_id=self.unit))
 
     def _send_watchdog(self, ms: int) -> None:
         self._call(lambda cl, **kw: cl.write_register(HR_WATCHDOG, ms, **kw))
@@ -215,7 +237,10 @@ class ModbusDriver(Driver):
     def set_watchdog_ms(self, ms: int) -> None:
         """Holding register 101; remembered and written again after every reconnect."""
         self._watchdog_ms = int(ms)
-        self._send("watchdog", lambda: self._client.write_register(HR_WATCHDOG, int(ms), device_id=self.unit))
+        self._send(
+            "watchdog",
+            lambda: self._checked("watchdog", self._client.write_register(HR_WATCHDOG, int(ms), device_id=self.unit)),
+        )
 
 
 class ModbusTcpDriver(ModbusDriver):

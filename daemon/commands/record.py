@@ -2,13 +2,16 @@
 
 Whatever the transport, the file holds DESCRIPTOR and SAMPLES frames as the
 stream transport would carry them (Modbus data is re-framed), so a capture from
-any DAQ replays through the same decoder.  A full disk is a clear error: the
-file is closed and the counts so far are printed.
+any DAQ replays through the same decoder.  A full disk (or a file-size limit)
+is a clear error, exit 1: the file is cut back to the last whole frame that was
+written, so it replays to its end, and the counts printed are those of the
+file.  The file is written unbuffered, so that what is known written is on disk.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import time
@@ -32,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from millsense.daemon.config import load_config
     from millsense.drivers import DriverError, create_driver
     from millsense.drivers.base import LinkEvent, SampleBlock
-    from millsense.drivers.protocol import Descriptor, encode_descriptor, encode_sample_frames
+    from millsense.drivers.protocol import INDEX_MOD, Descriptor, encode_descriptor, encode_samples
 
     settings = load_config(args.config)
     daq = settings.daq
@@ -50,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     counts = {"samples": 0, "blocks": 0, "lost_samples": 0, "descriptors": 0, "bytes": 0}
     code = 0
     try:
-        fh = open(args.out, "wb")  # noqa: SIM115 - closed in finally
+        fh = open(args.out, "wb", buffering=0)  # noqa: SIM115 - closed in finally
     except OSError as exc:
         print(f"millsense record: error: cannot write {args.out}: {exc.strerror or exc}", file=sys.stderr)
         return 1
@@ -65,35 +68,42 @@ def run(args: argparse.Namespace) -> int:
             ev = driver.get(timeout=0.1)
             if ev is None:
                 continue
-            data = b""
+            frames: list[tuple[bytes, int]] = []  # (frame, samples in it)
+            lost = 0
             if isinstance(ev, Descriptor):
-                data = encode_descriptor(ev)
+                frames.append((encode_descriptor(ev), 0))
                 written_descriptor = ev
-                counts["descriptors"] += 1
             elif isinstance(ev, SampleBlock):
                 if written_descriptor is None and driver.descriptor is not None:
                     written_descriptor = driver.descriptor
-                    data = encode_descriptor(written_descriptor)
-                data += encode_sample_frames(ev.index, ev.counts, 10)
-                counts["samples"] += len(ev.counts)
-                counts["blocks"] += 1
-                counts["lost_samples"] += ev.lost_before
+                    frames.append((encode_descriptor(written_descriptor), 0))
+                for a in range(0, len(ev.counts), FRAME_SAMPLES):
+                    part = ev.counts[a : a + FRAME_SAMPLES]
+                    frames.append((encode_samples((ev.index + a) % INDEX_MOD, part), len(part)))
+                lost = ev.lost_before
             elif isinstance(ev, LinkEvent) and not ev.up:
                 print(f"millsense record: DAQ link down: {ev.reason}", file=sys.stderr)
-            if data:
-                try:
-                    fh.write(data)
-                    fh.flush()
-                except OSError as exc:
-                    print(f"millsense record: error: writing {args.out}: {exc.strerror or exc}", file=sys.stderr)
-                    code = 1
-                    break
-                counts["bytes"] += len(data)
+            if not frames:
+                continue
+            kept, error = _write_frames(fh, frames, counts["bytes"])
+            for frame, n in frames[:kept]:
+                counts["bytes"] += len(frame)
+                counts["samples"] += n
+                if n == 0:
+                    counts["descriptors"] += 1
+            if kept and isinstance(ev, SampleBlock):
+                counts["blocks"] += 1
+                counts["lost_samples"] += lost
+            if error is not None:
+                print(f"millsense record: error: writing {args.out}: {error.strerror or error}; the capture ends "
+                      "with the last whole frame written", file=sys.stderr)
+                code = 1
+                break
     finally:
         driver.close()
         try:
             fh.close()
-        except OSError as exc:  # the last flush can fail on a full disk too
+        except OSError as exc:
             if code == 0:
                 print(f"millsense record: error: closing {args.out}: {exc.strerror or exc}", file=sys.stderr)
             code = 1
@@ -106,3 +116,41 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return code
+
+
+FRAME_SAMPLES = 10
+
+
+def _write_frames(fh, frames: list[tuple[bytes, int]], at: int) -> tuple[int, OSError | None]:
+    """Write whole frames at offset `at`: (how many made it whole, the error that stopped it).
+
+    On an error (ENOSPC, EFBIG) the file is cut back to the end of the last whole
+    frame; cutting frees space, so it works on a full disk too.
+    """
+    data = b"".join(f for f, _ in frames)
+    done = 0
+    error: OSError | None = None
+    while done < len(data):
+        try:
+            n = fh.write(memoryview(data)[done:])
+        except OSError as exc:
+            error = exc
+            break
+        if not n:  # a raw write that took nothing: the device is full
+            error = OSError(28, os.strerror(28))
+            break
+        done += n
+    if error is None:
+        return len(frames), None
+    kept, end = 0, 0
+    for f, _ in frames:
+        if end + len(f) > done:
+            break
+        end += len(f)
+        kept += 1
+    try:
+        os.ftruncate(fh.fileno(), at + end)
+        fh.seek(at + end)
+    except OSError:
+        pass  # nothing better to do: the decoder skips a torn last frame anyway
+    return kept, error

@@ -18,6 +18,10 @@ Why it is built this way:
   asserted and reported as `held_by_device`; only an explicit `reset` clears
   it. So a restart loop can never release a machine that was stopped for a
   reason.
+- **Confirmed, or written again.** A write the DAQ did not take (link down, a
+  Modbus exception response) is not reported as a hold: `trip()` says so, and
+  while the latch is set the hold is written again every heartbeat period
+  until the write succeeds and the DAQ's own status shows feed hold.
 - **Reset authority.** `reset = "open"` accepts any request, `"token"` only a
   payload carrying `reset_token` (compared with `hmac.compare_digest`, so the
   reply time does not leak the token), `"off"` none (clear at the machine and
@@ -32,6 +36,7 @@ from __future__ import annotations
 import hmac
 import json
 import threading
+import time
 from typing import Any
 
 import structlog
@@ -88,6 +93,11 @@ class Interlock:
         self.heartbeats_sent = 0
         self.trips = 0
         self.write_errors = 0
+        self.hold_writes = 0
+        # the latched hold is not known to be on the DAQ: its write failed, or a
+        # status newer than the write still says no feed hold
+        self.hold_unconfirmed = False
+        self._last_write_mono = 0.0
 
     # -- start ------------------------------------------------------------
     def start(self) -> None:
@@ -112,12 +122,12 @@ class Interlock:
             return None
         with self._lock:
             if self.latched:
-                return "feed_hold"
+                return None if self.hold_unconfirmed else "feed_hold"
             self.latched = True
             self.reason = reason
             self.trips += 1
             ok = self._write(True)
-        log.warning("interlock.feed_hold", reason=reason)
+        log.warning("interlock.feed_hold", reason=reason, written=ok)
         return "feed_hold" if ok else None
 
     def reassert(self) -> None:
@@ -126,14 +136,31 @@ class Interlock:
             with self._lock:
                 self._write(True)
 
+    # A status younger than this after a hold write may predate the write.
+    CONFIRM_GRACE_S = 0.3
+
     def _write(self, hold: bool) -> bool:
         try:
-            self._out.set_outputs(hold, hold)
-            return True
+            ok = self._out.set_outputs(hold, hold) is not False  # None: an output that does not say
         except Exception as exc:  # noqa: BLE001 - link down: the watchdog still holds the line
+            ok, error = False, f"{type(exc).__name__}: {exc}"
+        else:
+            error = "the DAQ did not take the command (link down, or refused)"
+        self._last_write_mono = time.monotonic()
+        if hold:
+            self.hold_writes += 1
+            self.hold_unconfirmed = not ok
+        if not ok:
             self.write_errors += 1
-            log.error("interlock.write_failed", feed_hold=hold, error=f"{type(exc).__name__}: {exc}")
-            return False
+            log.error("interlock.write_failed", feed_hold=hold, error=error)
+        return ok
+
+    def _retry_hold(self) -> None:
+        """While latched and not confirmed on the DAQ, write the hold again (heartbeat thread)."""
+        with self._lock:
+            if self.latched and self.hold_unconfirmed:
+                if self._write(True):
+                    log.warning("interlock.feed_hold_rewritten", reason=self.reason)
 
     # -- reset ------------------------------------------------------------
     def authorise(self, payload: bytes) -> str | None:
@@ -158,6 +185,7 @@ class Interlock:
             was = self.latched or self.device_hold
             self.latched = False
             self.reason = None
+            self.hold_unconfirmed = False
             ok = self._write(False) if self.enabled else True
             if ok:
                 self.device_hold = False
@@ -174,17 +202,23 @@ class Interlock:
         if not self.enabled:
             self.heartbeating = False
             return
+        if self.latched and self.hold_unconfirmed:
+            self._retry_hold()
         if not healthy:
             if self.heartbeating:
                 log.warning("interlock.heartbeats_stopped", detail="pipeline not healthy; the DAQ watchdog takes over")
             self.heartbeating = False
             return
         try:
-            self._out.heartbeat()
+            sent = self._out.heartbeat() is not False
+            error = "the DAQ did not take the heartbeat (link down, or refused)"
         except Exception as exc:  # noqa: BLE001
+            sent, error = False, str(exc)
+        if not sent:
+            if self.heartbeating:
+                log.warning("interlock.heartbeat_failed", error=error)
             self.heartbeating = False
             self.write_errors += 1
-            log.debug("interlock.heartbeat_failed", error=str(exc))
             return
         if not self.heartbeating:
             log.info("interlock.heartbeats_started")
@@ -195,6 +229,11 @@ class Interlock:
         """A STATUS from the DAQ (outputs, watchdog flag)."""
         self.device_hold = bool(getattr(status, "feed_hold", False))
         self.watchdog_tripped = bool(getattr(status, "watchdog_tripped", False))
+        if self.latched:
+            if self.device_hold:
+                self.hold_unconfirmed = False
+            elif time.monotonic() - self._last_write_mono > self.CONFIRM_GRACE_S:
+                self.hold_unconfirmed = True  # the DAQ lost it (a restart?) or never took it
 
     # -- state ------------------------------------------------------------
     @property
@@ -215,5 +254,6 @@ class Interlock:
             "device_feed_hold": self.device_hold,
             "watchdog_tripped": self.watchdog_tripped,
             "heartbeating": self.heartbeating,
+            "hold_unconfirmed": self.hold_unconfirmed,
             "reset": self.reset_policy,
         }

@@ -54,7 +54,8 @@ class PipelineCore:
         self.estimator: Any = None
         self.descriptor: Any = None
         self.last_rev: int | None = None
-        self.lost_samples_before = 0  # lost samples counted by estimators replaced since
+        self.lost_samples_before = 0  # lost samples counted by estimators replaced since, and while none fitted
+        self._rev_base = 0  # revolutions numbered by estimators replaced since: `rev` never restarts
 
     def on_descriptor(self, descriptor: Any) -> bool:
         """A (new) descriptor: check the config against it, make the estimator. True if re-made.
@@ -70,11 +71,31 @@ class PipelineCore:
         factory = self._factory
         if factory is None:
             from millsense.daemon.pipeline.estimator import Estimator as factory
-        if self.estimator is not None:
-            self.lost_samples_before += self.lost_samples_total
+        self._retire()
         self.estimator = factory(self.settings, descriptor, descriptor.sample_rate_hz)
+        if hasattr(self.estimator, "rev"):
+            self.estimator.rev = self._rev_base  # revolution numbers go on where the last estimator stopped
         self.descriptor = descriptor
         return True
+
+    def drop_estimator(self) -> None:
+        """The DAQ's channels no longer fit the configuration: no estimator until they do.
+
+        Its counts (lost samples, revolution numbers) are kept.
+        """
+        self._retire()
+        self.estimator = None
+        self.descriptor = None
+
+    def skip(self, block: Any) -> None:
+        """A block that no estimator can take (no fitting descriptor): its known losses still count."""
+        self.lost_samples_before += int(getattr(block, "lost_before", 0) or 0)
+
+    def _retire(self) -> None:
+        est = self.estimator
+        if est is not None:
+            self.lost_samples_before += int(getattr(est, "lost_samples_total", 0) or 0)
+            self._rev_base = int(getattr(est, "rev", self._rev_base) or 0)
 
     @property
     def lost_samples_total(self) -> int:

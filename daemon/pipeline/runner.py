@@ -158,10 +158,10 @@ class Runner:
         self.samples_received += n
         self._last_block_mono = now
         if self.core.estimator is None:
-            if self.driver.descriptor is None:
-                return
-            self._on_descriptor(self.driver.descriptor)
+            if self.driver.descriptor is not None:
+                self._on_descriptor(self.driver.descriptor)
             if self.core.estimator is None:
+                self.core.skip(block)  # received but unusable; its known losses still count
                 return
         if self.clock is None:
             self.clock = SeqClock(self.core.descriptor.sample_rate_hz)
@@ -169,7 +169,7 @@ class Runner:
         if restart or self.clock.empty or self._caught_up():
             # A block that waited in the queue behind others arrived earlier than we see it:
             # its get() time would make `t` late, so only fresh blocks set the clock.
-            self.clock.note_block(block.seq, n, time.time(), restart=restart)
+            self.clock.note_block(block.seq, n, time.time(), restart=restart, mono_s=now)
         if self.faults:
             for kind in ("daq_link", "daq_stalled"):
                 if kind in self.faults:
@@ -236,8 +236,7 @@ class Runner:
         except Exception as exc:  # noqa: BLE001 - ConfigError: the DAQ no longer fits the config
             problems = getattr(exc, "problems", None) or [str(exc)]
             self._refused_descriptor = desc
-            self.core.estimator = None
-            self.core.descriptor = None
+            self.core.drop_estimator()
             self.fault("descriptor", "; ".join(problems))
             return
         self._refused_descriptor = None

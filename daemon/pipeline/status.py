@@ -30,22 +30,39 @@ class SeqClock:
     So live `t` is late only by the *smallest* transport delay (≈ 1 ms on TCP).
     The runner feeds it only blocks that did not wait in the driver's queue
     behind others (their hand-over time is not their arrival time).
+
+    Wall-clock steps (NTP, an operator setting the date): the offsets and the
+    window are kept on the monotonic clock (`mono_s`, the arrival time on
+    `time.monotonic()`), and turned into Unix time with the latest
+    `wall_s − mono_s`. So a step of the wall clock moves `t` by exactly the step
+    at the next block, instead of leaving `t` on the old clock until the
+    window has forgotten every block from before the step (up to `window_s`
+    for a forward step smaller than the window). Without `mono_s` the wall
+    time serves as both. The two readings are not taken at the same instant, so
+    `wall_s − mono_s` jitters by microseconds: it is taken up only when it moved
+    by more than `STEP_S` (a step), so that times stay consistent between blocks.
     """
+
+    STEP_S = 0.001
 
     def __init__(self, sample_rate_hz: float, window_s: float = 10.0):
         self.rate = float(sample_rate_hz)
         self.window_s = window_s
-        self._mins: collections.deque[tuple[float, float]] = collections.deque()  # (wall, offset), offsets increasing
+        self._mins: collections.deque[tuple[float, float]] = collections.deque()  # (mono, offset), offsets increasing
+        self._wall_minus_mono = 0.0
 
-    def note_block(self, seq_first: int, n: int, wall_s: float, restart: bool = False) -> None:
-        offset = wall_s - (seq_first + n - 1) / self.rate
+    def note_block(self, seq_first: int, n: int, wall_s: float, restart: bool = False, mono_s: float | None = None) -> None:
+        mono = wall_s if mono_s is None else mono_s
+        if not self._mins or abs(wall_s - mono - self._wall_minus_mono) > self.STEP_S:
+            self._wall_minus_mono = wall_s - mono
+        offset = mono - (seq_first + n - 1) / self.rate
         q = self._mins
         if restart:
             q.clear()
         while q and q[-1][1] >= offset:
             q.pop()
-        q.append((wall_s, offset))
-        while q[0][0] < wall_s - self.window_s and len(q) > 1:
+        q.append((mono, offset))
+        while q[0][0] < mono - self.window_s and len(q) > 1:
             q.popleft()
 
     @property
@@ -55,7 +72,7 @@ class SeqClock:
     def time_of(self, seq: int) -> float | None:
         if not self._mins:
             return None
-        return self._mins[0][1] + seq / self.rate
+        return self._mins[0][1] + seq / self.rate + self._wall_minus_mono
 
 
 class LatencyStats:

@@ -1,0 +1,107 @@
+"""What every fault case checks afterwards, on real processes.
+
+Built on tests/e2e/helpers.py (Procs, Subscriber, write_config, wait_for):
+here are the after-the-fault checks the reliability table refers to —
+the daemon is alive (or exited with a documented code), no estimate was
+published from damaged data, status and logs tell the truth.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+from tests.e2e.helpers import Subscriber, wait_for
+
+# Every physical quantity of an estimate (daemon/pipeline/estimator.py NULL_FIELDS):
+# null in an estimate built on damaged data.
+PHYSICAL = (
+    "spindle_rpm", "gear", "p_in_w", "p_gap_w", "torque_nm", "torque_sigma_nm", "force_n",
+    "force_tangential_n", "force_feed_n", "feed_per_tooth_mm", "radial_depth_mm",
+    "axial_depth_mm", "depth_status",
+)
+
+
+def status(sub: Subscriber, machine: str, timeout_s: float = 10.0) -> dict:
+    """The daemon's `status` queryable, asked until it answers (a query can race a link change)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        replies = [r for r in sub.query(f"millsense/{machine}/status", timeout=2.0) if "error" not in r]
+        if replies:
+            return replies[0]
+        if time.monotonic() > deadline:
+            raise AssertionError(f"no status from {machine} within {timeout_s} s")
+        time.sleep(0.1)
+
+
+def wait_status(sub: Subscriber, machine: str, predicate, timeout_s: float, what: str) -> dict:
+    last: dict = {}
+
+    def check() -> dict | None:
+        nonlocal last
+        last = status(sub, machine)
+        return last if predicate(last) else None
+
+    try:
+        return wait_for(check, timeout_s, what, step_s=0.1)
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}; last status: {json.dumps(last)[:1500]}") from None
+
+
+def log_events(text: str) -> list[dict]:
+    """The daemon's JSON log lines (stdout under a config with format = "json")."""
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith("{"):
+            try:
+                out.append(json.loads(line))
+            except ValueError:
+                pass  # a line being written right now
+    return out
+
+
+def assert_no_damaged_estimate_looks_valid(estimates: list[dict]) -> int:
+    """An estimate built on lost samples or across a discontinuity has every quantity null.
+
+    Returns how many such (invalid) estimates there were.
+    """
+    invalid = 0
+    for e in estimates:
+        damaged = e.get("lost_samples", 0) > 0 or e.get("valid") is False
+        if damaged:
+            invalid += 1
+            assert e.get("valid") is False, f"damaged estimate published as valid: {e}"
+            assert all(e.get(k) is None for k in PHYSICAL), f"a number built on damaged data: {e}"
+            assert e.get("cutting") is False
+    return invalid
+
+
+def assert_revs_contiguous(estimates: list[dict]) -> None:
+    revs = [e["rev"] for e in estimates]
+    assert revs == list(range(revs[0], revs[0] + len(revs))), "a revolution number went missing or repeated"
+
+
+def assert_clean_exit(procs, name: str) -> None:
+    for stream in ("err", "out"):
+        assert "Traceback" not in procs.text(name, stream), procs.text(name, stream)[-3000:]
+
+
+def proc_cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def rss_kb(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return 0
+
+
+def outputs(events: list[dict], **match: Any) -> list[dict]:
+    """The emulator status log's output changes, filtered by field values."""
+    return [e for e in events if e.get("event") == "outputs" and all(e.get(k) == v for k, v in match.items())]

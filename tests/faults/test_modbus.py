@@ -1,0 +1,174 @@
+"""Modbus server exceptions and timeouts, between the real pymodbus server of the emulator and the reader.
+
+A Modbus TCP proxy in this process (tests/faults/netfault.py) answers chosen
+requests with an exception response (code 4, server device failure) instead
+of passing them on, swallows answers so that the client times out, or holds
+all traffic for a while. Exceptions to a read, and timeouts, drop the link and
+reconnect; the ring (4096 samples, 4 s) lets the reader fetch what it missed,
+so a short outage loses nothing and a long one loses exactly the index gap.
+A refused *write* is not a link failure but must not pass for a done one: the
+feed hold is written again until the DAQ shows it.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import numpy as np
+
+from millsense.drivers import create_driver
+from tests.conftest import free_tcp_port
+from tests.drivers.emulator_proc import Emulator, ramp
+from tests.drivers.test_contract import Collector
+from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
+from tests.faults.helpers import assert_clean_exit, assert_no_damaged_estimate_looks_valid, log_events, outputs, status, wait_status
+from tests.faults.netfault import ModbusProxy
+
+FC_READ_COILS, FC_READ_INPUT, FC_WRITE_REGISTER, FC_WRITE_COILS = 1, 4, 6, 15
+RING = 4096
+
+
+def _check_blocks(blocks) -> tuple[int, list]:
+    """Right values, no sample twice, seq contiguous but for counted gaps: (samples, gaps)."""
+    gaps = []
+    for prev, b in zip(blocks, blocks[1:]):
+        np.testing.assert_array_equal(b.counts, ramp(b.index, len(b.counts)))
+        assert b.seq == prev.seq + len(prev.counts) + b.lost_before, "a sample lost without being counted, or twice"
+        assert b.index == b.seq % (1 << 32) and not b.discontinuity
+        if b.lost_before:
+            gaps.append(b.lost_before)
+    return sum(len(b.counts) for b in blocks), gaps
+
+
+def test_exceptions_and_timeouts_lose_nothing_the_ring_holds_and_count_what_it_does_not(tmp_path, port):
+    emu = Emulator(tmp_path, "--modbus-tcp", f"127.0.0.1:{port}")
+    proxy = driver = None
+    try:
+        emu.start()
+        proxy = ModbusProxy(port)
+        driver = create_driver("modbus-tcp", host="127.0.0.1", tcp_port=proxy.port, unit=1, poll_ms=20)
+        driver.start()
+        assert driver.wait_connected(10.0)
+        col = Collector(driver)
+        assert col.pump(5.0, until=lambda: len(col.blocks) > 20)
+
+        def outage(inject, what: str) -> None:
+            n_down = sum(not e.up for e in col.links)
+            inject()
+            assert col.pump(8.0, until=lambda: sum(not e.up for e in col.links) > n_down), f"{what}: no link down"
+            n = len(col.blocks)
+            assert col.pump(15.0, until=lambda: len(col.blocks) > n + 5), f"{what}: no samples after"
+            assert col.links[-1].up
+
+        outage(lambda: proxy.fail(FC_READ_INPUT, 1), "exception to a ring read")
+        outage(lambda: proxy.fail(FC_READ_COILS, 1), "exception to the status poll")
+        outage(lambda: proxy.swallow(FC_READ_INPUT, 1), "a ring read that times out")
+        outage(lambda: proxy.hold(1.5), "1.5 s of silence")
+        short = [b for _, b in col.blocks]
+        n_short, gaps_short = _check_blocks(short)
+        assert gaps_short == [], f"the ring held every sample of a short outage, yet {gaps_short} were lost"
+        assert proxy.injected_count("exception") == 2 and proxy.injected_count("swallowed") == 1
+
+        # longer than the ring: what the device overwrote is lost, and counted exactly
+        outage(lambda: proxy.hold(6.0), "6 s of silence")
+        blocks = [b for _, b in col.blocks]
+        n_all, gaps = _check_blocks(blocks)
+        stats = driver.stats()
+        downs = [e for e in col.links if not e.up]
+        print(f"{len(downs)} outages, {n_all} samples, gaps {gaps}, reasons: {[e.reason for e in downs]}")
+        assert len(gaps) == 1 and gaps[0] >= 6000 - RING - 1000, gaps
+        assert stats["reconnect_gaps"] == 1 and stats["lost_samples"] == gaps[0]
+        assert stats["samples"] == n_all and stats.get("queue_dropped_samples", 0) == 0  # every sample read was handed over
+        assert any("refused a request" in e.reason for e in downs), [e.reason for e in downs]
+        assert any("lost communication" in e.reason for e in downs), [e.reason for e in downs]
+        assert [e.up for e in col.links] == [True, False] * len(downs) + [True]
+    finally:
+        if driver is not None:
+            driver.close()
+        if proxy is not None:
+            proxy.close()
+        emu.stop()
+
+
+def test_daemon_over_modbus_refused_writes_and_read_faults(tmp_path):
+    """A refused feed-hold write is written again; refused heartbeats are reported; read faults lose nothing."""
+    mb_port, z_port = free_tcp_port(), free_tcp_port()
+    machine = "mb-01"
+    sim_log = tmp_path / "sim.jsonl"
+    with Procs(tmp_path) as procs:
+        procs.start("sim", ["sim", "--scenario", "step", "--loop", "--modbus-tcp", f"127.0.0.1:{mb_port}", "--realtime",
+                            "--status-log", str(sim_log)])
+        wait_for(lambda: "serving" in procs.text("sim"), 30.0, "emulator serving")
+        proxy = ModbusProxy(mb_port)
+        cfg = write_config(
+            tmp_path / "d.toml",
+            machine=machine,
+            daq=f'transport = "modbus-tcp"\nhost = "127.0.0.1"\ntcp_port = {proxy.port}\nunit = 1\npoll_ms = 20',
+            zenoh_listen=[tcp(z_port)],
+            alarms="torque_limit_nm = 1.2\nrevolutions = 2\nbreakage_drop_pct = 0",  # trips on the first cut
+            interlock='enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 500\nreset = "open"',
+        )
+        proxy.fail(FC_WRITE_COILS, 1)  # the DAQ refuses the first outputs write: the trip
+        daemon = procs.start("daemon", ["run", "--config", str(cfg)])
+        sub = Subscriber([tcp(z_port)], machine)
+        try:
+            alarm = wait_for(lambda: next((a for a in sub.get("alarm") if a["level"] == "overload"), None)
+                             or daemon.poll() is not None, 60.0, "the overload")
+            assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
+            t_alarm = time.monotonic()
+            # the refused write did not count as a hold; the next heartbeat period wrote it again
+            held = wait_for(lambda: outputs(read_jsonl(sim_log), feed_hold=True, cause="command"), 3.0, "feed hold on the DAQ")
+            assert held[0]["mono"] - t_alarm < 1.0
+            assert proxy.injected_count("exception", FC_WRITE_COILS) == 1
+            assert alarm["interlock"] is None, "the alarm claimed a feed hold the DAQ had refused"
+            st = wait_status(sub, machine, lambda s: s["interlock_detail"]["device_feed_hold"], 3.0, "hold confirmed")
+            assert st["interlock"] == "feed_hold" and st["interlock_detail"]["hold_unconfirmed"] is False
+            assert st["daq"]["commands_refused"] == 1
+
+            # -- exceptions to reads: a reconnect, the ring covers the gap, the heartbeats barely pause
+            def read_fault(inject) -> None:
+                changes = status(sub, machine)["daq"]["link_changes"]
+                inject()
+                wait_status(sub, machine, lambda s: s["daq"]["link_changes"] >= changes + 2 and s["daq_link"] == "up"
+                            and s["state"] == "running", 10.0, "reconnected after a read fault")
+
+            read_fault(lambda: proxy.fail(FC_READ_INPUT, 1))
+            read_fault(lambda: proxy.fail(FC_READ_COILS, 1))
+            time.sleep(1.0)
+            after = status(sub, machine)
+            assert after["lost_samples"] == 0 and after["daq"]["lost_samples"] == 0, after
+            assert after["samples_received"] == after["daq"]["samples"]  # nothing lost between driver and pipeline
+            assert not outputs(read_jsonl(sim_log), cause="watchdog"), "an exception reply must not starve the watchdog"
+
+            # -- heartbeats refused by the DAQ: status says so, and the DAQ's watchdog holds the feed
+            proxy.fail(FC_WRITE_REGISTER, 10**6)
+            refused = wait_status(sub, machine, lambda s: s["heartbeating"] is False, 3.0, "heartbeats reported failing")
+            wait_for(lambda: outputs(read_jsonl(sim_log), cause="watchdog"), 3.0, "the DAQ's watchdog acts")
+            # (The Modbus map has no watchdog flag: with the hold already commanded, a trip looks the same
+            # as the commanded hold, so status can only say the feed is held, which it is.)
+            assert status(sub, machine)["interlock_detail"]["device_feed_hold"] is True
+            proxy.fail(FC_WRITE_REGISTER, 0)
+            wait_status(sub, machine, lambda s: s["heartbeating"] is True, 3.0, "heartbeats resumed")
+
+            # -- a read that times out (1 s): nothing is lost (the ring holds 4 s); the heartbeats
+            # wait behind it, so a DAQ watchdog shorter than the timeout would stop the feed (fail-safe)
+            read_fault(lambda: proxy.swallow(FC_READ_INPUT, 1))
+            time.sleep(1.0)
+            after = status(sub, machine)
+            assert after["lost_samples"] == 0 and after["samples_received"] == after["daq"]["samples"], after
+            assert proxy.injected_count("swallowed") == 1 and proxy.injected_count("exception", FC_READ_INPUT) == 1
+            estimates = sub.get("estimate")
+            assert daemon.poll() is None
+            daemon.send_signal(signal.SIGTERM)
+            assert daemon.wait(10) == 0
+        finally:
+            sub.close()
+            proxy.close()
+    assert refused["state"] == "running"  # a refused heartbeat is the DAQ's call, not a pipeline fault
+    assert_no_damaged_estimate_looks_valid(estimates)
+    events = log_events(procs.text("daemon", "out"))
+    assert any(e["event"] == "interlock.write_failed" and e["feed_hold"] for e in events)
+    assert any(e["event"] == "interlock.feed_hold_rewritten" for e in events)
+    assert any(e["event"] == "interlock.heartbeat_failed" for e in events)
+    assert_clean_exit(procs, "daemon")
