@@ -152,10 +152,8 @@ def test_peer_opens_even_when_nothing_answers(port):
 
 
 def test_settings_from_the_toml_config(tmp_path, port):
-    config = pytest.importorskip("millsense.daemon.config")
-    load_config_text = getattr(config, "load_config_text", None)
-    if load_config_text is None:
-        pytest.skip("millsense.daemon.config.load_config_text not written yet")
+    from millsense.daemon import config
+
     demo = config.demo_config()
     zs = demo.zenoh.model_copy(update={"mode": "client", "connect": [tcp(port)], "multicast_scouting": False})
     conf = zenoh_config(zs)
