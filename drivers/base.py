@@ -191,6 +191,11 @@ class Driver:
     def get(self, timeout: float | None = None) -> Event | None:
         return self._queue.get(timeout)
 
+    @property
+    def queued(self) -> int:
+        """Events waiting in the receive queue (cheap: the consumer asks once per block)."""
+        return len(self._queue)
+
     def wait_connected(self, timeout_s: float) -> bool:
         return self._connected.wait(timeout_s)
 
@@ -212,7 +217,7 @@ class Driver:
 
     def stats(self) -> dict[str, int]:
         out = dict(self._stats)
-        out["queue_len"] = len(self._queue)
+        out["queue_len"] = self.queued
         out["link_up"] = int(self.link_up)
         return out
 

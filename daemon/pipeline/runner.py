@@ -201,10 +201,7 @@ class Runner:
 
     def _caught_up(self) -> bool:
         """Is the driver's queue empty, i.e. did this block just arrive?"""
-        try:
-            return int(self.driver.stats().get("queue_len", 0)) == 0
-        except Exception:  # noqa: BLE001
-            return True
+        return self.driver.queued == 0
 
     def _held(self) -> str | None:
         return "feed_hold" if self.interlock.latched else None
