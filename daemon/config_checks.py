@@ -102,6 +102,7 @@ def cross_problems(parts: Mapping[str, Any]) -> list[str]:
                 problems.append(
                     'depth.method: "torque-only" needs one known depth (cut.axial_depth_mm or cut.radial_depth_mm, or cut.mode = "slot")'
                 )
+    problems.extend(_modbus_timeout_problems(parts.get("daq"), parts.get("interlock")))
     if isinstance(cut, CutSettings) and isinstance(tool, ToolSettings) and cut.radial_depth_mm is not None:
         d = tool.diameter_mm
         if cut.radial_depth_mm > d:
@@ -112,6 +113,20 @@ def cross_problems(parts: Mapping[str, Any]) -> list[str]:
                 f"tool diameter, {d:g}; leave it out, or use mode down/up)"
             )
     return problems
+
+
+def _modbus_timeout_problems(daq: Any, interlock: Any) -> list[str]:
+    """A Modbus request holds the link while it waits: heartbeats must still reach the watchdog in time."""
+    if daq is None or interlock is None or not daq.transport.startswith("modbus") or not interlock.enabled:
+        return []
+    room_ms = interlock.watchdog_ms - interlock.heartbeat_ms
+    if daq.timeout_ms < room_ms:
+        return []
+    return [
+        f"daq.timeout_ms: {daq.timeout_ms} leaves no room for a heartbeat before the DAQ's watchdog "
+        f"(interlock.watchdog_ms {interlock.watchdog_ms} − heartbeat_ms {interlock.heartbeat_ms}): one unanswered "
+        f"request would stop the feed (less than {room_ms}, or a longer watchdog_ms)"
+    ]
 
 
 # ----------------------------------------------------------------------------- calibration file

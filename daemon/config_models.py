@@ -61,6 +61,7 @@ class DaqSettings(_Section):
     unit: int = Field(1, ge=0, le=247)
     scenario: str | None = None
     poll_ms: int = Field(20, ge=1, le=10000)
+    timeout_ms: int = Field(200, ge=10, le=10000)  # modbus: one try of one request (additive key)
     filter_cutoff_hz: float = Field(200.0, ge=0)  # 0 = no anti-alias filter to divide out
     filter_order: int = Field(2, ge=1, le=8)
 
@@ -75,6 +76,12 @@ class DaqSettings(_Section):
                 problems.append(("host", f'missing (transport "{t}" needs the DAQ\'s host name or IP address)'))
             if self.tcp_port is None:
                 problems.append(("tcp_port", f"missing (transport \"{t}\" needs a TCP port, 1–65535{', usually 502' if t == 'modbus-tcp' else ''})"))
+        if t == "modbus-rtu":
+            # the longest answer, 125 registers: 255 bytes of 11 bits (start, 8 data, parity/stop, stop)
+            answer_ms = 255 * 11 / self.baudrate * 1e3
+            if self.timeout_ms < 2 * answer_ms:
+                problems.append(("timeout_ms", f"{self.timeout_ms} is too short for a 125-register answer at {self.baudrate} "
+                                               f"baud ({answer_ms:.0f} ms on the wire; at least {2 * answer_ms:.0f})"))
         if problems:
             raise problems_error(problems)
         if t == "sim" and not self.scenario:

@@ -8,15 +8,26 @@ resumes at H - D, and the skipped samples are lost the same way.
 
 pymodbus clients are not thread-safe, so every request holds the I/O lock;
 outputs from other threads slip in between ring chunks.
+
+A request that goes unanswered or garbled (noise on an RS-485 line, a busy
+gateway) is sent again, up to `ATTEMPTS` times, before the link counts as
+down: one bad frame must not raise `daq_lost`. Each try waits at most
+`timeout_ms` (default 200) with the I/O lock released in between, so a
+heartbeat still gets out while a request hangs; the config check keeps
+`timeout_ms` below the interlock's `watchdog_ms − heartbeat_ms`. An exception
+response saying the register map is wrong (illegal function, address or value)
+is not retried: it would only fail again.
 """
 
 from __future__ import annotations
 
+import select
+import socket
 import time
 
 import numpy as np
 
-from millsense.drivers.base import CommandRefused, Driver, LinkDown
+from millsense.drivers.base import CommandRefused, Driver, LinkDown, log
 from millsense.drivers.protocol import (
     FLAG_WATCHDOG,
     INDEX_MOD,
@@ -35,14 +46,17 @@ MAX_REGS = 125
 HR_HEARTBEAT = 100
 HR_WATCHDOG = 101
 STATUS_PERIOD_S = 0.1
+ATTEMPTS = 3  # tries of one request before the link counts as down
+DEFAULT_TIMEOUT_MS = 200
+PERMANENT_EXCEPTION_CODES = frozenset({1, 2, 3})  # illegal function / data address / data value
 
 
 class ModbusDriver(Driver):
-    def __init__(self, *, unit: int = 1, poll_ms: int = 20, timeout_s: float = 1.0, **kwargs) -> None:
+    def __init__(self, *, unit: int = 1, poll_ms: int = 20, timeout_ms: int = DEFAULT_TIMEOUT_MS, **kwargs) -> None:
         super().__init__(**kwargs)
         self.unit = int(unit)
         self.poll_s = max(1, int(poll_ms)) / 1000.0
-        self.timeout_s = timeout_s
+        self.timeout_s = max(1, int(timeout_ms)) / 1000.0
         self._client = None
         self._next: int | None = None  # device index of the next sample to read
         self._ring_depth = 0
@@ -69,21 +83,51 @@ class ModbusDriver(Driver):
     # -- requests -----------------------------------------------------------
 
     def _call(self, fn, *args, **kwargs):
-        """One request under the I/O lock; any failure means the link is down."""
-        from pymodbus.exceptions import ModbusException
+        """One request under the I/O lock, tried up to `ATTEMPTS` times; then the link is down."""
+        from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 
-        with self._io_lock:
-            client = self._client
-            if client is None:
-                raise LinkDown("not connected")
-            try:
-                rr = fn(client, *args, device_id=self.unit, **kwargs)
-            except (ModbusException, OSError) as exc:
-                raise LinkDown(f"lost communication with DAQ at {self.address}: {exc}") from exc
-        if rr.isError():
-            raise LinkDown(f"DAQ at {self.address} refused a request: {rr}")
-        self._stats["modbus_requests"] += 1
-        return rr
+        for attempt in range(1, ATTEMPTS + 1):
+            with self._io_lock:
+                client = self._client
+                if client is None:
+                    raise LinkDown("not connected")
+                try:
+                    rr = fn(client, *args, device_id=self.unit, **kwargs)
+                except ConnectionException as exc:  # the socket or port is gone: no point asking again
+                    raise LinkDown(f"lost communication with DAQ at {self.address}: {exc}") from exc
+                except ModbusIOException:  # pymodbus' "no response received": nothing valid in time
+                    problem = f"no answer from DAQ at {self.address} within {self.timeout_s * 1e3:.0f} ms"
+                    self._discard_late_answer(client)
+                except (ModbusException, OSError) as exc:  # a garbled answer
+                    problem = f"lost communication with DAQ at {self.address}: {exc}"
+                    self._discard_late_answer(client)
+                else:
+                    if not rr.isError():
+                        self._stats["modbus_requests"] += 1
+                        return rr
+                    problem = f"DAQ at {self.address} refused a request: {rr}"
+                    if getattr(rr, "exception_code", None) in PERMANENT_EXCEPTION_CODES:
+                        raise LinkDown(problem)
+            if attempt < ATTEMPTS:
+                self._stats["modbus_retries"] += 1
+                log.debug("modbus request retried", transport=self.transport, attempt=attempt, problem=problem)
+        raise LinkDown(f"{problem} ({ATTEMPTS} tries)")
+
+    @staticmethod
+    def _discard_late_answer(client) -> None:
+        """A TCP answer that comes after its timeout would be taken for the next request's: drop it.
+
+        (pymodbus' serial client already empties its receive buffer before each request.)
+        """
+        sock = getattr(client, "socket", None)
+        if not isinstance(sock, socket.socket):
+            return
+        try:
+            while select.select([sock], [], [], 0)[0]:
+                if not sock.recv(4096):
+                    break
+        except OSError:
+            pass
 
     def _input(self, address: int, count: int) -> list[int]:
         regs = self._call(lambda c, **kw: c.read_input_registers(address, count=count, **kw)).registers
@@ -254,8 +298,9 @@ class ModbusTcpDriver(ModbusDriver):
         self.tcp_port = int(tcp_port)
 
     @classmethod
-    def from_options(cls, host: str = "", tcp_port: int = 502, unit: int = 1, poll_ms: int = 20, **_ignored):
-        return cls(host, tcp_port, unit=unit, poll_ms=poll_ms)
+    def from_options(cls, host: str = "", tcp_port: int = 502, unit: int = 1, poll_ms: int = 20,
+                     timeout_ms: int = DEFAULT_TIMEOUT_MS, **_ignored):
+        return cls(host, tcp_port, unit=unit, poll_ms=poll_ms, timeout_ms=timeout_ms)
 
     @property
     def address(self) -> str:
@@ -281,8 +326,9 @@ class ModbusRtuDriver(ModbusDriver):
         self.baudrate = int(baudrate)
 
     @classmethod
-    def from_options(cls, port: str = "", baudrate: int = 921600, unit: int = 1, poll_ms: int = 20, **_ignored):
-        return cls(port, baudrate, unit=unit, poll_ms=poll_ms)
+    def from_options(cls, port: str = "", baudrate: int = 921600, unit: int = 1, poll_ms: int = 20,
+                     timeout_ms: int = DEFAULT_TIMEOUT_MS, **_ignored):
+        return cls(port, baudrate, unit=unit, poll_ms=poll_ms, timeout_ms=timeout_ms)
 
     @property
     def address(self) -> str:

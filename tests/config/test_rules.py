@@ -249,3 +249,28 @@ def test_a_typo_in_daq_does_not_hide_the_transport_rule():
     probs = problems_of(doc)
     assert probs[0].startswith('daq.baudrat: unknown key, did you mean "baudrate"?')
     assert 'daq.port: missing (transport "serial" needs a serial device, e.g. "/dev/ttyACM0")' in probs
+
+
+def test_modbus_timeout_leaves_room_for_a_heartbeat_before_the_watchdog():
+    doc = base()
+    doc["daq"] = {"transport": "modbus-tcp", "host": "10.0.0.9", "tcp_port": 502, "timeout_ms": 450}
+    doc["interlock"].update(enabled=True, heartbeat_ms=100, watchdog_ms=500)
+    (problem,) = problems_of(doc)
+    assert problem.startswith("daq.timeout_ms: 450 leaves no room for a heartbeat before the DAQ's watchdog"), problem
+    doc["daq"]["timeout_ms"] = 399
+    assert load_config_text(dumps(doc)).daq.timeout_ms == 399
+    doc["daq"]["timeout_ms"] = 450
+    doc["interlock"]["enabled"] = False  # no watchdog to starve
+    assert load_config_text(dumps(doc)).daq.timeout_ms == 450
+    doc["daq"] = {"transport": "tcp", "host": "10.0.0.9", "tcp_port": 4001, "timeout_ms": 5000}
+    doc["interlock"]["enabled"] = True  # a stream DAQ: heartbeats never wait behind a request
+    assert load_config_text(dumps(doc)).daq.timeout_ms == 5000
+
+
+def test_modbus_rtu_timeout_covers_the_longest_answer_at_the_baud_rate():
+    doc = base()
+    doc["daq"] = {"transport": "modbus-rtu", "port": "/dev/ttyUSB0", "baudrate": 19200, "timeout_ms": 200}
+    (problem,) = problems_of(doc)
+    assert problem.startswith("daq.timeout_ms: 200 is too short for a 125-register answer at 19200 baud (146 ms"), problem
+    doc["daq"]["baudrate"] = 115200
+    assert load_config_text(dumps(doc)).daq.baudrate == 115200

@@ -271,8 +271,10 @@ class ModbusProxy:
     `fail(fc, n, code)` answers the next `n` requests with function code `fc`
     with an exception response (code 4: server device failure) instead of
     passing them on; `swallow(fc, n)` passes them on but never delivers the
-    answer (the client times out); `hold(seconds)` forwards nothing either way
-    for that long and then drops what was held. `requests` counts what passed.
+    answer (the client times out); `late(fc, n, seconds)` delivers the answer
+    that much later (after the client gave up, into its next request's wait);
+    `hold(seconds)` forwards nothing either way for that long and then drops
+    what was held. `requests` counts what passed.
     """
 
     def __init__(self, upstream_port: int) -> None:
@@ -282,8 +284,10 @@ class ModbusProxy:
         self._lock = threading.Lock()
         self._fail: dict[int, list[int]] = {}  # fc -> [remaining, code]
         self._swallow: dict[int, int] = {}
+        self._late: dict[int, list[float]] = {}  # fc -> [remaining, delay_s]
+        self._send_lock = threading.Lock()
         self._hold_until = 0.0
-        self.injected: list[tuple[float, int, str]] = []  # (monotonic, fc, "exception" | "swallowed" | "held")
+        self.injected: list[tuple[float, int, str]] = []  # (monotonic, fc, "exception" | "swallowed" | "late" | "held")
         self.requests: dict[int, int] = {}
         self.connections = 0
         self._socks: list[socket.socket] = []
@@ -298,6 +302,17 @@ class ModbusProxy:
     def swallow(self, fc: int, n: int = 1) -> None:
         with self._lock:
             self._swallow[fc] = n
+
+    def late(self, fc: int, n: int = 1, seconds: float = 0.3) -> None:
+        with self._lock:
+            self._late[fc] = [n, seconds]
+
+    def _send_down(self, down: socket.socket, frame: bytes) -> None:
+        try:
+            with self._send_lock:
+                down.sendall(frame)
+        except OSError:
+            pass
 
     def hold(self, seconds: float) -> None:
         with self._lock:
@@ -347,7 +362,10 @@ class ModbusProxy:
                             fc, fate = pending.pop(tid, (frame[7], None))
                             if held or fate == "swallow":
                                 continue
-                            down.sendall(frame)
+                            if isinstance(fate, float):  # late: delivered after the client's timeout
+                                threading.Timer(fate, self._send_down, (down, frame)).start()
+                                continue
+                            self._send_down(down, frame)
         except OSError:
             return
         finally:
@@ -370,14 +388,19 @@ class ModbusProxy:
                 code = fail[1]
             else:
                 code = None
+                late = self._late.get(fc)
                 if self._swallow.get(fc, 0) > 0:
                     self._swallow[fc] -= 1
                     self.injected.append((now, fc, "swallowed"))
                     pending[tid] = (fc, "swallow")
+                elif late and late[0] > 0:
+                    late[0] -= 1
+                    self.injected.append((now, fc, "late"))
+                    pending[tid] = (fc, float(late[1]))
                 else:
                     pending[tid] = (fc, None)
         if code is not None:
-            down.sendall(MBAP.pack(tid, 0, 3, unit) + bytes([fc | 0x80, code]))
+            self._send_down(down, MBAP.pack(tid, 0, 3, unit) + bytes([fc | 0x80, code]))
         else:
             up.sendall(frame)
 

@@ -2,10 +2,12 @@
 
 A Modbus TCP proxy in this process (tests/faults/netfault.py) answers chosen
 requests with an exception response (code 4, server device failure) instead
-of passing them on, swallows answers so that the client times out, or holds
-all traffic for a while. Exceptions to a read, and timeouts, drop the link and
-reconnect; the ring (4096 samples, 4 s) lets the reader fetch what it missed,
-so a short outage loses nothing and a long one loses exactly the index gap.
+of passing them on, swallows answers so that the client times out, delivers
+them late, or holds all traffic for a while. One bad answer is a glitch: the
+request is sent again and the link stays up. Three in a row, an answer that
+says the register map is wrong, or silence drop the link and reconnect; the
+ring (4096 samples, 4 s) lets the reader fetch what it missed, so a short
+outage loses nothing and a long one loses exactly the index gap.
 A refused *write* is not a link failure but must not pass for a done one: the
 feed hold is written again until the DAQ shows it.
 """
@@ -61,14 +63,32 @@ def test_exceptions_and_timeouts_lose_nothing_the_ring_holds_and_count_what_it_d
             assert col.pump(15.0, until=lambda: len(col.blocks) > n + 5), f"{what}: no samples after"
             assert col.links[-1].up
 
-        outage(lambda: proxy.fail(FC_READ_INPUT, 1), "exception to a ring read")
-        outage(lambda: proxy.fail(FC_READ_COILS, 1), "exception to the status poll")
-        outage(lambda: proxy.swallow(FC_READ_INPUT, 1), "a ring read that times out")
+        def glitch(inject, what: str, retries: int) -> None:
+            n_links, before = len(col.links), driver.stats().get("modbus_retries", 0)
+            inject()
+            assert col.pump(5.0, until=lambda: driver.stats().get("modbus_retries", 0) >= before + retries), \
+                f"{what}: not retried"
+            n = len(col.blocks)
+            assert col.pump(5.0, until=lambda: len(col.blocks) > n + 5), f"{what}: no samples after"
+            assert len(col.links) == n_links, f"{what}: the link went down: {[e.reason for e in col.links[n_links:]]}"
+            assert driver.stats()["modbus_retries"] == before + retries, f"{what}: retried more than it failed"
+
+        glitch(lambda: proxy.fail(FC_READ_INPUT, 1), "exception to a ring read", 1)
+        glitch(lambda: proxy.fail(FC_READ_COILS, 2), "two exceptions to the status poll", 2)
+        glitch(lambda: proxy.swallow(FC_READ_INPUT, 1), "a ring read that times out", 1)
+        # its answer comes after the timeout, while the retry waits: taken for the retry's, the
+        # registers would be from the wrong address, and _check_blocks would see it
+        glitch(lambda: proxy.late(FC_READ_INPUT, 1, 0.3), "an answer that comes late", 1)
+        outage(lambda: proxy.fail(FC_READ_INPUT, 3), "three exceptions in a row")
+        retries = driver.stats()["modbus_retries"]
+        outage(lambda: proxy.fail(FC_READ_INPUT, 1, code=2), "illegal data address: the map is wrong")
+        assert driver.stats()["modbus_retries"] == retries, "an illegal-address answer was retried"
         outage(lambda: proxy.hold(1.5), "1.5 s of silence")
         short = [b for _, b in col.blocks]
         n_short, gaps_short = _check_blocks(short)
         assert gaps_short == [], f"the ring held every sample of a short outage, yet {gaps_short} were lost"
-        assert proxy.injected_count("exception") == 2 and proxy.injected_count("swallowed") == 1
+        assert proxy.injected_count("exception") == 1 + 2 + 3 + 1
+        assert proxy.injected_count("swallowed") == 1 and proxy.injected_count("late") == 1
 
         # longer than the ring: what the device overwrote is lost, and counted exactly
         outage(lambda: proxy.hold(6.0), "6 s of silence")
@@ -80,8 +100,9 @@ def test_exceptions_and_timeouts_lose_nothing_the_ring_holds_and_count_what_it_d
         assert len(gaps) == 1 and gaps[0] >= 6000 - RING - 1000, gaps
         assert stats["reconnect_gaps"] == 1 and stats["lost_samples"] == gaps[0]
         assert stats["samples"] == n_all and stats.get("queue_dropped_samples", 0) == 0  # every sample read was handed over
-        assert any("refused a request" in e.reason for e in downs), [e.reason for e in downs]
-        assert any("lost communication" in e.reason for e in downs), [e.reason for e in downs]
+        assert any("refused a request" in e.reason and "(3 tries)" in e.reason for e in downs), [e.reason for e in downs]
+        assert any("no answer from DAQ" in e.reason and "within 200 ms (3 tries)" in e.reason for e in downs), \
+            [e.reason for e in downs]
         assert [e.up for e in col.links] == [True, False] * len(downs) + [True]
     finally:
         if driver is not None:
@@ -126,15 +147,22 @@ def test_daemon_over_modbus_refused_writes_and_read_faults(tmp_path):
             assert st["interlock"] == "feed_hold" and st["interlock_detail"]["hold_unconfirmed"] is False
             assert st["daq"]["commands_refused"] == 1
 
-            # -- exceptions to reads: a reconnect, the ring covers the gap, the heartbeats barely pause
-            def read_fault(inject) -> None:
-                changes = status(sub, machine)["daq"]["link_changes"]
+            # -- exceptions to reads: retried, the link stays up, the heartbeats go on
+            def read_fault(inject, retries: int) -> None:
+                before = status(sub, machine)["daq"]
                 inject()
-                wait_status(sub, machine, lambda s: s["daq"]["link_changes"] >= changes + 2 and s["daq_link"] == "up"
-                            and s["state"] == "running", 10.0, "reconnected after a read fault")
+                st = wait_status(sub, machine, lambda s: s["daq"].get("modbus_retries", 0) >= before.get("modbus_retries", 0) + retries,
+                                 5.0, "the read retried")
+                assert st["daq"]["link_changes"] == before["link_changes"] and st["daq_link"] == "up", st
+                assert st["state"] == "running", st
 
-            read_fault(lambda: proxy.fail(FC_READ_INPUT, 1))
-            read_fault(lambda: proxy.fail(FC_READ_COILS, 1))
+            read_fault(lambda: proxy.fail(FC_READ_INPUT, 1), 1)
+            read_fault(lambda: proxy.fail(FC_READ_COILS, 2), 2)
+            # -- three in a row: the link drops and comes back, the ring covers the gap
+            changes = status(sub, machine)["daq"]["link_changes"]
+            proxy.fail(FC_READ_INPUT, 3)
+            wait_status(sub, machine, lambda s: s["daq"]["link_changes"] >= changes + 2 and s["daq_link"] == "up"
+                        and s["state"] == "running", 10.0, "reconnected after three failed tries")
             time.sleep(1.0)
             after = status(sub, machine)
             assert after["lost_samples"] == 0 and after["daq"]["lost_samples"] == 0, after
@@ -151,13 +179,17 @@ def test_daemon_over_modbus_refused_writes_and_read_faults(tmp_path):
             proxy.fail(FC_WRITE_REGISTER, 0)
             wait_status(sub, machine, lambda s: s["heartbeating"] is True, 3.0, "heartbeats resumed")
 
-            # -- a read that times out (1 s): nothing is lost (the ring holds 4 s); the heartbeats
-            # wait behind it, so a DAQ watchdog shorter than the timeout would stop the feed (fail-safe)
-            read_fault(lambda: proxy.swallow(FC_READ_INPUT, 1))
+            # -- a read that times out (200 ms, then tried again): nothing is lost, the link stays up, and
+            # the heartbeats that waited behind it still reach the DAQ's 500 ms watchdog
+            t_swallow = time.monotonic()
+            read_fault(lambda: proxy.swallow(FC_READ_INPUT, 1), 1)
             time.sleep(1.0)
             after = status(sub, machine)
             assert after["lost_samples"] == 0 and after["samples_received"] == after["daq"]["samples"], after
-            assert proxy.injected_count("swallowed") == 1 and proxy.injected_count("exception", FC_READ_INPUT) == 1
+            beats = [e["mono"] for e in read_jsonl(sim_log) if e.get("event") == "heartbeat" and e["mono"] > t_swallow - 0.2]
+            gap_ms = max(np.diff(beats)) * 1e3
+            assert len(beats) > 10 and gap_ms < 500 - 50, f"heartbeats {gap_ms:.0f} ms apart around a timed-out read"
+            assert proxy.injected_count("swallowed") == 1 and proxy.injected_count("exception", FC_READ_INPUT) == 1 + 3
             estimates = sub.get("estimate")
             assert daemon.poll() is None
             daemon.send_signal(signal.SIGTERM)
