@@ -155,7 +155,8 @@ class _Daemon:
             on_second=self.summary,
             effective_config=lambda: effective_config_dict(settings),
         )
-        self.sink = ZenohSink(session, self.runner.machine, self.runner, log=self.log, close_timeout_s=0.5)
+        self.sink = ZenohSink(session, self.runner.machine, self.runner, log=self.log, close_timeout_s=0.5,
+                              expects_router=settings.zenoh.mode == "client")
         self._closed = False
 
     def serve(self, seconds: float | None, stop: threading.Event) -> None:

@@ -136,4 +136,11 @@ def status_line(status: dict[str, Any]) -> str:
         f"{status.get('lost_samples')} lost, {status.get('bad_frames')} bad frames; "
         f"{status.get('revolutions')} revs, p99 {_fmt(lat.get('p99'), '.2f')} ms; "
         f"alarm {status.get('alarm')}; interlock {status.get('interlock')}"
+        + _zenoh_part(status.get("sink"))
     )
+
+
+def _zenoh_part(sink: dict[str, Any] | None) -> str:
+    if not sink or sink.get("zenoh_routers") is None:
+        return ""
+    return f"; Zenoh {sink['zenoh_routers']} routers, {sink.get('zenoh_peers')} peers"

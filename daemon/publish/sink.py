@@ -57,6 +57,7 @@ class ZenohSink:
     `reset(payload: bytes)`, or None (then `config` and `cmd/reset` reply with
     an error and `status` with the latest published status).
     `queue_size`: how many estimates/status may wait before the oldest is dropped.
+    `expects_router`: the session is a client, so having no router is worth a warning.
     """
 
     def __init__(
@@ -68,6 +69,7 @@ class ZenohSink:
         queue_size: int = 1024,
         close_timeout_s: float = 2.0,
         log: Any = None,
+        expects_router: bool = False,
     ) -> None:
         if queue_size < 1:
             raise ValueError("queue_size must be >= 1")
@@ -86,6 +88,8 @@ class ZenohSink:
         self._closing = False
         self._closed = False
         self._latest_status: dict | None = None
+        self._expects_router = expects_router
+        self._had_router: bool | None = None
 
         self._published = 0
         self._alarms_published = 0
@@ -196,9 +200,35 @@ class ZenohSink:
     def __exit__(self, *_exc: object) -> None:
         self.close()
 
-    def stats(self) -> dict[str, int]:
+    def connections(self) -> tuple[int | None, int | None]:
+        """(routers, peers) the session is connected to now; None where zenoh cannot tell.
+
+        With `expects_router` (a client session) losing the last router and
+        finding one again are logged once each (`zenoh.no_router`,
+        `zenoh.router_connected`): without a router everything published goes
+        nowhere. A peer's count of peers is its subscribers coming and going:
+        reported in status, not logged.
+        """
+        try:
+            info = self._session.info
+            now = (len(info.routers_zid()), len(info.peers_zid()))
+        except Exception:  # noqa: BLE001 - a closed session: unknown, not an error
+            return (None, None)
+        has_router = now[0] > 0
+        if self._expects_router and has_router != self._had_router:
+            first, self._had_router = self._had_router is None, has_router
+            if not has_router:
+                self._warn("zenoh.no_router", peers=now[1])
+            elif not first:
+                self._info("zenoh.router_connected", routers=now[0])
+        return now
+
+    def stats(self) -> dict[str, int | None]:
         """Counters for status payloads and the diagnostic dump."""
+        routers, peers = self.connections()
         return {
+            "zenoh_routers": routers,
+            "zenoh_peers": peers,
             "published": self._published,
             "alarms_published": self._alarms_published,
             "dropped": self._dropped,

@@ -213,6 +213,11 @@ def test_router_restarts_under_a_client_daemon(tmp_path):
     assert revs == sorted(revs) and len(set(revs)) == len(revs)
     assert st["state"] == "running" and st["lost_samples"] == 0 and st["uptime_s"] > t_back - t_kill
     assert st["revolutions"] >= revs[-1] - revs[0]
+    # the outage and the return are in the daemon's log, once each, and status counts the router
+    assert st["sink"]["zenoh_routers"] == 1, st["sink"]
+    events = [e["event"] for e in log_events(procs.text("daemon", "out")) if e["event"].startswith("zenoh.")]
+    assert [e for e in events if e in ("zenoh.no_router", "zenoh.router_connected")] == \
+        ["zenoh.no_router", "zenoh.router_connected"], events
     assert_clean_exit(procs, "daemon")
 
 
