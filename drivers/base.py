@@ -311,7 +311,7 @@ class Driver:
         self._link_state = up
         self._stats["link_changes"] += 1
         log.info(
-            "daq link up" if up else "daq link down",
+            "daq.link_up" if up else "daq.link_down",
             transport=self.transport,
             address=self.address,
             reason=reason,

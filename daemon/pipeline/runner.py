@@ -215,8 +215,7 @@ class Runner:
         log.warning("alarm", **{k: v for k, v in payload.items() if k != "machine"})
 
     def _on_link(self, ev: Any) -> None:
-        if ev.up:
-            log.info("daq.link_up", reason=ev.reason)
+        if ev.up:  # the driver logged it (`daq.link_up`, with transport and address)
             # A DAQ that restarted forgot its watchdog and maybe the latched output.
             self._safe(self.interlock.start)
             self._safe(self.interlock.reassert)

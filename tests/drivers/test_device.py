@@ -87,7 +87,7 @@ def test_link_down_is_reported_once_while_retrying(tmp_path, port):
         drv.start()
         assert not drv.wait_connected(1.0)
         drv.close()
-    downs = [e for e in logs if e["event"] == "daq link down"]
+    downs = [e for e in logs if e["event"] == "daq.link_down"]
     assert len(downs) == 1 and downs[0]["transport"] == "tcp" and downs[0]["address"] == f"127.0.0.1:{port}"
     assert drv.stats()["connect_failures"] >= 3  # 0.1 + 0.2 + 0.4 s of doubling back-off
 

@@ -115,8 +115,8 @@ def test_link_flapping_every_2_s_every_sample_delivered_or_counted(tmp_path):
     assert levels.count(("daq_lost", "daq")) == proxy.accepted
     assert levels.count(("clear", "daq")) == proxy.accepted - 1
     events = log_events(procs.text("daemon", "out"))
-    assert sum(e["event"] == "daq link down" for e in events) == proxy.accepted
-    assert sum(e["event"] == "daq link up" for e in events) == proxy.accepted
+    assert sum(e["event"] == "daq.link_down" for e in events) == proxy.accepted
+    assert sum(e["event"] == "daq.link_up" for e in events) == proxy.accepted
     faults = [e for e in events if e["event"] == "fault"]
     assert len(faults) == proxy.accepted and all(e["kind"] == "daq_link" for e in faults)
     assert sum(e["event"] == "recovered" for e in events) == proxy.accepted - 1
@@ -204,6 +204,6 @@ def test_pty_closed_under_the_reader_then_the_device_restarts_at_index_0(tmp_pat
     ts = [e["t"] for e in estimates]
     assert all(b > a for a, b in zip(ts, ts[1:])), "estimate times went backwards"
     events = log_events(procs.text("daemon", "out"))
-    downs = [e for e in events if e["event"] == "daq link down" and e["reason"] != "closed"]  # "closed": the stop
+    downs = [e for e in events if e["event"] == "daq.link_down" and e["reason"] != "closed"]  # "closed": the stop
     assert len(downs) == 1 and str(link) in downs[0]["reason"], downs
     assert_clean_exit(procs, "daemon")

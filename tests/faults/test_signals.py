@@ -80,7 +80,7 @@ def test_sigterm_while_waiting_for_the_daq_exits_0_at_once(tmp_path):
     cfg = write_config(tmp_path / "d.toml", machine="term-02", daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {nobody}')
     with Procs(tmp_path) as procs:
         daemon = procs.start("daemon", ["run", "--config", str(cfg), "--connect-timeout", "30"])
-        wait_for(lambda: "daq link down" in procs.text("daemon", "out") or daemon.poll() is not None, 30.0, "trying to connect")
+        wait_for(lambda: "daq.link_down" in procs.text("daemon", "out") or daemon.poll() is not None, 30.0, "trying to connect")
         daemon.send_signal(signal.SIGTERM)
         t_term = time.monotonic()
         assert daemon.wait(10) == 0
