@@ -51,7 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--status-log", metavar="FILE", help="JSON lines of output changes, heartbeats, faults")
     parser.add_argument("--filter-cutoff-hz", type=_non_negative, default=None)
-    parser.add_argument("--noise-scale", type=_non_negative, default=None)
+    parser.add_argument("--noise-scale", type=_non_negative, default=None, metavar="K",
+                        help="scale the sensors' imperfections, random noise and zero offsets alike (0 = ideal sensors)")
     parser.add_argument("--corrupt-fraction", type=_fraction, default=0.0, metavar="F",
                         help="corrupt this fraction of frames on the wire (fault tests)")
     parser.add_argument("--garbage-bps", type=_non_negative, default=0.0, metavar="N",

@@ -74,6 +74,7 @@ class Plant:
         rng = np.random.default_rng(seed)
         self._rng = rng
         self._scales = np.array([s.scale for s in self._analog])
+        # noise_scale scales every sensor imperfection: 0 gives ideal sensors (no noise, no zero offset)
         self._sigma = noise_scale * np.array([s.noise_sigma for s in self._analog])
         self._offset = noise_scale * np.array([rng.uniform(-1, 1) * s.max_offset for s in self._analog])
         tool = sc.tool
