@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import tempfile
 import time
@@ -32,19 +31,7 @@ sys.path.insert(0, str(REPO))
 
 from tests.conftest import free_tcp_port  # noqa: E402
 from tests.e2e.helpers import Procs, Subscriber, tcp, wait_for, write_config  # noqa: E402
-
-
-def _proc_cpu_s(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    utime, stime = int(fields[11]), int(fields[12])
-    return (utime + stime) / os.sysconf("SC_CLK_TCK")
-
-
-def _proc_mem_kb(pid: int, key: str) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1])
-    return 0
+from tests.procstat import proc_cpu_s, proc_kb  # noqa: E402
 
 
 def daemon_figures(seconds: float, scenario: str) -> dict:
@@ -65,13 +52,13 @@ def daemon_figures(seconds: float, scenario: str) -> dict:
         try:
             wait_for(lambda: len(sub.get("estimate")) >= 5, 30.0, "estimates from the daemon")
             time.sleep(2.0)  # warm-up: imports, first descriptor, caches
-            cpu0, t0 = _proc_cpu_s(daemon.pid), time.monotonic()
+            cpu0, t0 = proc_cpu_s(daemon.pid), time.monotonic()
             rss_kb = []
             while time.monotonic() - t0 < seconds:
                 time.sleep(0.5)
-                rss_kb.append(_proc_mem_kb(daemon.pid, "VmRSS"))
-            cpu1, t1 = _proc_cpu_s(daemon.pid), time.monotonic()
-            hwm_kb = _proc_mem_kb(daemon.pid, "VmHWM")
+                rss_kb.append(proc_kb(daemon.pid, "VmRSS"))
+            cpu1, t1 = proc_cpu_s(daemon.pid), time.monotonic()
+            hwm_kb = proc_kb(daemon.pid, "VmHWM")
             status = sub.query("millsense/bench/status")[0]
             revs = [e["rev"] for e in sub.get("estimate")]
         finally:

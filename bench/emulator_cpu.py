@@ -11,29 +11,18 @@ from __future__ import annotations
 
 import os
 import resource
-import socket
 import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
-from millsense.drivers import create_driver
-from millsense.drivers.base import SampleBlock
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-TICK = os.sysconf("SC_CLK_TCK")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def proc_cpu_s(pid: int) -> float:
-    with open(f"/proc/{pid}/stat") as fh:
-        fields = fh.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / TICK  # utime, stime
-
+from millsense.drivers import create_driver  # noqa: E402
+from millsense.drivers.base import SampleBlock  # noqa: E402
+from tests.conftest import free_tcp_port as free_port  # noqa: E402
+from tests.procstat import proc_cpu_s  # noqa: E402
 
 def self_cpu_s() -> float:
     ru = resource.getrusage(resource.RUSAGE_SELF)

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import signal
 import sys
 import tempfile
@@ -44,6 +43,7 @@ sys.path.insert(0, str(REPO))
 from tests.conftest import free_tcp_port  # noqa: E402
 from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, write_config  # noqa: E402
 from tests.e2e.truth import Timebase, truth_revs  # noqa: E402
+from tests.procstat import proc_cpu_s, proc_kb  # noqa: E402
 
 MACHINE = "soak"
 # Crossed by the step scenario (torque plateaus ~2.0 / ~3.8 / ~5.9 N·m, force ~210 / ~400 / ~630 N):
@@ -51,18 +51,6 @@ MACHINE = "soak"
 ALARMS = "torque_warn_nm = 3.0\nforce_warn_n = 500.0\nbreakage_drop_pct = 0"
 INTERLOCK = 'enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 500\nreset = "off"'
 WATCHDOG_MS = 500
-
-
-def proc_cpu_s(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def proc_kb(pid: int, key: str) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1])
-    return 0
 
 
 def slope_kb_per_min(t_min: np.ndarray, kb: np.ndarray) -> tuple[float, float]:

@@ -9,9 +9,7 @@ published from damaged data, status and logs tell the truth.
 from __future__ import annotations
 
 import json
-import os
 import time
-from pathlib import Path
 from typing import Any
 
 from tests.e2e.helpers import Subscriber, wait_for
@@ -88,18 +86,6 @@ def assert_revs_contiguous(estimates: list[dict]) -> None:
 def assert_clean_exit(procs, name: str) -> None:
     for stream in ("err", "out"):
         assert "Traceback" not in procs.text(name, stream), procs.text(name, stream)[-3000:]
-
-
-def proc_cpu_s(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def rss_kb(pid: int) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1])
-    return 0
 
 
 def outputs(events: list[dict], **match: Any) -> list[dict]:

@@ -22,11 +22,11 @@ from tests.faults.helpers import (
     assert_revs_contiguous,
     log_events,
     outputs,
-    proc_cpu_s,
     status,
     wait_status,
 )
 from tests.faults.netfault import StreamProxy
+from tests.procstat import proc_cpu_s
 
 FLAP_S = float(os.environ.get("MILLSENSE_FLAP_S", "60"))  # the 60 s; shorter for a quick local run
 PERIOD_S = 2.0

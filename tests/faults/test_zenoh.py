@@ -27,11 +27,11 @@ from hypothesis import strategies as st
 
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import Procs, Subscriber, tcp, wait_for, write_config
+from tests.procstat import proc_kb
 from tests.faults.helpers import (
     assert_clean_exit,
     assert_revs_contiguous,
     log_events,
-    rss_kb,
     status,
     wait_status,
 )
@@ -283,7 +283,7 @@ def test_cmd_reset_fuzzed_on_a_real_daemon_holds_the_feed_and_stays_small(tmp_pa
             assert status(sub, machine)["interlock"] == "held_by_device"
 
             # -- volume: 64 KB of garbage per query from 8 threads; memory must not follow it
-            rss0 = rss_kb(daemon.pid)
+            rss0 = proc_kb(daemon.pid)
             blob = os.urandom(65536)
             errors: list[str] = []
 
@@ -300,7 +300,7 @@ def test_cmd_reset_fuzzed_on_a_real_daemon_holds_the_feed_and_stays_small(tmp_pa
             for t in threads:
                 t.join(120)
             flood_s = time.monotonic() - t0
-            rss1 = rss_kb(daemon.pid)
+            rss1 = proc_kb(daemon.pid)
             t_q = time.monotonic()
             st_after = status(sub, machine)
             status_s = time.monotonic() - t_q
