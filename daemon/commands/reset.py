@@ -7,12 +7,16 @@ Exit 0 when the daemon accepted, 1 when it refused or nobody answered.
 Without `--machine`, the one daemon whose liveliness token `millsense/*/alive`
 is visible is asked; with several, it names them and asks to choose, since
 clearing a feed hold on the wrong machine is not a guess to make.
+
+The token comes from `--token-file`, `--token`, or else the environment
+variable `MILLSENSE_RESET_TOKEN` (a command line is visible to every user).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -21,13 +25,16 @@ from typing import Any
 from millsense.daemon.publish.cli_args import add_zenoh_arguments, check_machine, zenoh_settings_from_args
 
 PROG = "millsense reset"
+TOKEN_ENV = "MILLSENSE_RESET_TOKEN"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--machine", "-m", metavar="ID", default=None, help="the machine id of the daemon (default: the only one alive)")
     add_zenoh_arguments(parser, listen=False)
     tok = parser.add_mutually_exclusive_group()
-    tok.add_argument("--token", default=None, help="reset token, if the daemon requires one")
+    tok.add_argument("--token", default=None,
+                     help="reset token, if the daemon requires one (other users see it in ps: "
+                          f"prefer --token-file or the environment variable {TOKEN_ENV})")
     tok.add_argument("--token-file", metavar="FILE", default=None, help="read the token from FILE (first line)")
     parser.add_argument("--timeout", type=float, default=2.0, metavar="S", help="how long to wait for a reply (default 2 s)")
 
@@ -55,6 +62,8 @@ def run(args: argparse.Namespace) -> int:
         except (OSError, UnicodeDecodeError) as exc:
             return _fail(f"error: cannot read --token-file {args.token_file}: {exc}")
         token = lines[0].strip() if lines else ""
+    if token is None and os.environ.get(TOKEN_ENV):
+        token = os.environ[TOKEN_ENV].strip()
     payload = json.dumps({"token": token} if token is not None else {}).encode()
 
     started = time.monotonic()

@@ -121,10 +121,13 @@ def test_watch_bad_machine_id_is_a_usage_error(millsense_cmd, port):
     assert "--machine 'a/b'" in proc.stderr and "Traceback" not in proc.stderr
 
 
-def _reset(millsense_cmd, port, *extra, timeout=30):
+def _reset(millsense_cmd, port, *extra, timeout=30, token_env=None):
+    env = {k: v for k, v in os.environ.items() if k != "MILLSENSE_RESET_TOKEN"}
+    if token_env is not None:
+        env["MILLSENSE_RESET_TOKEN"] = token_env
     return subprocess.run(
         [*millsense_cmd, "reset", "--no-scouting", "--connect", tcp(port), *extra],
-        capture_output=True, text=True, timeout=timeout,
+        capture_output=True, text=True, timeout=timeout, env=env,
     )
 
 
@@ -139,6 +142,11 @@ def test_reset_gets_the_daemons_reply(millsense_cmd, port, daemon_session, tmp_p
         assert json.loads(proc.stdout) == {"ok": True, "interlock": "clear"}
         assert [json.loads(p) for p in controls.reset_payloads] == [{"token": "s3cret"}]
         assert not controls.latched
+        # the token from the environment, so that it is not on a command line
+        controls.latched = True
+        proc = _reset(millsense_cmd, port, "--machine", "mch10-01", token_env="s3cret")
+        assert proc.returncode == 0, proc.stderr
+        assert [json.loads(p) for p in controls.reset_payloads][-1] == {"token": "s3cret"} and not controls.latched
     finally:
         sink.close()
 
