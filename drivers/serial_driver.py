@@ -1,19 +1,22 @@
 """The framed stream over a serial port (USB-CDC, RS-422), or any URL pyserial accepts.
 
-Each read asks for a large block with a 10 ms timeout: it returns after at most
-10 ms with whatever arrived, so the reader wakes about a hundred times a second
-and never spins.  (``in_waiting`` is not used: on ``socket://`` ports it is only
-0 or 1.)  ``socket://host:port`` and other pyserial URLs work as ports.
+The reader waits in `select` on the port's file descriptor and, once bytes
+are there, reads them without waiting (timeout 0): one wake-up per frame,
+and a frame is handed on as soon as it lands. A port without a file
+descriptor (pyserial's `loop://` and the like) falls back to reads with a
+10 ms timeout. ``in_waiting`` is not used: on ``socket://`` ports it is only
+0 or 1. ``socket://host:port`` and other pyserial URLs work as ports.
 """
 
 from __future__ import annotations
+
+import select
 
 from millsense.drivers.base import LinkDown, StreamDriver
 
 
 class SerialDriver(StreamDriver):
     transport = "serial"
-    read_interval_s = 0.0  # the read timeout paces the reader
     READ_SIZE = 65536
 
     def __init__(self, port: str, baudrate: int = 921600, *, read_timeout_s: float = 0.01, **kwargs) -> None:
@@ -24,6 +27,7 @@ class SerialDriver(StreamDriver):
         self.baudrate = int(baudrate)
         self.read_timeout_s = read_timeout_s
         self._serial = None
+        self._fd: int | None = None  # what select waits on; None: reads wait read_timeout_s instead
 
     @classmethod
     def from_options(cls, port: str = "", baudrate: int = 921600, **_ignored) -> SerialDriver:
@@ -44,11 +48,27 @@ class SerialDriver(StreamDriver):
             raise LinkDown(f"cannot open {self.port}: {exc}") from exc
         # bytes that waited in the port while nobody read are stale: start fresh
         self._serial.reset_input_buffer()
+        try:
+            self._fd = int(self._serial.fileno())
+        except (AttributeError, NotImplementedError, OSError, ValueError, TypeError):
+            self._fd = None
+        if self._fd is not None:
+            self._serial.timeout = 0  # select does the waiting; a read takes what is there
 
     def _close(self) -> None:
-        ser, self._serial = self._serial, None
+        ser, self._serial, self._fd = self._serial, None, None
         if ser is not None:
             ser.close()
+
+    def _wait_readable(self, timeout_s: float) -> bool:
+        if self._serial is None:
+            raise LinkDown("port closed")
+        if self._fd is None:
+            return True  # the read itself waits up to read_timeout_s
+        try:
+            return bool(select.select([self._fd], [], [], timeout_s)[0])  # a vanished device reads as readable
+        except (OSError, ValueError) as exc:
+            raise LinkDown(f"lost communication with DAQ at {self.port}: {exc}") from exc
 
     def _read_bytes(self) -> bytes:
         import serial

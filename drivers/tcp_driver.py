@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import select
 import socket
 
 from millsense.drivers.base import LinkDown, StreamDriver
@@ -40,6 +41,15 @@ class TcpDriver(StreamDriver):
         sock, self._sock = self._sock, None
         if sock is not None:
             sock.close()
+
+    def _wait_readable(self, timeout_s: float) -> bool:
+        sock = self._sock
+        if sock is None:
+            raise LinkDown("socket closed")
+        try:
+            return bool(select.select([sock], [], [], timeout_s)[0])  # a closed peer reads as readable
+        except (OSError, ValueError) as exc:
+            raise LinkDown(f"lost communication with DAQ at {self.address}: {exc}") from exc
 
     def _read_bytes(self) -> bytes:
         sock = self._sock
