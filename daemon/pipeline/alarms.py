@@ -27,8 +27,11 @@ Four kinds of alarm, each a state; every *change* of state is one
 - **DAQ lost**: the link went down or samples stopped; `clear` when they flow.
 
 A damaged revolution (`valid` false) never raises or clears an alarm and does
-not break a run of consecutive revolutions either: it is skipped. A limit
-left out of the config (None) is an alarm not armed.
+not break a run of consecutive revolutions either: it is skipped. So is a
+revolution of a spindle speeding up (`accelerating`) for the thresholds: its
+torque, force and power carry the rotating masses' share (eq. 13 has no
+inertia term), many times the cutting torque. A limit left out of the config
+(None) is an alarm not armed.
 """
 
 from __future__ import annotations
@@ -248,7 +251,7 @@ class AlarmEngine:
             return []
         rev, seq = est.get("rev"), est.get("seq_end")
         events: list[AlarmEvent] = []
-        for track in self.tracks:
+        for track in () if est.get("accelerating") else self.tracks:
             value = _finite(est.get(track.quantity))
             if value is not None:
                 ev = track.update(value, rev, seq)

@@ -13,6 +13,29 @@ samples. Its sum telescopes to (end phase − start phase)/time, so noise enters
 only through two phase readings, and it costs nothing per revolution (a
 least-squares phase fit per revolution took ~0.2 ms, a fifth of the budget).
 
+A revolution in which the spindle speeds up by more than `ACCEL_RISE_PCT`
+(at least `ACCEL_RISE_MIN_RPM`; its speed at the end against its start: the
+per-sample speed rise, summed over the revolution, which telescopes), or that
+turns more than
+`ACCEL_STEP_PCT` faster than the revolution before it, is published with
+`accelerating: true`. Eq. 13 has no inertia term: while the
+spindle speeds up (a start, a programmed speed change) the motor's power goes
+into the rotating masses too, and the torque read from it is far above the
+cutting torque (60–77 N·m in the simulator's speed steps of 150 rpm in 0.2 s,
+with no cut at all). Per-revolution alarms skip such revolutions. Slowing down
+needs no flag: the masses then give power back, and the estimate reads low,
+never falsely high. The two tests cover each other: the first catches the
+revolution in which a ramp starts, the second a slow ramp that the encoder's
+speed resolution (about 1 rpm) blurs within one revolution. A rise within a
+revolution whose mean speed fell clearly against the one before is not
+flagged: that is a drive catching up with a spindle its load slowed down (a
+crash, a stall), and the overload must see that torque. What the thresholds
+let through: the revolution in which a ramp starts, if it starts in its last
+few samples, carries up to J·ω·Δω/2π of the masses' share unflagged: with
+Δω = 2 rpm and the simulated low gear's spindle-side inertia of 1.5 kg·m²,
+3 N·m at 600 rpm and 4.6 N·m at 900 rpm. Enough for one revolution over a low
+limit, not for the `revolutions` ≥ 2 consecutive ones an alarm needs.
+
 A revolution that spans lost samples or a discontinuity is published with
 `valid: false`, every physical quantity null and its exact `lost_samples`:
 a number built on missing data must not look like a measurement (the
@@ -43,6 +66,11 @@ from millsense.daemon.pipeline.scaling import Scaler
 # this (at 4500 rpm a revolution is 13 samples: two phase readings 13 ms apart).
 MIN_FE_WINDOW = 100
 MIN_VOLTAGE_V = 1.0                # below this space-vector amplitude the drive is off: no f_e
+ACCEL_RISE_PCT = 0.25              # speed rise within one revolution that counts as accelerating,
+ACCEL_RISE_MIN_RPM = 2.0           # but never less than this (steady cutting reads up to ±0.9 rpm, at
+                                   # most 1.8: the encoder's resolution over its 16-sample window)
+ACCEL_STEP_PCT = 0.5               # ... or over the revolution before (steady cutting: < 0.08 % in
+                                   # every simulated scenario)
 P_GAP_SMOOTH_SAMPLES = 5           # moving average of the sample-level air-gap power
 
 NULL_FIELDS = (
@@ -117,7 +145,7 @@ class Estimator:
                                          friction_zero=friction_zero)
 
         # columns integrated per revolution
-        cols = ["p_in", "p_cu", "p_gap_sq", "f_e", "v_sq"]
+        cols = ["p_in", "p_cu", "p_gap_sq", "f_e", "v_sq", "rpm_rise"]
         if roles.motor_speed:
             cols.append("motor_rpm")
         if roles.feed_rates:
@@ -136,6 +164,8 @@ class Estimator:
         self._last_seq: int | None = None
         self._smooth_tail = np.empty(0)
         self._stopped = True
+        self._prev_rev: tuple[float, float] | None = None  # (end position, spindle rpm) of the last valid revolution
+        self._last_rpm: float | None = None
         self.rev = 0
 
     # --- accounting ------------------------------------------------------------------
@@ -205,6 +235,10 @@ class Estimator:
         contiguous = (self._last_seq is not None and seq0 == self._last_seq + 1
                       and not block.lost_before and not block.discontinuity)
         x[:, c["f_e"]], x[:, c["v_sq"]] = self._phase.push(v_uv, v_vw, v_wu, contiguous)
+        rise = x[:, c["rpm_rise"]]  # rpm gained since the sample before: summed over a revolution, end − start
+        rise[0] = rpm[0] - self._last_rpm if (contiguous and self._last_rpm is not None) else 0.0
+        np.subtract(rpm[1:], rpm[:-1], out=rise[1:])
+        self._last_rpm = float(rpm[-1])
         if "motor_rpm" in c:
             x[:, c["motor_rpm"]] = phys[r.motor_speed]
         if "feed_rate" in c:
@@ -238,6 +272,19 @@ class Estimator:
         self._smooth_tail = ext[-(w - 1) :]
         return out / w
 
+    def _accelerating(self, start_pos: float, end_pos: float, spindle_rpm: float, rise_rpm: float) -> bool:
+        """Sped up against the revolution just before, or within this one while not slowing on the whole."""
+        prev, self._prev_rev = self._prev_rev, (end_pos, spindle_rpm)
+        step_pct = None
+        if prev is not None and abs(prev[0] - start_pos) < 1e-6:  # not after a stop or a dropped revolution
+            step_pct = 100.0 * (spindle_rpm - prev[1]) / spindle_rpm
+        if step_pct is not None and step_pct > ACCEL_STEP_PCT:
+            return True
+        # A rise within the revolution while its mean speed fell clearly is a drive catching up after a
+        # spindle bogged down by its load: that torque is load, and the overload must see it.
+        slowing = step_pct is not None and step_pct < -ACCEL_STEP_PCT
+        return rise_rpm > max(ACCEL_RISE_PCT / 100.0 * spindle_rpm, ACCEL_RISE_MIN_RPM) and not slowing
+
     def _f_e_hz(self, integral_hz: float, duration: float, mean_v_sq: float) -> float | None:
         """Mean f_e over this revolution, extended back over recent ones to MIN_FE_WINDOW samples."""
         if not mean_v_sq >= MIN_VOLTAGE_V**2:
@@ -259,8 +306,9 @@ class Estimator:
                 "lost_samples": int(batch.lost[k])}
         if batch.damaged[k]:
             self._fe_recent.clear()
+            self._prev_rev = None
             out = dict.fromkeys(NULL_FIELDS)
-            out.update(base, valid=False, cutting=False)
+            out.update(base, valid=False, cutting=False, accelerating=False)
             if "f_mag" in self._cols:
                 out["force_measured_n"] = None
             return out
@@ -269,6 +317,8 @@ class Estimator:
         duration = float(batch.end_pos[k] - batch.start_pos[k])
         mean = integ / duration
         spindle_rpm = 60.0 * self.sample_rate_hz / duration
+        accelerating = self._accelerating(float(batch.start_pos[k]), float(batch.end_pos[k]), spindle_rpm,
+                                          float(integ[c["rpm_rise"]]))
         f_e = self._f_e_hz(float(integ[c["f_e"]]), duration, float(mean[c["v_sq"]]))
         means = RevolutionMeans(
             spindle_rpm=spindle_rpm,
@@ -284,7 +334,7 @@ class Estimator:
             force_y_n=float(mean[c["fy"]]) if "fx" in c else None,
         )
         out = self.physics.estimate(means)
-        out.update(base, valid=True)
+        out.update(base, valid=True, accelerating=accelerating)
         if "f_mag" in c:
             out["force_measured_n"] = float(mean[c["f_mag"]])
         return out
