@@ -35,6 +35,7 @@ import structlog
 
 from millsense.daemon.pipeline.alarms import AlarmEvent, alarm_payload
 from millsense.daemon.pipeline.interlock import Interlock
+from millsense.daemon.pipeline.power_check import PowerSignCheck
 from millsense.daemon.pipeline.run_core import PipelineCore, estimate_payload
 from millsense.daemon.pipeline.status import LatencyStats, SeqClock, bad_frames, status_line
 
@@ -76,6 +77,7 @@ class Runner:
         self.sink: Any = None
         self.latency = LatencyStats()
         self.clock: SeqClock | None = None
+        self.power_check = PowerSignCheck()
 
         self.state = "starting"
         self.faults: dict[str, str] = {}
@@ -184,6 +186,7 @@ class Runner:
             self.last_trip_ms = round((time.monotonic() - now) * 1e3, 3)  # block handed over → output written
         for kind, item in step.items:
             if kind == "estimate":
+                self._check_power(item)
                 t = self.clock.time_of(int(item.get("seq_end", block.seq + n - 1)))
                 payload = estimate_payload(item, self.machine, t)
                 self.sink.estimate(payload)
@@ -198,6 +201,13 @@ class Runner:
             self.ready.set()
             self._safe(lambda: self._notify(ready=True, status="running: DAQ streaming, Zenoh open"))
             log.info("daemon.ready", machine=self.machine, interlock=self.interlock.state)
+
+    def _check_power(self, est: dict) -> None:
+        verdict = self.power_check.update(est)
+        if verdict:
+            self.fault("signals", verdict)
+        elif verdict == "":
+            self.recover("signals")
 
     def _caught_up(self) -> bool:
         """Is the driver's queue empty, i.e. did this block just arrive?"""
