@@ -65,6 +65,8 @@ def run(args: argparse.Namespace) -> int:
             replay.feed(chunk)
     sys.stdout.flush()
     print(f"{PROG}: {replay.summary()}", file=sys.stderr)
+    for warning in replay.warnings:
+        print(f"{PROG}: warning: {warning}", file=sys.stderr)
     if replay.core.descriptor is None:
         print(f"{PROG}: error: {path}: no DAQ descriptor frame found (is this a millsense capture?)", file=sys.stderr)
         return 1
@@ -95,6 +97,10 @@ class Replay:
         self.first_seq: int | None = None
         self.rate: float | None = None
         self.counts = {"estimates": 0, "invalid_estimates": 0, "alarms": 0, "discontinuities": 0, "lost_samples": 0}
+        from millsense.daemon.pipeline.power_check import PowerSignCheck
+
+        self.power_check = PowerSignCheck()
+        self.warnings: list[str] = []       # what the live daemon would raise as fault `signals`
 
     def feed(self, data: bytes) -> None:
         from millsense.daemon.pipeline.alarms import alarm_payload
@@ -122,6 +128,8 @@ class Replay:
             step = self.core.process(SampleBlock(seq, frame.first_index, frame.counts, lost, disc))
             for kind, item in step.items:
                 if kind == "estimate":
+                    if verdict := self.power_check.update(item):
+                        self.warnings.append(f"from rev {item.get('rev')}: {verdict}")
                     payload = {"type": "estimate", **estimate_payload(item, self.machine, self._t(item.get("seq_end")))}
                     self.counts["estimates"] += 1
                     self.counts["invalid_estimates"] += int(not item.get("valid", True))

@@ -8,13 +8,13 @@ through a real `millsense run`.
 
 from __future__ import annotations
 
-import signal
+import subprocess
 
 from millsense.daemon.pipeline.estimator import Estimator
 from millsense.daemon.pipeline.power_check import REVOLUTIONS, PowerSignCheck
 from millsense.drivers.base import SampleBlock
 from millsense.drivers.sim import Plant
-from tests.e2e.helpers import Procs, write_config
+from tests.e2e.helpers import CMD, Procs, write_config
 from tests.estimator import simcase
 from tests.faults.helpers import log_events
 
@@ -58,13 +58,27 @@ def test_reversed_current_sensors_raise_it_after_the_revolutions_and_clear_when_
     assert [v for _, v in _verdicts(right, check)] == [""]
 
 
-def test_the_daemon_reports_it_as_a_fault_and_keeps_running(tmp_path):
-    cfg = write_config(tmp_path / "d.toml", machine="wire-01", daq='transport = "sim"\nscenario = "step"')
+def _reversed_config(tmp_path, daq: str):
+    cfg = write_config(tmp_path / "d.toml", machine="wire-01", daq=daq)
     text = cfg.read_text()
     for name in CURRENTS:
         text = text.replace(f"[channels.{name}]\nscale = 0.002", f"[channels.{name}]\nscale = -0.002")
     assert text.count("scale = -0.002") == 3
     cfg.write_text(text)
+    return cfg
+
+
+def test_replay_warns_of_it(tmp_path):
+    cap, _ = simcase.capture(tmp_path, "step", seed=5)
+    cfg = _reversed_config(tmp_path, 'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = 1')
+    p = subprocess.run([*CMD, "replay", str(cap), "--config", str(cfg)], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    warnings = [line for line in p.stderr.splitlines() if "warning:" in line]
+    assert len(warnings) == 1 and "current sensor turned round" in warnings[0], p.stderr
+
+
+def test_the_daemon_reports_it_as_a_fault_and_keeps_running(tmp_path):
+    cfg = _reversed_config(tmp_path, 'transport = "sim"\nscenario = "step"')
     with Procs(tmp_path) as procs:
         daemon = procs.start("daemon", ["run", "--config", str(cfg), "--seconds", "6"])
         assert daemon.wait(30) == 0, procs.text("daemon", "err")[-2000:]
