@@ -17,7 +17,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 
 from millsense.daemon.pipeline.alarms import AlarmEngine, AlarmEvent
 
