@@ -206,4 +206,5 @@ class _TtyView:
             f"F {_num(e.get('force_n'), '7.1f')} N  "
             f"ae {_num(e.get('radial_depth_mm'), '.2f')} ap {_num(e.get('axial_depth_mm'), '.2f')} mm "
             f"({e.get('depth_status', '–')})  alarm: {alarm}  status: {s.get('state', '–')}"
+            + ("  [spindle speeding up: torque holds the inertia]" if e.get("accelerating") else "")
         )

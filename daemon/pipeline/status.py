@@ -125,6 +125,7 @@ def summary_line(estimate: dict[str, Any] | None, alarm_state: str, status: dict
         f"F {_fmt(e.get('force_n'), '7.1f')} N  "
         f"ae {_fmt(e.get('radial_depth_mm'), '5.2f')} ap {_fmt(e.get('axial_depth_mm'), '5.2f')} mm  "
         f"alarm {alarm_state}  interlock {status.get('interlock', '?')}"
+        + ("  (speeding up)" if e.get("accelerating") else "")
     )
 
 

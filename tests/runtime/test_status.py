@@ -60,6 +60,9 @@ def test_lines_tolerate_missing_values():
     line = summary_line({"rev": 5, "spindle_rpm": 600.0, "torque_nm": 4.2, "force_n": None}, "warning", {"state": "running"})
     assert "600 rpm" in line and "4.20" in line and "warning" in line
     assert "running" in status_line({"state": "running", "latency_ms": {"p99": 0.5}})
+    assert "speeding up" not in line
+    assert summary_line({"rev": 6, "accelerating": True}, "ok", {}).endswith("(speeding up)")
+    assert "Zenoh 0 routers, 2 peers" in status_line({"state": "running", "sink": {"zenoh_routers": 0, "zenoh_peers": 2}})
 
 
 def test_bad_frames_counts_decoder_refusals():
