@@ -387,7 +387,10 @@ class Plant:
             "feed_target_mm_s": target, "rpm_command": rpm_cmd.astype(float),
             "feed_mm_s": 0.5 * (v0 + v1), "spindle_rpm": 0.5 * (w_sp[:-1] + w_sp[1:]) * (60 / TWO_PI),
         }
-        tracked["speed_error"] = np.abs(tracked["spindle_rpm"] / rpm_cmd - 1.0)
+        # commanded 0 rpm (a stop): any turning is a full error, none is none
+        cmd, rpm = tracked["rpm_command"], tracked["spindle_rpm"]
+        relative = np.abs(rpm / np.where(cmd != 0, cmd, 1.0) - 1.0)
+        tracked["speed_error"] = np.where(cmd != 0, relative, (np.abs(rpm) > 0).astype(float))
         tracked = {k: np.repeat(v, rep) for k, v in tracked.items()}
         held = np.full(torque_c.shape, bool(self.feed_hold))
         # boundaries: the angle crosses a multiple of 2π between two 1 ms points

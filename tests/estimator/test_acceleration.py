@@ -12,19 +12,22 @@ estimator leaves out.
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
+
 import pytest
 
 from millsense.daemon.pipeline.alarms import AlarmEngine
 from millsense.daemon.pipeline.estimator import Estimator
 from millsense.drivers.base import SampleBlock
 from millsense.drivers.sim import Plant
+from millsense.drivers.sim.scenarios import get_scenario
 from tests.estimator import simcase
 
 
-def _estimates(scenario: str, config_of: str, tmp_path) -> list[dict]:
+def _estimates(scenario, config_of: str, tmp_path) -> list[dict]:
     plant = Plant(scenario, seed=3, extra_channels=True)
     est = Estimator(simcase.settings_for(config_of, tmp_path, method="auto"), plant.descriptor, plant.sample_rate_hz)
     n = int(plant.duration_s * plant.sample_rate_hz)
@@ -81,3 +84,15 @@ def test_a_spindle_bogged_down_by_a_crash_still_raises_the_overload(tmp_path):
     assert [ev.level for ev in events][:1] == ["overload"], events
     rev = {e["rev"]: e for e in est}[events[0].rev]
     assert rev["torque_nm"] > 30.0 and not rev["accelerating"]
+
+
+def test_a_start_from_standstill_and_a_stop(tmp_path):
+    """0 → 600 rpm at the drive's torque limit, 3 s of idling, then a stop: no cut anywhere."""
+    start_stop = dataclasses.replace(get_scenario("aircut-low"), name="start-stop", duration_s=7.0,
+                                     spindle_schedule=((0.0, 0.0), (1.0, 600.0), (4.0, 0.0)))
+    est = [e for e in _estimates(start_stop, "step", tmp_path) if e["valid"]]
+    run_up = [e for e in est if e["torque_nm"] > 5.0]
+    braking = [e for e in est if e["torque_nm"] < -5.0]
+    assert len(run_up) >= 5 and all(e["accelerating"] for e in run_up)
+    assert len(braking) >= 5 and not any(e["accelerating"] for e in braking)  # reads low: no alarm can come of it
+    assert _alarms(est, revolutions=1, torque_limit_nm=10.0) == []

@@ -8,12 +8,14 @@ through a real `millsense run`.
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 
 from millsense.daemon.pipeline.estimator import Estimator
-from millsense.daemon.pipeline.power_check import REVOLUTIONS, PowerSignCheck
+from millsense.daemon.pipeline.power_check import MARGIN_W, REVOLUTIONS, PowerSignCheck
 from millsense.drivers.base import SampleBlock
 from millsense.drivers.sim import Plant
+from millsense.drivers.sim.scenarios import get_scenario
 from tests.e2e.helpers import CMD, Procs, write_config
 from tests.estimator import simcase
 from tests.faults.helpers import log_events
@@ -21,7 +23,7 @@ from tests.faults.helpers import log_events
 CURRENTS = ("i_u", "i_v", "i_w")
 
 
-def _estimates(scenario: str, tmp_path, reversed_currents: bool = False) -> list[dict]:
+def _estimates(scenario, tmp_path, reversed_currents: bool = False) -> list[dict]:
     plant = Plant(scenario, seed=5, extra_channels=True)
     settings = simcase.settings_for("step", tmp_path, method="auto")
     if reversed_currents:
@@ -42,7 +44,11 @@ def _verdicts(estimates: list[dict], check: PowerSignCheck | None = None) -> lis
 
 
 def test_right_wiring_never_raises_it_even_through_speed_steps_and_braking(tmp_path):
-    for scenario in ("step", "aircut-low", "crash"):
+    start_stop = dataclasses.replace(get_scenario("aircut-low"), name="start-stop", duration_s=7.0,
+                                     spindle_schedule=((0.0, 0.0), (1.0, 600.0), (4.0, 0.0)))
+    braking = [e for e in _estimates(start_stop, tmp_path) if e["valid"] and e["p_in_w"] < -MARGIN_W]
+    assert len(braking) >= 5, "the stop should feed power back for several revolutions"
+    for scenario in ("step", "aircut-low", "crash", start_stop):
         assert _verdicts(_estimates(scenario, tmp_path)) == [], scenario
 
 
