@@ -26,12 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--connect-timeout-s", type=float, default=10.0, help="give up if the DAQ is not reachable")
 
 
-def _driver_options(daq) -> dict:
-    names = ("port", "baudrate", "host", "tcp_port", "unit", "scenario", "poll_ms", "seed", "realtime")
-    return {name: getattr(daq, name) for name in names if getattr(daq, name, None) is not None}
-
-
 def run(args: argparse.Namespace) -> int:
+    from millsense.daemon.commands.run import driver_options
     from millsense.daemon.config import load_config
     from millsense.drivers import DriverError, create_driver
     from millsense.drivers.base import LinkEvent, SampleBlock
@@ -40,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     settings = load_config(args.config)
     daq = settings.daq
     try:
-        driver = create_driver(daq.transport, **_driver_options(daq))
+        driver = create_driver(daq.transport, **driver_options(daq))
     except DriverError as exc:
         print(f"millsense record: error: {exc}", file=sys.stderr)
         return 78

@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     from millsense.drivers import DriverError, create_driver
 
     try:
-        driver = create_driver(settings.daq.transport, **_driver_options(settings))
+        driver = create_driver(settings.daq.transport, **driver_options(settings.daq))
     except DriverError as exc:
         raise ConfigError([f"daq.transport: {exc}"]) from None
     # Everything slow (Zenoh, imports, declarations) happens before the driver
@@ -184,9 +184,8 @@ class _Daemon:
         self.log.info("daemon.stopped", stop_s=round(time.monotonic() - t0, 3), interlock=self.runner.interlock.state)
 
 
-def _driver_options(settings: Any) -> dict[str, Any]:
-    """The `[daq]` section as driver options (a driver ignores what it does not use)."""
-    daq = settings.daq
+def driver_options(daq: Any) -> dict[str, Any]:
+    """The `[daq]` section as driver options (a driver ignores what it does not use). `record` uses it too."""
     raw = daq.model_dump() if hasattr(daq, "model_dump") else dict(vars(daq))
     return {k: v for k, v in raw.items() if k != "transport" and v is not None}
 
