@@ -46,6 +46,7 @@ OK = "ok"
 AIR_CUT = "air_cut"
 NO_SECOND_FORCE = "no_second_force"
 OUT_OF_RANGE = "out_of_range"
+END_ULPS = 64  # how far (in units of the last place) a target may lie past a branch end and still be that end
 UNRESOLVABLE = "unresolvable"
 
 # Smallest radial immersion the model is asked to explain: 1 % of the radius
@@ -134,11 +135,14 @@ def _solve(kind: str, target: float, t_c: float, material: Material, mode: str, 
         return None, OUT_OF_RANGE
     curve = _curve(kind, t_c, material, mode, radius_mm, flutes)
     roots: list[float] = []
+    # A target at a branch end (R_r = 2: a full-width cut) computed by another route (the forces,
+    # then their ratio) differs from the curve's own end value in the last bits: that is the end.
+    tol = END_ULPS * np.finfo(float).eps * max(1.0, abs(target))
     for br in _branches(kind, t_c, material, mode, radius_mm, flutes):
-        if min(br.g_lo, br.g_hi) <= target <= max(br.g_lo, br.g_hi):
-            if target == br.g_lo:
+        if min(br.g_lo, br.g_hi) - tol <= target <= max(br.g_lo, br.g_hi) + tol:
+            if abs(target - br.g_lo) <= tol:
                 root = br.r_lo
-            elif target == br.g_hi:
+            elif abs(target - br.g_hi) <= tol:
                 root = br.r_hi
             else:
                 root = brentq(lambda r: curve(SCALAR, r) - target, br.r_lo, br.r_hi, xtol=1e-14, rtol=4 * np.finfo(float).eps)

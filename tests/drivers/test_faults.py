@@ -111,22 +111,28 @@ def test_modbus_reader_behind_the_ring_counts_overrun_and_resumes_at_h_minus_d(t
         with driver._io_lock:  # the reader thread stalls for 2 D worth of samples
             time.sleep(2 * depth / 1000)
         col.pump(1.0)
+        driver.close()  # no more reads: the counters below and the blocks are final
+        col.pump(0.3)  # what was still queued
         blocks = [b for _, b in col.blocks]
         _values_right(blocks)
         check_every_sample_once(blocks[:n_before])
         gaps = [i for i, b in enumerate(blocks) if b.lost_before]
-        assert len(gaps) == 1 and gaps[0] >= n_before
+        assert gaps and gaps[0] >= n_before
         resumed = blocks[gaps[0]]
         stats = driver.stats()
         assert stats["overruns"] == 1
-        # it read the whole ring from H - D; only what the device overwrote meanwhile is cut
-        assert len(resumed.counts) == depth - stats.get("overwritten_during_read", 0)
-        assert len(resumed.counts) >= depth - 100
+        # It read the whole ring from H - D; only what the device overwrote meanwhile is cut, and
+        # counted. The count may hold more: a read the stall caught halfway found all it had asked
+        # for overwritten (those samples are in the resumed block's lost_before), and on a loaded
+        # machine the long catch-up read can leave the reader behind again (later, small gaps).
+        later = [b.lost_before for b in blocks[gaps[0] + 1 :] if b.lost_before]
+        assert all(n < depth // 2 for n in later), later
+        assert depth - 100 <= len(resumed.counts) <= depth
+        assert depth - len(resumed.counts) <= stats.get("overwritten_during_read", 0) - sum(later)
         prev = blocks[gaps[0] - 1]
         assert resumed.lost_before == resumed.index - (prev.index + len(prev.counts))
         assert resumed.lost_before >= depth // 2
-        if len(blocks) > gaps[0] + 1:
-            check_every_sample_once(blocks[gaps[0] + 1 :])
+        assert stats["lost_samples"] == sum(b.lost_before for b in blocks)  # every loss is in a block, once
     finally:
         driver.close()
         emu.stop()
