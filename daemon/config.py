@@ -45,6 +45,7 @@ from millsense.daemon.config_models import (
     DaqSettings,
     DepthSettings,
     FeedForceSettings,
+    MIN_TOKEN_CHARS,
     GearSettings,
     InterlockSettings,
     LogSettings,
@@ -52,14 +53,16 @@ from millsense.daemon.config_models import (
     MotorSettings,
     Settings,
     ToolSettings,
+    SignalSettings,
     ZenohSettings,
     endpoint_problem,
+    loopback_only,
 )
 
 __all__ = [
     "AlarmSettings", "ChannelSettings", "ConfigError", "CutSettings", "DaqSettings", "DepthSettings",
     "FeedForceSettings", "GearSettings", "InterlockSettings", "LogSettings", "MaterialSettings",
-    "MotorSettings", "Settings", "ToolSettings", "ZenohSettings", "check_against_descriptor",
+    "MotorSettings", "Settings", "SignalSettings", "ToolSettings", "ZenohSettings", "check_against_descriptor",
     "demo_config", "descriptor_problems", "effective_config_dict", "endpoint_problem", "load_config",
     "load_config_text",
 ]
@@ -178,6 +181,12 @@ def _settings_from(data: dict[str, Any], base_dir: Path) -> Settings:
             problems.append(problem)
         else:
             updates["interlock"] = interlock.model_copy(update={"reset_token": SecretStr(token)})
+    interlock = updates.get("interlock", parts.get("interlock"))
+    if interlock is not None and interlock.reset is None and parts.get("zenoh") is not None:
+        # Secure by default (docs/security.md): a session other hosts can reach takes commands only from
+        # whoever proves the token. Without a token nobody can, over the network; `config_warnings` says so.
+        reset = "open" if loopback_only(parts["zenoh"]) and not interlock.token() else "token"
+        updates["interlock"] = interlock.model_copy(update={"reset": reset})
     problems.extend(cross_problems(parts))
     if problems or settings is None:
         raise ConfigError(list(dict.fromkeys(problems)))
@@ -204,4 +213,7 @@ def _read_token(path: Path) -> tuple[str, str | None]:
         return "", f"interlock.reset_token_file: {path} cannot be read: {getattr(exc, 'strerror', None) or exc} ({what})"
     if not token:
         return "", f"interlock.reset_token_file: {path} is empty ({what})"
+    if len(token) < MIN_TOKEN_CHARS:
+        return "", (f"interlock.reset_token_file: {path} holds {len(token)} characters, too short to resist guessing "
+                    f"(at least {MIN_TOKEN_CHARS}: `millsense token new` makes one)")
     return token, None

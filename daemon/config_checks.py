@@ -136,6 +136,7 @@ class CalibrationGear(_Section):
     name: str = Field(min_length=1)
     friction_torque_nm: float = Field(ge=0)
     viscous_nms: float = Field(ge=0)
+    inertia_kgm2: float | None = Field(None, ge=0)  # fitted from air-cut run-ups, when the captures had them
     samples: int | None = Field(None, ge=0)
     r2: float | None = Field(None, allow_inf_nan=True)  # informative; a flat fit may give nan
 
@@ -173,7 +174,10 @@ def apply_calibration(parts: dict[str, Any], path: Path) -> list[str]:
                 )
                 continue
             i = by_name[cg.name]
-            updated[i] = updated[i].model_copy(update={"friction_torque_nm": cg.friction_torque_nm, "viscous_nms": cg.viscous_nms})
+            update = {"friction_torque_nm": cg.friction_torque_nm, "viscous_nms": cg.viscous_nms}
+            if cg.inertia_kgm2 is not None:
+                update["inertia_kgm2"] = cg.inertia_kgm2
+            updated[i] = updated[i].model_copy(update=update)
         parts["gears"] = updated
     if cal.tool is not None and parts.get("tool") is not None:
         parts["tool"] = parts["tool"].model_copy(update={"cf": cal.tool.cf})

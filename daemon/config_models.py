@@ -13,6 +13,7 @@ sections, the calibration file and the DAQ descriptor are in `config_checks`.
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import re
 from typing import Annotated, Any, Literal
@@ -62,6 +63,9 @@ class DaqSettings(_Section):
     scenario: str | None = None
     poll_ms: int = Field(20, ge=1, le=10000)
     timeout_ms: int = Field(200, ge=10, le=10000)  # modbus: one try of one request (additive key)
+    # The rate the DAQ is wired and set for (additive key). A DESCRIPTOR that claims
+    # another rate is refused as fault `descriptor`: every speed and torque would scale with it.
+    sample_rate_hz: int = Field(1000, ge=1, le=65535)
     filter_cutoff_hz: float = Field(200.0, ge=0)  # 0 = no anti-alias filter to divide out
     filter_order: int = Field(2, ge=1, le=8)
 
@@ -100,11 +104,22 @@ class ChannelSettings(_Section):
     """`[channels.NAME]`: physical = (raw − offset) · scale, in the unit of the channel's kind.
 
     `counts_per_rev` is for an encoder channel (counts per spindle revolution).
+    `raw_min` / `raw_max` (additive) are the raw counts at which the channel's
+    ADC or sensor saturates (default: the int16 range); a sample at or beyond
+    either is clipped, not measured.
     """
 
     scale: Annotated[float, AfterValidator(_nonzero)] = 1.0
     offset: float = 0.0
     counts_per_rev: int | None = Field(None, ge=1)
+    raw_min: int = Field(-32768, ge=-32768, le=32767)
+    raw_max: int = Field(32767, ge=-32768, le=32767)
+
+    @model_validator(mode="after")
+    def _raw_range(self) -> ChannelSettings:
+        if self.raw_min >= self.raw_max:
+            raise problems_error([("raw_max", f"{self.raw_max} is not above raw_min = {self.raw_min} (the ADC's highest count)")])
+        return self
 
 
 ChannelName = Annotated[str, Field(pattern=CHANNEL_NAME_PATTERN)]
@@ -131,6 +146,9 @@ class GearSettings(_Section):
     max_spindle_rpm: float = Field(gt=0)
     friction_torque_nm: float = Field(0.0, ge=0)
     viscous_nms: float = Field(0.0, ge=0)
+    # J of everything the motor turns in this gear, referred to the spindle (additive key).
+    # None: not known; speed changes then read as load (safe side, said at start).
+    inertia_kgm2: float | None = Field(None, ge=0)
 
 
 def _check_gears(gears: list[GearSettings]) -> list[GearSettings]:
@@ -223,13 +241,19 @@ class AlarmSettings(_Section):
 
     - `hysteresis_pct` (default 10): a level is left only below
       `limit · (1 − hysteresis_pct/100)`, so a cut hovering at a limit does not chatter;
-    - `breakage_drop_pct` (default 20, 0 = off): a step of the revolution torque
-      from one steady level to another this large (or the equal jump), within one
-      revolution, at constant speed and feed, is a `tool_breakage`
-      (pipeline/alarms.py `BreakageTrack`). A 2-flute cutter that loses a flute
-      drops about 25 %, a 4-flute one about 12 %: set it below that;
+    - `breakage_drop_pct` (default: not armed): a drop of the revolution torque
+      from one steady level to another this large, within one revolution, at
+      constant speed and feed, is a `tool_breakage` (pipeline/alarms.py
+      `BreakageTrack`). A 2-flute cutter that loses a flute drops about 25 %, a
+      4-flute one about 12 %: set it below that;
     - `breakage_min_torque_nm` (default 1.0): breakage is only judged after
-      steady revolutions cutting with at least this torque.
+      steady revolutions cutting with at least this torque;
+    - `crash_current_a` (sample level, like `crash_power_w`): the smoothed
+      largest line current over this trips at once. A clipped current sample
+      counts as over it;
+    - `stall_current_a`: a spindle that stops under load closes no revolution and
+      its power falls with speed: while the line current stays above this, no
+      revolution closing within twice the last revolution's period trips.
     """
 
     torque_warn_nm: float | None = Field(None, gt=0)
@@ -241,8 +265,10 @@ class AlarmSettings(_Section):
     revolutions: int = Field(2, ge=1)
     crash_power_w: float | None = Field(None, gt=0)
     hysteresis_pct: float = Field(10.0, ge=0, lt=100)
-    breakage_drop_pct: float = Field(20.0, ge=0, lt=100)
+    breakage_drop_pct: float | None = Field(None, gt=0, lt=100)
     breakage_min_torque_nm: float = Field(1.0, ge=0)
+    crash_current_a: float | None = Field(None, gt=0)
+    stall_current_a: float | None = Field(None, gt=0)
 
     @model_validator(mode="after")
     def _warn_below_limit(self) -> AlarmSettings:
@@ -256,24 +282,34 @@ class AlarmSettings(_Section):
         return self
 
 
+MIN_TOKEN_CHARS = 32  # 128 bits as hex; `millsense token new` prints 43 base64url characters (256 bits)
+
+
 class InterlockSettings(_Section):
     """`[interlock]`: feed hold on overload, DAQ watchdog fed by heartbeats.
 
-    Security keys (additive): `reset` says who may clear a latched feed hold over
-    Zenoh — "open" (anyone who can reach the queryable: fine behind the TLS/ACL
-    of config/zenoh-tls.json5), "token" (the query payload must carry the
-    secret `reset_token`, or the content of `reset_token_file`, read at load
-    and kept out of logs, `repr` and the `config` queryable), or "off" (clear it
-    at the machine and restart). A token given with a policy other than "token"
-    is refused: it would protect nothing.
+    Security keys (additive): `reset` says who may send commands (`cmd/*`) over
+    Zenoh: "token" (the requester proves it knows `reset_token`, or the content
+    of `reset_token_file`, by a challenge–response: the token never crosses the
+    network; it is kept out of logs, `repr` and the `config` queryable), "open"
+    (anyone who reaches the queryable), or "off" (none; the local reset at the
+    machine still works). Left out, it is "token" whenever the daemon's Zenoh
+    session may be reached from off the host, else "open" (config.py resolves
+    it). A token given with a policy other than "token" is refused: it would
+    protect nothing.
+
+    `on_blind` (additive): what the interlock does when the daemon cannot see
+    (implausible signals, a DAQ that does not fit the config) while the spindle
+    turns: "hold" (default) latches feed hold, "alarm" only reports it.
     """
 
     enabled: bool = False
     heartbeat_ms: int = Field(100, ge=10, le=60000)
     watchdog_ms: int = Field(500, ge=10, le=600000)
-    reset: Literal["open", "token", "off"] = "open"
+    reset: Literal["open", "token", "off"] | None = None
     reset_token: SecretStr | None = None
     reset_token_file: str | None = None
+    on_blind: Literal["hold", "alarm"] = "hold"
 
     @model_validator(mode="after")
     def _consistent(self) -> InterlockSettings:
@@ -285,12 +321,15 @@ class InterlockSettings(_Section):
         token = self.reset_token.get_secret_value() if self.reset_token is not None else ""
         if token and self.reset_token_file:
             problems.append(("reset_token", "given together with reset_token_file (one of the two)"))
-        if self.reset != "token":
+        if self.reset in ("open", "off"):
             for key in ("reset_token", "reset_token_file"):
                 if getattr(self, key):
                     problems.append((key, f'set but reset = "{self.reset}" ignores it (reset = "token" to require it)'))
-        elif not token and not self.reset_token_file:
-            problems.append(("reset_token", 'missing: reset = "token" needs a secret (reset_token or reset_token_file)'))
+        elif self.reset == "token" and not token and not self.reset_token_file:
+            problems.append(("reset_token", 'missing: reset = "token" needs a secret (reset_token_file, made by `millsense token new`)'))
+        if token and len(token) < MIN_TOKEN_CHARS:
+            problems.append(("reset_token", f"{len(token)} characters is too short to resist guessing (at least "
+                                            f"{MIN_TOKEN_CHARS}: `millsense token new` makes one)"))
         if problems:
             raise problems_error(problems)
         return self
@@ -321,6 +360,39 @@ def endpoint_problem(endpoint: str) -> str | None:
     return None
 
 
+def is_loopback_endpoint(endpoint: str) -> bool:
+    """Can only this host reach `endpoint`? (a Unix socket, 127.0.0.0/8, ::1, localhost)"""
+    m = _ENDPOINT_RE.match(endpoint)
+    if not m:
+        return False
+    if m.group("proto") == "unixsock-stream":
+        return True
+    hp = _HOST_PORT_RE.match(m.group("addr"))
+    if not hp:
+        return False
+    host = hp.group("host").strip("[]").lower()
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def loopback_only(zenoh: Any) -> bool:
+    """Does this `[zenoh]` section keep the session's queryables away from other hosts?
+
+    Only a peer that listens on loopback endpoints alone and connects to none.
+    A peer with no `listen` takes Zenoh's default, every interface; anything it
+    connects to, even on 127.0.0.1, may be a router that relays other hosts'
+    queries (so is a client's router); a JSON5 `config_file` may add endpoints
+    this check cannot see. None of those counts.
+    """
+    if zenoh.config_file or zenoh.mode != "peer" or zenoh.connect or not zenoh.listen:
+        return False
+    return all(is_loopback_endpoint(e) for e in zenoh.listen)
+
+
 def _check_endpoints(endpoints: list[str]) -> list[str]:
     problems = [(f"[{i}]", p) for i, e in enumerate(endpoints) if (p := endpoint_problem(e))]
     if problems:
@@ -341,6 +413,21 @@ class ZenohSettings(_Section):
     listen: Endpoints = Field(default_factory=list)
     multicast_scouting: bool = True
     config_file: str = ""
+    # Zenoh shared memory (additive, default off): a local peer could make the daemon map
+    # 16 MB segments that are never given back.
+    shared_memory: bool = False
+
+
+class SignalSettings(_Section):
+    """`[signals]` (additive section): plausibility of the DAQ's signals while the spindle turns.
+
+    A revolution with a clipped, flat or dead channel, or whose spindle speed
+    disagrees with the electrical frequency or the encoder by more than
+    `speed_tolerance_pct`, is published `valid: false`, and fault `signals`
+    names the channel (pipeline/signal_check.py).
+    """
+
+    speed_tolerance_pct: float = Field(10.0, gt=0, le=100)
 
 
 class LogSettings(_Section):
@@ -367,5 +454,6 @@ class Settings(_Section):
     feed_force: dict[ChannelName, FeedForceSettings] = Field(default_factory=dict)
     alarms: AlarmSettings = Field(default_factory=AlarmSettings)
     interlock: InterlockSettings = Field(default_factory=InterlockSettings)
+    signals: SignalSettings = Field(default_factory=SignalSettings)
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     log: LogSettings = Field(default_factory=LogSettings)

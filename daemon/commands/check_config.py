@@ -1,6 +1,8 @@
 """`millsense check-config FILE`: validate a configuration without starting anything.
 
-Exit 0 with a one-line summary when the file is valid; otherwise `ConfigError`
+Exit 0 with a one-line summary when the file is valid, after one `warning:`
+line for each thing a valid file still does that its user should know
+(`config_warnings.py`); otherwise `ConfigError`
 propagates to the CLI front door, which prints every problem (one per line,
 `section.key: what is wrong (what is expected)`) and exits 78. Only pydantic and
 the config modules are imported: this must stay quick enough for an editor hook.
@@ -42,6 +44,10 @@ def summary(settings) -> str:
 def run(args: argparse.Namespace) -> int:
     from millsense.daemon.config import load_config
 
+    from millsense.daemon.config_warnings import config_warnings
+
     settings = load_config(args.file)  # ConfigError -> the CLI prints the problems, exit 78
+    for warning in config_warnings(settings, args.file):
+        print(f"warning: {warning}")
     print(f"{args.file}: OK ({summary(settings)})")
     return 0

@@ -63,6 +63,13 @@ def run(args: argparse.Namespace) -> int:
     from millsense.daemon.logging_setup import configure_logging
 
     configure_logging(settings.log.level, settings.log.format, stream=sys.stderr if demo else sys.stdout)
+    if not demo:
+        import structlog
+
+        from millsense.daemon.config_warnings import config_warnings
+
+        for warning in config_warnings(settings, args.config):
+            structlog.get_logger("millsense.run").warning("config.warning", detail=warning)
 
     stop = threading.Event()
     _install_signal_handlers(stop)

@@ -69,7 +69,7 @@ def test_a_bad_calibration_file_is_a_config_error_naming_calibration(tmp_path, c
 
 
 def test_reset_token_never_appears_in_repr_dump_or_the_config_queryable(tmp_path):
-    secret = "s3cret-Token-9f2c"
+    secret = "s3cret-Token-9f2c-0123456789abcdef"
     doc = base()
     doc["interlock"].update(reset="token", reset_token=secret)
     s = load_config_text(dumps(doc))
@@ -83,7 +83,7 @@ def test_reset_token_never_appears_in_repr_dump_or_the_config_queryable(tmp_path
 
 
 def test_reset_token_file_is_read_at_load_and_masked(tmp_path):
-    secret = "from-a-file-77"
+    secret = "from-a-file-77-0123456789abcdefgh"
     (tmp_path / "token").write_text(secret + "\n")
     doc = base()
     doc["interlock"].update(reset="token", reset_token_file="token")

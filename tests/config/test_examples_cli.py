@@ -69,7 +69,7 @@ def test_check_config_accepts_a_good_file(millsense_cmd):
     path = REPO / "config" / "mch10-spindle-power.toml"
     p = check_config(millsense_cmd, path)
     assert p.returncode == 0, p.stderr
-    assert p.stdout.startswith(f"{path}: OK (machine mch10-01, daq serial /dev/ttyACM0, 8 channels, 2 gears")
+    assert p.stdout.splitlines()[-1].startswith(f"{path}: OK (machine mch10-01, daq serial /dev/ttyACM0, 8 channels, 2 gears")
     assert len(p.stdout.splitlines()) == 1 and p.stderr == ""
 
 
@@ -83,7 +83,7 @@ def test_check_config_lists_every_problem_and_exits_78(millsense_cmd, tmp_path):
     lines = p.stderr.splitlines()
     assert lines == [
         'daq.transprot: unknown key, did you mean "transport"? (expected one of: transport, port, baudrate, host, '
-        "tcp_port, unit, scenario, poll_ms, timeout_ms, filter_cutoff_hz, filter_order)",
+        "tcp_port, unit, scenario, poll_ms, timeout_ms, sample_rate_hz, filter_cutoff_hz, filter_order)",
         "gears[1].max_spindle_rpm: 800 is not above the previous gear's 900 (strictly increasing: list gears lowest max_spindle_rpm first)",
         "tool.flutes: must be at least 1, not 0 (an integer ≥ 1)",
     ]

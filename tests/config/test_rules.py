@@ -38,8 +38,9 @@ def test_sections_left_out_take_the_documented_defaults():
         646.08, -0.4362, 0.2201, -0.2667, 0.1244, 0.1702)
     assert s.cut.mode == "slot" and s.depth.method == "auto"
     assert s.alarms.torque_limit_nm is None and s.alarms.crash_power_w is None  # not armed
-    assert (s.alarms.hysteresis_pct, s.alarms.breakage_drop_pct) == (10.0, 20.0)
-    assert s.interlock.enabled is False and s.interlock.reset == "open"
+    assert (s.alarms.hysteresis_pct, s.alarms.breakage_drop_pct) == (10.0, None)  # breakage: not armed unless set
+    # Zenoh left out: a peer on every interface, so commands need the token (secure by default)
+    assert s.interlock.enabled is False and s.interlock.reset == "token" and s.interlock.on_blind == "hold"
     assert s.zenoh.mode == "peer" and s.zenoh.multicast_scouting is True and s.zenoh.connect == []
     assert s.log.format == "auto"
 
@@ -83,7 +84,7 @@ def test_unknown_section_at_top_level():
     doc["alarm"] = {"torque_limit_nm": 3.0}
     assert problems_of(doc) == [
         "alarm: unknown key, did you mean \"alarms\"? (expected one of: machine, calibration, daq, channels, motor, gears, "
-        "tool, material, cut, depth, feed_force, alarms, interlock, zenoh, log)"
+        "tool, material, cut, depth, feed_force, alarms, interlock, signals, zenoh, log)"
     ]
 
 

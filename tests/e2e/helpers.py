@@ -61,8 +61,11 @@ def write_config(
     text += SIM_CHANNELS + SIM_MACHINE
     if alarms:
         text += f"\n[alarms]\n{alarms}\n"
-    if interlock:
-        text += f"\n[interlock]\n{interlock}\n"
+    if "reset" not in interlock:
+        # These daemons run on loopback with no listen endpoint (Zenoh's default: every interface), where
+        # reset would default to "token"; the tests that mean a policy say it.
+        interlock = f'{interlock}\nreset = "open"'.strip()
+    text += f"\n[interlock]\n{interlock}\n"
     text += (
         f'\n[zenoh]\nmode = "{zenoh_mode}"\nlisten = {json.dumps(zenoh_listen or [])}\n'
         f"connect = {json.dumps(zenoh_connect or [])}\nmulticast_scouting = false\n"

@@ -1,0 +1,97 @@
+"""What a valid configuration still does that a user should know: warnings, never errors.
+
+`check-config` prints each as one `warning: section.key: …` line (exit 0) and
+`run` logs each at start (`config.warning`). Each names the key to change.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+from typing import Any
+
+from millsense.daemon.config_models import loopback_only
+
+
+def config_warnings(settings: Any, path: str | os.PathLike[str] | None = None) -> list[str]:
+    """Every warning for `settings`, read from `path` (None: no file, e.g. the demo)."""
+    out: list[str] = []
+    out += _interlock_warnings(settings)
+    out += _security_warnings(settings, Path(path) if path is not None else None)
+    return out
+
+
+def _interlock_warnings(settings: Any) -> list[str]:
+    out: list[str] = []
+    if not settings.interlock.enabled:
+        return out
+    alarms = settings.alarms
+    if alarms.crash_power_w is None and alarms.crash_current_a is None:
+        out.append(
+            "alarms.crash_power_w: no sample-level limit is armed (crash_power_w or crash_current_a): with the "
+            "interlock on, a crash waits for whole revolutions to close, and a spindle that stalls closes none"
+        )
+    if alarms.stall_current_a is None:
+        out.append(
+            "alarms.stall_current_a: not set: a spindle that stops under load is caught only by a sample-level "
+            "limit on power or current, not by the stall check"
+        )
+    for i, gear in enumerate(settings.gears):
+        if gear.inertia_kgm2 is None:
+            out.append(
+                f"gears[{i}].inertia_kgm2: not set for gear {gear.name!r}: speeding up reads as load, so a fast "
+                "spindle start or speed change may trip the interlock (fit it with `millsense calibrate` on an "
+                "air-cut run-up, or set it)"
+            )
+    return out
+
+
+def _security_warnings(settings: Any, path: Path | None) -> list[str]:
+    out: list[str] = []
+    il = settings.interlock
+    if il.reset == "token" and not il.token():
+        out.append(
+            "interlock.reset_token_file: not set, and reset is \"token\" (the default for a Zenoh session other "
+            "hosts can reach): no command over the network can clear a feed hold; make a token with "
+            "`millsense token new` (the local reset at the machine still works)"
+        )
+    if il.reset == "open" and not loopback_only(settings.zenoh):
+        out.append(
+            'interlock.reset: "open" while the Zenoh session can be reached from other hosts: anyone on the network '
+            'may clear a feed hold (reset = "token" with a token from `millsense token new`)'
+        )
+    if path is not None and il.reset_token is not None and not il.reset_token_file and _others_read(path):
+        out.append(
+            f"interlock.reset_token: {path} holds the token and other users can read it "
+            f"(chmod 640 {path}, owner root, group millsense; or use reset_token_file)"
+        )
+    if il.reset_token_file:
+        token_path = Path(il.reset_token_file)
+        if not token_path.is_absolute() and path is not None:
+            token_path = path.resolve().parent / token_path
+        if _others_read(token_path):
+            out.append(f"interlock.reset_token_file: {token_path} can be read by other users (chmod 600, owner millsense)")
+        if _others_write(token_path):
+            out.append(
+                f"interlock.reset_token_file: {token_path} can be written by users other than its owner "
+                "(chmod 600, owner millsense): they could set the token"
+            )
+    return out
+
+
+def _mode(path: Path) -> int | None:
+    try:
+        return path.stat().st_mode
+    except OSError:
+        return None
+
+
+def _others_read(path: Path) -> bool:
+    mode = _mode(path)
+    return mode is not None and bool(mode & stat.S_IROTH)
+
+
+def _others_write(path: Path) -> bool:
+    mode = _mode(path)
+    return mode is not None and bool(mode & (stat.S_IWOTH | stat.S_IWGRP))
