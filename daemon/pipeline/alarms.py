@@ -306,6 +306,21 @@ class AlarmEngine:
             events.append(AlarmEvent("clear", "torque_nm", None, None))
         return events
 
+    def over_limits(self, est: Mapping[str, Any]) -> list[str]:
+        """The quantities of one estimate at or over an armed overload limit (for the reset's condition check).
+
+        An invalid estimate has no numbers: it is over nothing here (the caller judges blindness).
+        """
+        if not est.get("valid", True):
+            return []
+        over = []
+        for track in self.tracks:
+            limit = track._limits.get(2)
+            value = _finite(est.get(track.quantity))
+            if limit is not None and value is not None and value >= limit:
+                over.append(track.quantity)
+        return over
+
     # -- state ------------------------------------------------------------
     def active(self) -> dict[str, str]:
         """Active alarm states by name, for status and the live summary."""

@@ -31,6 +31,16 @@ class Step:
     items: list[tuple[str, Any]] = field(default_factory=list)  # ("estimate", dict) | ("alarm", AlarmEvent)
     trips: list[AlarmEvent] = field(default_factory=list)
     revolutions: int = 0
+    # Signal plausibility (signal_check.py): fault kind ("signals") -> what is wrong, naming the
+    # channel; `clear_faults`: kinds whose condition this block showed gone.
+    faults: dict[str, str] = field(default_factory=dict)
+    clear_faults: set[str] = field(default_factory=set)
+    # Sample-level values of this block (safety_check.py), for the reset's "condition gone" test:
+    # "p_gap_w" (smoothed air-gap power) and "current_a" (smoothed largest line current), block maxima.
+    peaks: dict[str, float] = field(default_factory=dict)
+    stalled: bool = False            # the stall check holds: no revolution closing while the current is high
+    spindle_stopped: bool = False    # the block's last sample turned below the stop speed
+    last_seq: int | None = None      # the block's last sample
 
 
 def estimate_payload(est: dict[str, Any], machine: str, t: float | None) -> dict[str, Any]:
