@@ -27,7 +27,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "watch": ("millsense.daemon.commands.watch", "show live estimates, alarms and status"),
     "calibrate": ("millsense.daemon.commands.calibrate", "fit friction per gear (and C_f) from captures"),
     "check-config": ("millsense.daemon.commands.check_config", "validate a configuration file"),
-    "reset": ("millsense.daemon.commands.reset", "clear a latched interlock over Zenoh"),
+    "reset": ("millsense.daemon.commands.reset", "clear a latched interlock (over Zenoh, or --local at the machine)"),
+    "token": ("millsense.daemon.commands.token", "make a reset token (`token new`)"),
+    "test-trip": ("millsense.daemon.commands.test_trip", "proof test: assert feed hold, time its confirmation, reset"),
 }
 
 

@@ -214,11 +214,21 @@ def descriptor_problems(settings: Settings, channels: Any) -> list[str]:
 
     `channels`: the DESCRIPTOR (`.channels` of `Channel(kind, name)`), a
     `{name: kind}` mapping, or `(name, kind)` pairs; kinds as `ChannelKind`,
-    their int codes or names.
+    their int codes or names. A DESCRIPTOR's sample rate must be `[daq] sample_rate_hz`.
     """
     sent = dict(_pairs(channels))
-    listing = ", ".join(f"{n} ({k.lower()})" for n, k in sent.items()) or "nothing"
     problems: list[str] = []
+    rate = getattr(channels, "sample_rate_hz", None)
+    want = getattr(getattr(settings, "daq", None), "sample_rate_hz", None)
+    if rate is not None and want is not None and float(rate) != float(want):
+        # every speed, electrical frequency and power integral scales with the rate: believing a wrong
+        # one gave 39 321 rpm and 102 000 N·m (issue 10), so nothing is estimated until they agree
+        problems.append(
+            f"daq.sample_rate_hz: the DAQ's descriptor says {rate:g} Hz, the configuration {want:g} Hz "
+            f"(speeds and torques would be off by {float(rate) / float(want):.3g}×: set the DAQ to the configured "
+            f"rate, or daq.sample_rate_hz to the rate it really samples at)"
+        )
+    listing = ", ".join(f"{n} ({k.lower()})" for n, k in sent.items()) or "nothing"
     used: dict[str, str] = {}
     for name, ch in settings.channels.items():
         if name not in sent:

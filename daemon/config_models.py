@@ -265,13 +265,15 @@ class AlarmSettings(_Section):
     revolutions: int = Field(2, ge=1)
     crash_power_w: float | None = Field(None, gt=0)
     hysteresis_pct: float = Field(10.0, ge=0, lt=100)
-    breakage_drop_pct: float | None = Field(None, gt=0, lt=100)
+    breakage_drop_pct: float | None = Field(None, ge=0, lt=100)  # 0: off, as before (kept for old files)
     breakage_min_torque_nm: float = Field(1.0, ge=0)
     crash_current_a: float | None = Field(None, gt=0)
     stall_current_a: float | None = Field(None, gt=0)
 
     @model_validator(mode="after")
     def _warn_below_limit(self) -> AlarmSettings:
+        if self.breakage_drop_pct == 0:
+            self.breakage_drop_pct = None  # "0 = off" of the first contract: the same as left out
         problems = []
         for warn, limit in _PAIRS:
             w, lim = getattr(self, warn), getattr(self, limit)

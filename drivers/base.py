@@ -20,9 +20,12 @@ import structlog
 from millsense.drivers.protocol import (
     CMD_HEARTBEAT,
     CMD_SEND_DESCRIPTOR,
+    CMD_SET_FEED_OVERRIDE,
     CMD_SET_OUTPUTS,
+    FEED_OVERRIDE_MAX,
     INDEX_MOD,
     Command,
+    Context,
     Descriptor,
     Samples,
     Status,
@@ -48,7 +51,7 @@ class LinkEvent:
     reason: str
 
 
-Event = SampleBlock | Descriptor | Status | LinkEvent
+Event = SampleBlock | Descriptor | Status | Context | LinkEvent
 
 
 class LinkDown(Exception):
@@ -131,9 +134,10 @@ class Driver:
     """Base of every transport; see docs/architecture.md "drivers.base".
 
     Subclasses implement ``_connect()`` (raise OSError/LinkDown on failure),
-    ``_read()`` -> list of Samples/Descriptor/Status (return within ~0.2 s, raise
+    ``_read()`` -> list of Samples/Descriptor/Status/Context (return within ~0.2 s, raise
     LinkDown/OSError when the link is gone), ``_disconnect()``, and the outputs
-    ``_send_outputs(bits)``, ``_send_heartbeat(counter)``, ``_send_request_descriptor()``.
+    ``_send_outputs(bits)``, ``_send_heartbeat(counter)``, ``_send_request_descriptor()``
+    and (protocol version 2) ``_send_feed_override(tenths)``.
     """
 
     transport = "?"
@@ -148,6 +152,8 @@ class Driver:
         self.link_up = False
         self.descriptor: Descriptor | None = None
         self.last_status: Status | None = None
+        self.last_context: Context | None = None
+        self._said_no_override = False
         self._queue = _BoundedQueue(queue_size)
         self._backoff_initial_s = backoff_initial_s
         self._backoff_max_s = backoff_max_s
@@ -215,6 +221,34 @@ class Driver:
     def request_descriptor(self) -> bool:
         return self._send("descriptor request", self._send_request_descriptor)
 
+    def set_feed_override(self, percent_tenths: int) -> bool:
+        """Command the CNC's feed override (0.1 % steps, 0..2000; 1000 = the programmed feed).
+
+        False when not sent or refused, and always on a DAQ whose descriptor does not
+        announce a feed-override output (protocol version 1): that is logged once.
+        A value outside 0..2000 is a caller's mistake: ValueError.
+        """
+        tenths = int(percent_tenths)
+        if not 0 <= tenths <= FEED_OVERRIDE_MAX:
+            raise ValueError(f"feed override {tenths} outside 0..{FEED_OVERRIDE_MAX} (0.1 % steps)")
+        d = self.descriptor
+        if d is None:  # not connected yet: the DAQ's abilities are unknown
+            self._stats["commands_not_sent"] += 1
+            return False
+        if not d.has_feed_override:
+            self._stats["commands_not_sent"] += 1
+            if not self._said_no_override:
+                self._said_no_override = True
+                log.warning(
+                    "daq.no_feed_override",
+                    transport=self.transport,
+                    address=self.address,
+                    protocol_version=d.protocol_version,
+                    capabilities=d.capabilities,
+                )
+            return False
+        return self._send("feed override", self._send_feed_override, tenths)
+
     def stats(self) -> dict[str, int]:
         out = dict(self._stats)
         out["queue_len"] = self.queued
@@ -239,6 +273,9 @@ class Driver:
         raise NotImplementedError
 
     def _send_request_descriptor(self) -> None:
+        raise NotImplementedError
+
+    def _send_feed_override(self, tenths: int) -> None:
         raise NotImplementedError
 
     def _after_connect(self) -> None:
@@ -342,6 +379,12 @@ class Driver:
             self.last_status = item
             if changed:
                 self._queue.offer(item, is_sample=False)
+        elif isinstance(item, Context):
+            # the device repeats it once a second: only a change is an event
+            changed = item != self.last_context
+            self.last_context = item
+            if changed:
+                self._queue.offer(item, is_sample=False)
 
 
 def _reason(exc: BaseException) -> str:
@@ -423,6 +466,9 @@ class StreamDriver(Driver):
 
     def _send_request_descriptor(self) -> None:
         self._write(encode_command(Command(CMD_SEND_DESCRIPTOR)))
+
+    def _send_feed_override(self, tenths: int) -> None:
+        self._write(encode_command(Command(CMD_SET_FEED_OVERRIDE, tenths)))
 
     def stats(self) -> dict[str, int]:
         out = super().stats()

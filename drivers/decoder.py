@@ -17,20 +17,26 @@ import numpy as np
 
 from millsense.drivers.protocol import (
     _COMMAND_ARG_LEN,
+    CONTEXT_LEN,
     HEADER_LEN,
     INDEX_MOD,
+    MAX_EXTENSION,
     MAX_PAYLOAD,
     MAX_SAMPLES_PER_FRAME,
     OVERHEAD,
     SCALAR_BELOW,
+    STATUS_LEN_V1,
+    STATUS_LEN_V2,
     SYNC,
     TYPE_COMMAND,
+    TYPE_CONTEXT,
     TYPE_DESCRIPTOR,
     TYPE_SAMPLES,
     TYPE_STATUS,
     Channel,
     ChannelKind,
     Command,
+    Context,
     Descriptor,
     Samples,
     Status,
@@ -62,15 +68,15 @@ class DecoderStats:
         return dict(self.__dict__)
 
 
-Frame = Samples | Descriptor | Status | Command
+Frame = Samples | Descriptor | Status | Context | Command
 
-_KNOWN_TYPES = (TYPE_SAMPLES, TYPE_DESCRIPTOR, TYPE_STATUS, TYPE_COMMAND)
+_KNOWN_TYPES = (TYPE_SAMPLES, TYPE_DESCRIPTOR, TYPE_STATUS, TYPE_COMMAND, TYPE_CONTEXT)
 _NEED_MORE = -1
 _BAD = -2
 _MAX_RUN_ROWS = 8192
 _MIN_RUN = SCALAR_BELOW
 # bytes needed before a frame's length can be checked against its type
-_HEADER_NEED = {TYPE_SAMPLES: 11, TYPE_DESCRIPTOR: 9, TYPE_STATUS: 5, TYPE_COMMAND: 6}
+_HEADER_NEED = {TYPE_SAMPLES: 11, TYPE_DESCRIPTOR: 9, TYPE_STATUS: 5, TYPE_COMMAND: 6, TYPE_CONTEXT: 5}
 
 
 class StreamDecoder:
@@ -142,7 +148,7 @@ class StreamDecoder:
             return _BAD
         if n - p < _HEADER_NEED[ftype]:
             return _NEED_MORE
-        if not _plausible_length(ftype, length, buf, p):
+        if not _plausible_length(ftype, length, buf, p, self.descriptor):
             st.bad_length += 1
             return _BAD
         end = p + HEADER_LEN + length + 2
@@ -165,7 +171,12 @@ class StreamDecoder:
             self.descriptor = d
             out.append(d)
         elif ftype == TYPE_STATUS:
-            out.append(Status(*struct.unpack("<BBH", payload)))
+            if length == STATUS_LEN_V1:
+                out.append(Status(*struct.unpack("<BBH", payload)))
+            else:  # version 2: the feed override follows; a later version's tail is ignored
+                out.append(Status(*struct.unpack_from("<BBHH", payload)))
+        elif ftype == TYPE_CONTEXT:
+            out.append(Context(*struct.unpack("<IIIHB", payload)))
         else:
             cmd = payload[0]
             arg = None
@@ -259,15 +270,33 @@ class StreamDecoder:
         return p + k * flen
 
 
-def _plausible_length(ftype: int, length: int, buf: bytes, p: int) -> bool:
-    """Is ``length`` consistent with the frame type?  The caller ensured the bytes are there."""
+def _plausible_length(ftype: int, length: int, buf: bytes, p: int, descriptor: Descriptor | None) -> bool:
+    """Is ``length`` consistent with the frame type?  The caller ensured the bytes are there.
+
+    Version 1 lengths are exact.  A DESCRIPTOR that says version >= 2 carries the
+    capabilities byte and may carry up to MAX_EXTENSION bytes more; a STATUS has the
+    version-2 feed override (6 bytes), and a longer tail only once the device's
+    descriptor said version >= 2.
+    """
     if ftype == TYPE_SAMPLES:
         c, s = buf[p + 9], buf[p + 10]
         return c >= 1 and 1 <= s <= MAX_SAMPLES_PER_FRAME and length == 6 + 2 * c * s
     if ftype == TYPE_DESCRIPTOR:
-        return buf[p + 8] >= 1 and length == 4 + 9 * buf[p + 8]
+        c = buf[p + 8]
+        if c < 1:
+            return False
+        v1_len = 4 + 9 * c
+        return length == v1_len or (buf[p + 5] >= 2 and v1_len < length <= v1_len + 1 + MAX_EXTENSION)
     if ftype == TYPE_STATUS:
-        return length == 4
+        if length == STATUS_LEN_V1 or length == STATUS_LEN_V2:
+            return True
+        return (
+            descriptor is not None
+            and descriptor.protocol_version >= 2
+            and STATUS_LEN_V2 < length <= STATUS_LEN_V2 + MAX_EXTENSION
+        )
+    if ftype == TYPE_CONTEXT:
+        return length == CONTEXT_LEN
     arg_len = _COMMAND_ARG_LEN.get(buf[p + 5])
     return arg_len is not None and length == 1 + arg_len
 
@@ -284,7 +313,10 @@ def _parse_descriptor(payload: bytes) -> Descriptor | None:
             channels.append(Channel(ChannelKind.OTHER, raw.rstrip(b"\0").decode("latin-1")))
     if rate == 0:
         return None
-    return Descriptor(rate, tuple(channels), version)
+    capabilities = 0
+    if version >= 2 and len(payload) > 4 + 9 * c:
+        capabilities = payload[4 + 9 * c]
+    return Descriptor(rate, tuple(channels), version, capabilities)
 
 
 def _merge(frames: list[Frame]) -> list[Frame]:

@@ -17,6 +17,13 @@ heartbeat still gets out while a request hangs; the config check keeps
 `timeout_ms` below the interlock's `watchdog_ms − heartbeat_ms`. An exception
 response saying the register map is wrong (illegal function, address or value)
 is not retried: it would only fail again.
+
+Protocol version 2 (input register 0 = 2): each poll reads registers 0–15 in
+one request where version 1 reads the head (4–5), so the feed override applied
+(6) and the context (8–15) cost no extra request. A context that changed
+becomes a ``Context`` event; a changed override a fresh ``Status``. Registers
+0–3 are checked on every poll: a device that comes back with another layout is
+read again from its descriptor. Discrete input 1 (watchdog tripped) is read too.
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ from millsense.drivers.protocol import (
     OUT_FEED_HOLD,
     Channel,
     ChannelKind,
+    Context,
     Descriptor,
     Samples,
     Status,
@@ -45,6 +53,9 @@ CHANNEL_TABLE = 16
 MAX_REGS = 125
 HR_HEARTBEAT = 100
 HR_WATCHDOG = 101
+HR_FEED_OVERRIDE = 102  # version 2
+IR_OVERRIDE = 6  # version 2: 6 override applied, 7 capabilities, 8-15 context
+V2_HEAD_REGS = 16  # version 2: registers 0-15 in one read each poll
 STATUS_PERIOD_S = 0.1
 ATTEMPTS = 3  # tries of one request before the link counts as down
 DEFAULT_TIMEOUT_MS = 200
@@ -66,6 +77,10 @@ class ModbusDriver(Driver):
         self._watchdog_ms: int | None = None
         self._just_connected = False
         self._next_status = 0.0
+        self._layout: tuple[int, ...] | None = None  # registers 0-3 as the descriptor read them
+        self._v2 = False
+        self._override: int | None = None  # input register 6, from the last poll (version 2)
+        self._context_regs: tuple[int, ...] | None = None
 
     # -- transport-specific -------------------------------------------------
 
@@ -183,17 +198,29 @@ class ModbusDriver(Driver):
                 channels.append(Channel(ChannelKind(kind), raw.decode("ascii")))
             except (ValueError, UnicodeDecodeError):
                 channels.append(Channel(ChannelKind.OTHER, raw.decode("latin-1")))
+        capabilities = 0
+        if version >= 2:
+            self._override, capabilities = self._input(IR_OVERRIDE, 2)  # 6 override applied, 7 capabilities
+            capabilities &= 0xFF
         self._channels, self._ring_depth = c, depth
-        return Descriptor(rate, tuple(channels), version)
+        self._layout = (version, c, rate, depth)
+        self._v2 = version >= 2
+        self._context_regs = None
+        return Descriptor(rate, tuple(channels), version, capabilities)
 
     def _read_status(self) -> Status:
         coils = self._bits(self._call(lambda c, **kw: c.read_coils(0, count=2, **kw)), 2, "coils")
-        active = self._bits(self._call(lambda c, **kw: c.read_discrete_inputs(0, count=1, **kw)), 1, "inputs")[0]
+        n_inputs = 2 if self._v2 else 1  # discrete input 1 (watchdog tripped) is read from version 2 on
+        inputs = self._bits(self._call(lambda c, **kw: c.read_discrete_inputs(0, count=n_inputs, **kw)), n_inputs,
+                            "inputs")
+        active = inputs[0]
         regs = self._call(lambda c, **kw: c.read_holding_registers(HR_HEARTBEAT, count=1, **kw)).registers
         if len(regs) != 1:
             raise LinkDown(f"DAQ at {self.address} answered {len(regs)} registers to a read of 1 at {HR_HEARTBEAT}")
         hb = regs[0]
         outputs = (OUT_FEED_HOLD if active else 0) | (OUT_ALARM_LAMP if coils[1] else 0)
+        if self._v2:
+            return Status(outputs, FLAG_WATCHDOG if inputs[1] else 0, hb, self._override)
         # feed hold active although not commanded: the device's watchdog asserted it
         flags = FLAG_WATCHDOG if active and not coils[0] else 0
         return Status(outputs, flags, hb)
@@ -212,12 +239,37 @@ class ModbusDriver(Driver):
         if time.monotonic() >= self._next_status:  # outputs change rarely: poll them at 10 Hz
             self._next_status = time.monotonic() + STATUS_PERIOD_S
             out.append(self._read_status())
-        out.extend(self._read_ring())
+        out.extend(self._read_ring(out))
         return out
 
-    def _read_ring(self) -> list[Samples]:
+    def _head_v2(self, out: list) -> int | None:
+        """Version 2: registers 0-15 in one read; the head, or None if the layout changed."""
+        regs = self._input(0, V2_HEAD_REGS)
+        if tuple(regs[0:4]) != self._layout:  # restarted with another layout: read its descriptor again
+            self._want_descriptor = True
+            return None
+        override = regs[6]
+        if override != self._override:
+            self._override = override
+            # the new override now, not at the next 10 Hz status poll (based on the newest status)
+            st = next((x for x in reversed(out) if isinstance(x, Status)), self.last_status)
+            if st is not None:
+                out.append(Status(st.outputs, st.flags, st.last_heartbeat, override))
+        ctx = tuple(regs[8:16])
+        if ctx != self._context_regs:
+            self._context_regs = ctx
+            p_hi, p_lo, t_hi, t_lo, operation, flags, i_hi, i_lo = ctx
+            out.append(Context((i_hi << 16) | i_lo, (p_hi << 16) | p_lo, (t_hi << 16) | t_lo, operation, flags & 0xFF))
+        return (regs[4] << 16) | regs[5]
+
+    def _read_ring(self, out: list) -> list[Samples]:
         c, depth = self._channels, self._ring_depth
-        head = self._head()
+        if self._v2:
+            head = self._head_v2(out)
+            if head is None:
+                return []
+        else:
+            head = self._head()
         if self._next is None:
             self._next = head
             return []
@@ -277,6 +329,9 @@ class ModbusDriver(Driver):
 
     def _send_request_descriptor(self) -> None:
         self._want_descriptor = True
+
+    def _send_feed_override(self, tenths: int) -> None:
+        self._checked("feed override", self._client.write_register(HR_FEED_OVERRIDE, tenths, device_id=self.unit))
 
     def set_watchdog_ms(self, ms: int) -> None:
         """Holding register 101; remembered and written again after every reconnect."""

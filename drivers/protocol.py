@@ -31,6 +31,7 @@ OVERHEAD = HEADER_LEN + 2  # + crc
 TYPE_SAMPLES = 0x01
 TYPE_DESCRIPTOR = 0x02
 TYPE_STATUS = 0x03
+TYPE_CONTEXT = 0x04  # version 2
 TYPE_COMMAND = 0x10
 
 OUT_FEED_HOLD = 0x01
@@ -40,7 +41,26 @@ FLAG_OVERRUN = 0x02
 CMD_SET_OUTPUTS = 0x01
 CMD_HEARTBEAT = 0x02
 CMD_SEND_DESCRIPTOR = 0x03
-_COMMAND_ARG_LEN = {CMD_SET_OUTPUTS: 1, CMD_HEARTBEAT: 2, CMD_SEND_DESCRIPTOR: 0}
+CMD_SET_FEED_OVERRIDE = 0x04  # version 2: uint16 in 0.1 % steps
+_COMMAND_ARG_LEN = {CMD_SET_OUTPUTS: 1, CMD_HEARTBEAT: 2, CMD_SEND_DESCRIPTOR: 0, CMD_SET_FEED_OVERRIDE: 2}
+
+# version 2: DESCRIPTOR capabilities, CONTEXT flags, the feed override's range
+CAP_FEED_OVERRIDE = 0x01
+CAP_CONTEXT = 0x02
+CTX_CYCLE = 0x01
+CTX_MONITOR = 0x02
+CTX_AFC_ALLOWED = 0x04
+CTX_FEED_HELD = 0x08
+FEED_OVERRIDE_MAX = 2000  # 200.0 %
+FEED_OVERRIDE_NEUTRAL = 1000  # 100.0 %: the programmed feed
+# Payload lengths of version 1 and 2; from version 2 on a receiver takes longer
+# DESCRIPTOR and STATUS payloads and ignores the tail (a later version's fields).
+# The tail is bounded here so that a corrupted length field makes the decoder wait
+# for at most this many extra bytes before the CRC rejects it, not for 4 KB.
+STATUS_LEN_V1 = 4
+STATUS_LEN_V2 = 6
+CONTEXT_LEN = 15
+MAX_EXTENSION = 256
 
 MAX_SAMPLES_PER_FRAME = 64
 INDEX_MOD = 1 << 32
@@ -69,6 +89,15 @@ class Descriptor:
     sample_rate_hz: int
     channels: tuple[Channel, ...]
     protocol_version: int = 1
+    capabilities: int = 0  # version 2: bit 0 feed-override output, bit 1 context inputs
+
+    @property
+    def has_feed_override(self) -> bool:
+        return self.protocol_version >= 2 and bool(self.capabilities & CAP_FEED_OVERRIDE)
+
+    @property
+    def has_context(self) -> bool:
+        return self.protocol_version >= 2 and bool(self.capabilities & CAP_CONTEXT)
 
     @property
     def channel_count(self) -> int:
@@ -92,6 +121,7 @@ class Status:
     outputs: int
     flags: int
     last_heartbeat: int
+    feed_override: int | None = None  # version 2: the override applied now, 0.1 % steps
 
     @property
     def feed_hold(self) -> bool:
@@ -108,6 +138,34 @@ class Status:
     @property
     def overrun(self) -> bool:
         return bool(self.flags & FLAG_OVERRUN)
+
+
+@dataclass(frozen=True)
+class Context:
+    """What the CNC says it is doing (version 2), from sample ``index`` on."""
+
+    index: int  # the first sample index at which this context holds
+    program: int
+    tool: int
+    operation: int
+    flags: int
+
+    @property
+    def cycle(self) -> bool:
+        return bool(self.flags & CTX_CYCLE)
+
+    @property
+    def monitor(self) -> bool:
+        return bool(self.flags & CTX_MONITOR)
+
+    @property
+    def afc_allowed(self) -> bool:
+        return bool(self.flags & CTX_AFC_ALLOWED)
+
+    @property
+    def feed_held(self) -> bool:
+        """The CNC reports that it holds the feed: the proof that the feed-hold path works."""
+        return bool(self.flags & CTX_FEED_HELD)
 
 
 @dataclass(frozen=True)
@@ -251,11 +309,24 @@ def encode_descriptor(d: Descriptor) -> bytes:
         if len(name) > 8:
             raise ValueError(f"channel name {ch.name!r} longer than 8 characters")
         parts.append(struct.pack("<B8s", int(ch.kind), name))
+    if d.protocol_version >= 2:
+        parts.append(struct.pack("<B", d.capabilities & 0xFF))
     return _frame(TYPE_DESCRIPTOR, b"".join(parts))
 
 
 def encode_status(s: Status) -> bytes:
-    return _frame(TYPE_STATUS, struct.pack("<BBH", s.outputs & 0xFF, s.flags & 0xFF, s.last_heartbeat & 0xFFFF))
+    payload = struct.pack("<BBH", s.outputs & 0xFF, s.flags & 0xFF, s.last_heartbeat & 0xFFFF)
+    if s.feed_override is not None:
+        payload += struct.pack("<H", s.feed_override & 0xFFFF)
+    return _frame(TYPE_STATUS, payload)
+
+
+def encode_context(c: Context) -> bytes:
+    for name, value, bits in (("index", c.index, 32), ("program", c.program, 32), ("tool", c.tool, 32),
+                              ("operation", c.operation, 16), ("flags", c.flags, 8)):
+        if not 0 <= value < 1 << bits:
+            raise ValueError(f"context {name} {value} outside 0..{(1 << bits) - 1}")
+    return _frame(TYPE_CONTEXT, struct.pack("<IIIHB", c.index, c.program, c.tool, c.operation, c.flags))
 
 
 def encode_command(c: Command) -> bytes:
@@ -265,6 +336,11 @@ def encode_command(c: Command) -> bytes:
         payload = struct.pack("<BH", c.command, (c.argument or 0) & 0xFFFF)
     elif c.command == CMD_SEND_DESCRIPTOR:
         payload = struct.pack("<B", c.command)
+    elif c.command == CMD_SET_FEED_OVERRIDE:
+        value = c.argument or 0
+        if not 0 <= value <= FEED_OVERRIDE_MAX:
+            raise ValueError(f"feed override {value} outside 0..{FEED_OVERRIDE_MAX} (0.1 % steps)")
+        payload = struct.pack("<BH", c.command, value)
     else:
         raise ValueError(f"unknown command 0x{c.command:02x}")
     return _frame(TYPE_COMMAND, payload)
@@ -283,8 +359,10 @@ def __getattr__(name: str):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = [
-    "CMD_HEARTBEAT", "CMD_SEND_DESCRIPTOR", "CMD_SET_OUTPUTS", "FLAG_OVERRUN", "FLAG_WATCHDOG",
-    "OUT_ALARM_LAMP", "OUT_FEED_HOLD", "Channel", "ChannelKind", "Command", "DecoderStats", "Descriptor",
+    "CAP_CONTEXT", "CAP_FEED_OVERRIDE", "CMD_HEARTBEAT", "CMD_SEND_DESCRIPTOR", "CMD_SET_FEED_OVERRIDE",
+    "CMD_SET_OUTPUTS", "CTX_AFC_ALLOWED", "CTX_CYCLE", "CTX_FEED_HELD", "CTX_MONITOR", "FEED_OVERRIDE_MAX",
+    "FEED_OVERRIDE_NEUTRAL", "FLAG_OVERRUN", "FLAG_WATCHDOG",
+    "OUT_ALARM_LAMP", "OUT_FEED_HOLD", "Channel", "ChannelKind", "Command", "Context", "DecoderStats", "Descriptor",
     "Frame", "Samples", "Status", "StreamDecoder", "crc16_modbus", "crc16_modbus_rows", "encode_command",
-    "encode_descriptor", "encode_sample_frames", "encode_samples", "encode_status",
+    "encode_context", "encode_descriptor", "encode_sample_frames", "encode_samples", "encode_status",
 ]

@@ -2,7 +2,9 @@
 
 No bytes and no frames: the device model's samples are handed over directly, but
 through the same base class (queue, index tracking, outputs, watchdog), so the
-daemon cannot tell it from a real DAQ except by speed of setup.
+daemon cannot tell it from a real DAQ except by speed of setup. With
+``protocol=2`` it is a version-2 DAQ with the simulated CNC: ``Context`` events,
+the feed override, the CNC's "feed held" after ``cnc_hold_lag_ms``.
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ class SimDriver(Driver):
         watchdog_ms: int = 0,
         batch_s: float = 0.01,
         filter_cutoff_hz: float | None = None,
+        protocol: int = 1,
+        cnc_hold_lag_ms: float = 30.0,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
@@ -37,6 +41,8 @@ class SimDriver(Driver):
         self.start_index = int(start_index)
         self.batch_s = batch_s
         self.filter_cutoff_hz = filter_cutoff_hz
+        self.protocol = int(protocol)
+        self.cnc_hold_lag_ms = float(cnc_hold_lag_ms)
         self._initial_watchdog_ms = int(watchdog_ms)
         self.device = None
         self._pacer = None
@@ -50,11 +56,12 @@ class SimDriver(Driver):
         seed: int = 0,
         realtime: bool = True,
         filter_cutoff_hz: float | None = None,
+        protocol: int = 1,
         **_ignored,
     ) -> SimDriver:
         """``filter_cutoff_hz`` of the [daq] section becomes the simulated DAQ's filter,
         so the demo's config and its simulated hardware agree."""
-        return cls(scenario, seed=seed, realtime=realtime, filter_cutoff_hz=filter_cutoff_hz)
+        return cls(scenario, seed=seed, realtime=realtime, filter_cutoff_hz=filter_cutoff_hz, protocol=protocol)
 
     @property
     def address(self) -> str:
@@ -77,7 +84,8 @@ class SimDriver(Driver):
             )
         except SourceError as exc:
             raise LinkDown(str(exc)) from exc
-        self.device = DeviceModel(source, start_index=self.start_index, watchdog_ms=self._initial_watchdog_ms)
+        self.device = DeviceModel(source, start_index=self.start_index, watchdog_ms=self._initial_watchdog_ms,
+                                  protocol=self.protocol, cnc_hold_lag_ms=self.cnc_hold_lag_ms)
         self._pacer = Pacer(self.device.sample_rate_hz, realtime=self.realtime, batch_s=self.batch_s)
 
     def _disconnect(self) -> None:
@@ -103,8 +111,12 @@ class SimDriver(Driver):
             if n:
                 first, counts = self.device.produce(n)
                 out.append(Samples(first, counts))
+            self.device.update_cnc(now)
+            context = self.device.context()
             status = self.device.status()
         out.append(status)
+        if context is not None:
+            out.append(context)  # the base class passes on changes only
         return out
 
     def _send_outputs(self, bits: int) -> None:
@@ -115,6 +127,9 @@ class SimDriver(Driver):
 
     def _send_request_descriptor(self) -> None:
         self._send_descriptor = True
+
+    def _send_feed_override(self, tenths: int) -> None:
+        self.device.set_feed_override(tenths, time.monotonic())
 
     def set_watchdog_ms(self, ms: int) -> None:
         self._initial_watchdog_ms = int(ms)

@@ -33,3 +33,12 @@ def millsense_cmd() -> list[str]:
 @pytest.fixture(scope="session")
 def repo() -> Path:
     return REPO
+
+
+@pytest.fixture(autouse=True)
+def _private_state_directory(tmp_path_factory, monkeypatch):
+    """Daemons started by a test keep their state (latched interlock, audit log, control socket)
+    in a directory of that test, never in the user's ~/.local/state: a latch left by one test
+    would hold the feed of the next. A test that means a directory sets STATE_DIRECTORY itself."""
+    monkeypatch.delenv("STATE_DIRECTORY", raising=False)
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path_factory.mktemp("state")))

@@ -9,6 +9,16 @@ slip-free power speed, same revolution averaging). Only revolutions in steady
 stretches are used: while the spindle accelerates, `P_g/ω` also carries the
 inertia torque `J·dω/dt`, which is not friction.
 
+Then the inertia J per gear, referred to the spindle (the J·dω/dt term the
+daemon adds to eq. 13): over every air revolution, steady or not, what the
+friction line leaves of `P_g/ω` is `J·Δω/Δt`, fitted through the origin
+against the revolution's acceleration as the daemon measures it (the speed
+reading's rise over the revolution). It needs run-ups: captures in which the
+speed steps in air, in each gear fitted (`millsense sim --scenario aircut-low
+--capture F`; on a machine, S-word changes in air). A J that cannot be fitted
+(no speed change), comes out negative, or is poorly determined is refused:
+exit 1, no file written.
+
 With `--dynamometer` (captures with fx, fy channels), revolutions the
 dynamometer sees as cutting are kept out of the friction fit and used to fit
 `C_f` of [P] eq. (18) against the measured mean resultant force.
@@ -26,6 +36,10 @@ MIN_PLATEAU_S = 1.0     # shorter plateaus are transients
 END_DROP = 2            # revolutions dropped at a plateau's end
 OUTLIER_MADS = 5.0      # robust outlier limit within a plateau
 AIR_FORCE_N = 20.0      # dynamometer mean resultant below this: no cut
+J_REL_SIGMA_MAX = 0.1   # refuse a J whose standard error is more than 10 % of it
+RUN_UP_HINT = ("an air cut in which the spindle speed steps, in each gear (e.g. `millsense sim --scenario "
+               "aircut-low --capture F` and aircut-high; on the machine, S-word changes of 100 rpm or more "
+               "with nothing cut)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -69,11 +83,13 @@ def steady_mask(rpm: list[float], t_s: list[float], load_nm: list[float]) -> lis
 
 
 def collect(captures, settings, dynamometer: bool):
-    """Per gear: lists of (omega_rad_s, P_g/ω) for air revolutions; cut revolutions for C_f."""
+    """Per gear: (omega_rad_s, P_g/ω) of steady air revolutions; (omega, P_g/ω, dω/dt) of every air
+    revolution (for J); cut revolutions for C_f."""
     from millsense.daemon.pipeline.capture_reader import CaptureError, iter_capture_blocks
     from millsense.daemon.pipeline.estimator import Estimator
 
     air: dict[str, tuple[list[float], list[float]]] = {}
+    runs: dict[str, list[tuple[float, float, float]]] = {}
     cuts: list[tuple[str, float, float, float]] = []      # gear, omega, P_g/ω, mean |F|
     for path in captures:
         est = None
@@ -96,24 +112,27 @@ def collect(captures, settings, dynamometer: bool):
         steady = steady_mask([r["spindle_rpm"] for r in good], [r["seq_end"] / rate for r in good],
                              [r["torque_nm"] for r in good])
         for r, ok in zip(good, steady):
-            if not ok:
-                continue
             omega = 2 * math.pi * r["spindle_rpm"] / 60.0
             force = r.get("force_measured_n")
-            if dynamometer and force is not None and force > AIR_FORCE_N:
+            is_cut = dynamometer and force is not None and force > AIR_FORCE_N
+            if not is_cut and r.get("spindle_accel_rad_s2") is not None:
+                runs.setdefault(r["gear"], []).append((omega, r["torque_nm"], r["spindle_accel_rad_s2"]))
+            if not ok:
+                continue
+            if is_cut:
                 cuts.append((r["gear"], omega, r["torque_nm"], force))
                 continue
             w, t = air.setdefault(r["gear"], ([], []))
             w.append(omega)
             t.append(r["torque_nm"])
-    return air, cuts
+    return air, runs, cuts
 
 
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from millsense.daemon.config import load_config
-    from millsense.daemon.physics.calibration import fit_cf, fit_friction
+    from millsense.daemon.physics.calibration import fit_cf, fit_friction, fit_inertia
     from millsense.daemon.pipeline.capture_reader import CaptureError
 
     settings = load_config(args.config)
@@ -122,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"millsense calibrate: {path}: no such capture file", file=sys.stderr)
             return 1
     try:
-        air, cuts = collect(args.captures, settings, args.dynamometer)
+        air, runs, cuts = collect(args.captures, settings, args.dynamometer)
     except CaptureError as exc:
         print(f"millsense calibrate: {exc}", file=sys.stderr)
         return 1
@@ -152,13 +171,46 @@ def run(args: argparse.Namespace) -> int:
         print("millsense calibrate: no gear had enough steady air-cut revolutions to fit", file=sys.stderr)
         return 1
 
+    inertia = _fit_inertia(runs, settings, fits, fit_inertia)
+    if inertia is None:
+        return 1
+
     cf_value = None
     if args.dynamometer:
         cf_value = _fit_cf(cuts, settings, fits, radius_mm, fit_cf)
 
-    _write_toml(Path(args.out), fits, cf_value)
+    _write_toml(Path(args.out), fits, inertia, cf_value)
     print(f"wrote {args.out}")
     return 0
+
+
+def _fit_inertia(runs, settings, fits, fit_inertia) -> dict | None:
+    """J per gear fitted (friction just fitted), or None after saying why a fit was refused."""
+    import numpy as np
+
+    out = {}
+    print("inertia per gear, P_g/w - T_f' - B' w = J dw/dt  (eq. 13 with inertia, air revolutions):")
+    for gear in settings.gears:
+        if gear.name not in fits:
+            continue   # nothing fitted for this gear: leave it all as configured
+        rows = np.asarray(runs.get(gear.name, []), dtype=float).reshape(-1, 3)
+        fit = fits[gear.name]
+        left_nm = rows[:, 1] - fit.friction_torque_nm - fit.viscous_nms * rows[:, 0]
+        try:
+            j = fit_inertia(rows[:, 2], left_nm)
+        except ValueError as exc:
+            print(f"millsense calibrate: gear {gear.name}: cannot fit the inertia ({exc}); needs {RUN_UP_HINT}",
+                  file=sys.stderr)
+            return None
+        print(f"  {gear.name}: J = {j.inertia_kgm2:.4f} kg.m2 (+/- {j.sigma_kgm2:.4f})  R2 = {j.r2:.4f}"
+              f"  revolutions = {j.samples}, {j.changing} changing speed")
+        if not j.inertia_kgm2 > 0.0 or j.sigma_kgm2 > J_REL_SIGMA_MAX * abs(j.inertia_kgm2):
+            print(f"millsense calibrate: gear {gear.name}: inertia fit refused (J = {j.inertia_kgm2:.4f} "
+                  f"+/- {j.sigma_kgm2:.4f} kg.m2: negative or not determined to {J_REL_SIGMA_MAX:.0%}); "
+                  f"needs {RUN_UP_HINT}; nothing written", file=sys.stderr)
+            return None
+        out[gear.name] = j
+    return out
 
 
 def _fit_cf(cuts, settings, fits, radius_mm, fit_cf):
@@ -181,14 +233,16 @@ def _fit_cf(cuts, settings, fits, radius_mm, fit_cf):
     return float(fit.cf)
 
 
-def _write_toml(path: Path, fits: dict, cf: float | None) -> None:
-    lines = ["# written by `millsense calibrate`: friction per gear ([P] eq. 13), referred to the spindle", ""]
+def _write_toml(path: Path, fits: dict, inertia: dict, cf: float | None) -> None:
+    lines = ["# written by `millsense calibrate`: friction and inertia per gear ([P] eq. 13 with J dw/dt),",
+             "# referred to the spindle", ""]
     for name, fit in fits.items():
         lines += [
             "[[gears]]",
             f'name = "{name}"',
             f"friction_torque_nm = {fit.friction_torque_nm:.6f}",
             f"viscous_nms = {fit.viscous_nms:.8f}",
+            f"inertia_kgm2 = {inertia[name].inertia_kgm2:.6f}",
             f"samples = {int(fit.samples)}",
             f"r2 = {fit.r2:.6f}",
             "",

@@ -12,7 +12,11 @@ Start-up, in this order, each step with one clear failure:
    systemd's restart policy, not a silent loop, handles an absent DAQ. Once
    running, a lost link is reconnected forever (status `degraded`,
    `daq_lost` alarm). A DAQ whose channels do not fit the config exits 78;
-4. the runner threads; sd_notify `READY=1` once samples flow.
+4. the runner threads; sd_notify `READY=1` once samples flow. With a config
+   file the daemon has a state directory (`latch_store.state_dir`): a latch
+   persisted by an earlier run is asserted again at start, the audit log and
+   the local control socket (`control.sock`, for root and the daemon's user)
+   live there. The demo persists nothing and opens no socket.
 
 SIGTERM / SIGINT stop it within about a second: threads joined, liveliness
 token dropped, Zenoh closed, the DAQ link closed — and the feed hold output
@@ -150,10 +154,15 @@ class _Daemon:
         from millsense.daemon.pipeline.runner import Runner
         from millsense.daemon.publish.sink import ZenohSink
 
+        from millsense.daemon.audit import AuditLog
+        from millsense.daemon.pipeline.latch_store import LatchStore, state_dir
+
         self.log = structlog.get_logger("millsense.run")
         self.summary = _Summary(sys.stdout) if demo else None
         self.demo = demo
         self.transport = settings.daq.transport
+        # The demo persists nothing: no latch, no audit file, no control socket.
+        self.state_dir = None if demo else state_dir(settings.machine)
         self.runner = Runner(
             settings,
             driver,
@@ -161,13 +170,28 @@ class _Daemon:
             notify=sdnotify.notify,
             on_second=self.summary,
             effective_config=lambda: effective_config_dict(settings),
+            latch_store=LatchStore(self.state_dir) if self.state_dir is not None else None,
+            audit=AuditLog(self.state_dir / "audit.log" if self.state_dir is not None else None, settings.machine),
         )
+        self.local = None
         self.sink = ZenohSink(session, self.runner.machine, self.runner, log=self.log, close_timeout_s=0.5,
                               expects_router=settings.zenoh.mode == "client")
         self._closed = False
 
     def serve(self, seconds: float | None, stop: threading.Event) -> None:
+        if self.state_dir is not None:
+            from millsense.daemon.pipeline.latch_store import ensure_dir
+
+            try:
+                ensure_dir(self.state_dir)
+            except OSError as exc:  # the daemon still protects the machine; it only cannot remember
+                self.runner.fault("latch_store", f"cannot create the state directory {self.state_dir}: {exc}")
         self.runner.start(self.sink)
+        if self.state_dir is not None:
+            from millsense.daemon.pipeline.local_control import LocalControl
+
+            self.local = LocalControl(self.state_dir, self.runner)
+            self.local.start()
         self.log.info("daemon.started", machine=self.runner.machine, transport=self.transport, demo=self.demo)
         deadline = None if seconds is None else time.monotonic() + seconds
         while not stop.is_set():
@@ -181,6 +205,8 @@ class _Daemon:
             return
         self._closed = True
         t0 = time.monotonic()
+        if self.local is not None:
+            self.local.close(timeout_s=0.5)
         self.runner.stop(timeout_s=0.5)
         try:
             self.sink.close()  # drops the liveliness token

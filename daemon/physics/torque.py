@@ -1,8 +1,14 @@
 """Cutting torque at the spindle from air-gap power ([P] eqs. 10–13, 20).
 
-[P] eq. (13), steady state, with the friction terms referred to the spindle:
+[P] eq. (13), with the friction terms referred to the spindle, and (beyond
+[P], which assumes a steady speed) the rotating masses' share while the speed
+changes:
 
-    T_c = P_g/ω_sp − T_f' − B'·ω_sp,    T_f' = T_f·g,   B' = B_m·g² + B_sp
+    T_c = P_g/ω_sp − T_f' − B'·ω_sp − J·dω_sp/dt,   T_f' = T_f·g,   B' = B_m·g² + B_sp,
+    J = J_rotor·g² + J_spindle   (per gear, referred to the spindle)
+
+Per revolution the J term is the change of kinetic energy over the revolution
+divided by the angle turned (`inertia_torque_nm`).
 
 ``P_g/ω_sp`` stands for ``T_e·g`` with ``T_e = P_g/ω_s ≈ P_g/ω_m`` (eqs. 10, 12).
 Eq. (10) is exact with the synchronous speed ω_s; eq. (12) drops the slip
@@ -30,6 +36,24 @@ def cutting_torque_nm(p_gap_w, spindle_omega_rad_s, friction_torque_nm, viscous_
     omega_p = omega_sp if power_omega_rad_s is None else np.asarray(power_omega_rad_s, dtype=float)
     safe = np.where(omega_p > 0.0, omega_p, np.nan)
     return np.asarray(p_gap_w, dtype=float) / safe - friction_torque_nm - viscous_nms * omega_sp
+
+
+def inertia_torque_nm(inertia_kgm2, omega_start_rad_s, omega_end_rad_s, duration_s, omega_mean_rad_s):
+    """Torque that went into the rotating masses over an interval, N·m (the J·dω/dt of eq. 13 with inertia).
+
+    Over a revolution the exact form is the change of kinetic energy per radian
+    turned: ``½J(ω_end² − ω_start²)/(Δt·ω̄)`` — the mean power into the masses
+    divided by the speed the air-gap power is divided by. With ω_start, ω_end =
+    ω̄ ∓ Δω/2 it is ``J·Δω/Δt``. Negative while slowing down: the masses give
+    energy back, to the cut or to friction. nan where ω̄ or Δt is not > 0.
+    """
+    w0 = np.asarray(omega_start_rad_s, dtype=float)
+    w1 = np.asarray(omega_end_rad_s, dtype=float)
+    dt = np.asarray(duration_s, dtype=float)
+    wm = np.asarray(omega_mean_rad_s, dtype=float)
+    ok = (dt > 0.0) & (wm > 0.0)
+    energy_j = 0.5 * np.asarray(inertia_kgm2, dtype=float) * (w1 * w1 - w0 * w0)
+    return np.where(ok, energy_j / np.where(ok, dt * wm, 1.0), np.nan)
 
 
 def synchronous_spindle_omega_rad_s(electrical_frequency_hz, pole_pairs: int, gear_ratio: float):

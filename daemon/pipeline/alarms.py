@@ -7,31 +7,40 @@ Four kinds of alarm, each a state; every *change* of state is one
 `AlarmEvent` (→ one `alarm` payload of interfaces.md):
 
 - **Per-revolution thresholds** on `torque_nm`, `force_n` and `p_gap_w`
-  (`[alarms] *_warn_*` → `warning`, `*_limit_*` → `overload`). A level is
+  (`[alarms] *_warn_*` → `warning`, `*_limit_*` → `overload`). Every valid
+  revolution counts, a spindle speeding up too: the estimator subtracts the
+  rotating masses' share (`J·dω/dt`, [P] eq. 13 with inertia) from the torque,
+  and the power compared is the air-gap power less what went into the masses
+  (`p_gap_w − p_inertia_w`). Without a known J nothing is subtracted: a
+  speed-up reads as load (the safe side). A level is
   entered after `revolutions` consecutive revolutions at or above it and left
   after `revolutions` consecutive revolutions below its hysteresis band
   (`limit · (1 − hysteresis_pct/100)`); so a single noisy revolution neither
   raises nor clears. Leaving every level yields `clear`. The power limit is
   on air-gap power (what the motor turns into torque), like the crash trip.
 - **Tool breakage**: a step of the revolution torque from one steady level to
-  another within one revolution, while cutting (`BreakageTrack`): three steady
+  a lower one within one revolution, while cutting (`BreakageTrack`): three steady
   revolutions cutting with at least `breakage_min_torque_nm`, one revolution of
   transition, then two revolutions that agree with each other at a level
-  `breakage_drop_pct` or more below (or the same log-step above) the first.
+  `breakage_drop_pct` or more below the first. A rise is never a breakage (a
+  deeper cut, a harder spot: the overload limits are for those).
   Spindle speed and feed per tooth must not change across the window. Latched
   until `reset()`. Not armed unless `breakage_drop_pct` is set (like every limit
   left out).
 - **Crash** (sample level): the smoothed instantaneous air-gap power of a
-  block passing `crash_power_w`, found on the block as it arrives, without
+  block passing `crash_power_w`, the smoothed largest line current passing
+  `crash_current_a` (a current clipped at its sensor's limit while high counts as
+  over it), or a stall (no revolution closing while the current stays above
+  `stall_current_a`): found on the block as it arrives (`safety_check.py`), without
   waiting for the revolution to close. Latched until `reset()`.
 - **DAQ lost**: the link went down or samples stopped; `clear` when they flow.
 
 A damaged revolution (`valid` false) never raises or clears an alarm and does
-not break a run of consecutive revolutions either: it is skipped. So is a
-revolution of a spindle speeding up (`accelerating`) for the thresholds: its
-torque, force and power carry the rotating masses' share (eq. 13 has no
-inertia term), many times the cutting torque. A limit left out of the config
-(None) is an alarm not armed.
+not break a run of consecutive revolutions either: it is skipped — unless it is
+`saturated` (a current clipped at its sensor's limit while the current was
+high): a real crash saturates the sensors, so such a revolution counts as over
+every armed per-revolution limit (its event carries `value` null). `accelerating`
+is information only. A limit left out of the config (None) is an alarm not armed.
 """
 
 from __future__ import annotations
@@ -98,6 +107,19 @@ def _finite(value: Any) -> float | None:
     return f if math.isfinite(f) else None
 
 
+def _load_value(est: Mapping[str, Any], quantity: str) -> float | None:
+    """The value a threshold compares: the estimate's, power less the rotating masses' share.
+
+    `torque_nm` and `force_n` already have J·dω/dt taken out by the estimator;
+    `p_gap_w` is the measured air-gap power, and `p_inertia_w` (null when J is
+    unknown) is what of it went into (or, negative, came out of) the masses.
+    """
+    value = _finite(est.get(quantity))
+    if quantity == "p_gap_w" and value is not None:
+        value -= _finite(est.get("p_inertia_w")) or 0.0
+    return value
+
+
 class ThresholdTrack:
     """warning / overload state of one quantity, debounced over N revolutions."""
 
@@ -124,10 +146,11 @@ class ThresholdTrack:
         hold = max((r for r, lim in self._limits.items() if r <= self.rank and value >= lim * self._keep), default=0)
         return max(up, hold)
 
-    def update(self, value: float, rev: int | None, seq: int | None) -> AlarmEvent | None:
+    def update(self, value: float | None, rev: int | None, seq: int | None) -> AlarmEvent | None:
+        """One revolution's value; None: the sensors saturated, over every armed level."""
         if not self._limits:
             return None
-        cand = self._candidate(value)
+        cand = max(self._limits) if value is None else self._candidate(value)
         for r in self._above:
             self._above[r] = self._above[r] + 1 if cand >= r else 0
         self._below = self._below + 1 if cand < self.rank else 0
@@ -211,11 +234,8 @@ class BreakageTrack:
             if values and max(values) - min(values) > self.SPEED_TOL * max(abs(v) for v in values):
                 return None
         new_nm = sum(after_nm) / self.AFTER
-        if new_nm <= level_nm * (1.0 - self._drop):
-            limit = level_nm * (1.0 - self._drop)
-        elif new_nm >= level_nm / (1.0 - self._drop):
-            limit = level_nm / (1.0 - self._drop)
-        else:
+        limit = level_nm * (1.0 - self._drop)
+        if new_nm > limit:   # drops only: a rise is load, for the overload limits
             return None
         self.latched = True
         return AlarmEvent("tool_breakage", "torque_nm", torque_nm, limit, rev, seq)
@@ -246,17 +266,21 @@ class AlarmEngine:
 
     # -- inputs -----------------------------------------------------------
     def on_revolution(self, est: Mapping[str, Any]) -> list[AlarmEvent]:
-        """One estimate (interfaces.md fields, plus `valid`, `seq_end`)."""
-        if not est.get("valid", True):
+        """One estimate (interfaces.md fields, plus `valid`, `seq_end`, `saturated`)."""
+        saturated = bool(est.get("saturated"))
+        if not est.get("valid", True) and not saturated:
             return []
         rev, seq = est.get("rev"), est.get("seq_end")
         events: list[AlarmEvent] = []
-        for track in () if est.get("accelerating") else self.tracks:
-            value = _finite(est.get(track.quantity))
-            if value is not None:
+        for track in self.tracks:
+            value = None if saturated else _load_value(est, track.quantity)
+            if saturated or value is not None:
                 ev = track.update(value, rev, seq)
                 if ev is not None:
                     events.append(ev)
+        if saturated:
+            self.breakage.forget()   # no torque known: the window is not steady
+            return events
         torque_nm = _finite(est.get("torque_nm"))
         if torque_nm is not None:
             ev = self.breakage.update(torque_nm, bool(est.get("cutting")), rev, seq,
@@ -273,8 +297,15 @@ class AlarmEngine:
         if not over.any():
             return []
         i = int(np.argmax(over))
+        return self.latch_crash(AlarmEvent("crash", "p_gap_w", float(p_gap_w[i]), self.crash_power_w, None, first_seq + i))
+
+    def latch_crash(self, event: AlarmEvent) -> list[AlarmEvent]:
+        """A sample-level crash (power, current, stall): latched until reset; one event per latch."""
+        if self.crash_latched:
+            return []
         self.crash_latched = True
-        return [AlarmEvent("crash", "p_gap_w", float(p_gap_w[i]), self.crash_power_w, None, first_seq + i)]
+        self._crash_event = event
+        return [event]
 
     def on_daq(self, ok: bool, seq: int | None = None) -> list[AlarmEvent]:
         """Link/sample flow state; an event only when it changes."""
@@ -299,7 +330,9 @@ class AlarmEngine:
                 events.append(ev)
         if self.crash_latched:
             self.crash_latched = False
-            events.append(AlarmEvent("clear", "p_gap_w", None, self.crash_power_w))
+            crash = getattr(self, "_crash_event", None)
+            quantity, limit = (crash.quantity, crash.limit) if crash is not None else ("p_gap_w", self.crash_power_w)
+            events.append(AlarmEvent("clear", quantity, None, limit))
         if self.breakage.latched:
             self.breakage.latched = False
             self.breakage.forget()
@@ -309,14 +342,19 @@ class AlarmEngine:
     def over_limits(self, est: Mapping[str, Any]) -> list[str]:
         """The quantities of one estimate at or over an armed overload limit (for the reset's condition check).
 
-        An invalid estimate has no numbers: it is over nothing here (the caller judges blindness).
+        A `saturated` estimate is over every armed limit; any other invalid one has
+        no numbers: it is over nothing here (the caller judges blindness).
         """
-        if not est.get("valid", True):
+        saturated = bool(est.get("saturated"))
+        if not est.get("valid", True) and not saturated:
             return []
         over = []
         for track in self.tracks:
             limit = track._limits.get(2)
-            value = _finite(est.get(track.quantity))
+            if limit is not None and saturated:
+                over.append(track.quantity)
+                continue
+            value = _load_value(est, track.quantity)
             if limit is not None and value is not None and value >= limit:
                 over.append(track.quantity)
         return over

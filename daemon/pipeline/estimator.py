@@ -18,31 +18,30 @@ A revolution in which the spindle speeds up by more than `ACCEL_RISE_PCT`
 per-sample speed rise, summed over the revolution, which telescopes), or that
 turns more than
 `ACCEL_STEP_PCT` faster than the revolution before it, is published with
-`accelerating: true`. Eq. 13 has no inertia term: while the
-spindle speeds up (a start, a programmed speed change) the motor's power goes
-into the rotating masses too, and the torque read from it is far above the
-cutting torque (60–77 N·m in the simulator's speed steps of 150 rpm in 0.2 s,
-with no cut at all). Per-revolution alarms skip such revolutions. Slowing down
-needs no flag: the masses then give power back, and the estimate reads low,
-never falsely high. The two tests cover each other: the first catches the
-revolution in which a ramp starts, the second a slow ramp that the encoder's
-speed resolution (about 1 rpm) blurs within one revolution. A rise within a
-revolution whose mean speed fell clearly against the one before is not
-flagged: that is a drive catching up with a spindle its load slowed down (a
-crash, a stall), and the overload must see that torque. What the thresholds
-let through: the revolution in which a ramp starts, if it starts in its last
-few samples, carries up to J·ω·Δω/2π of the masses' share unflagged: with
-Δω = 2 rpm and the simulated low gear's spindle-side inertia of 1.5 kg·m²,
-3 N·m at 600 rpm and 4.6 N·m at 900 rpm. Enough for one revolution over a low
-limit, not for the `revolutions` ≥ 2 consecutive ones an alarm needs.
+`accelerating: true` — information only (a display hint): the alarms judge
+every revolution. While the spindle speeds up (a start, a programmed speed
+change) the motor's power goes into the rotating masses too (60–77 N·m in the
+simulator's speed steps of 150 rpm, with no cut at all); `per_revolution.py`
+subtracts that share, J·dω/dt over the revolution ([P] eq. 13 with inertia),
+from the speed reading's rise over the revolution (the `rpm_rise` column) and
+the gear's `inertia_kgm2`. Without a known J nothing is subtracted, and a
+speed-up reads as load (the safe side; `check-config` warns).
 
 A revolution that spans lost samples or a discontinuity is published with
 `valid: false`, every physical quantity null and its exact `lost_samples`:
 a number built on missing data must not look like a measurement (the
 interlock acts on these numbers).
 
-Also per sample: the air-gap power, lightly smoothed, so that a crash can trip
-within milliseconds instead of waiting for the revolution to close.
+A revolution whose samples fail a plausibility check (`signal_check.py`: a
+clipped, flat or dead channel, a speed that disagrees with the electrical
+frequency) is published the same way, with `invalid: "signals"` (a damaged
+one: `invalid: "lost_samples"`). `saturated: true` marks a revolution in which
+a current clipped at its sensor's limit while it was high: a real crash
+saturates the sensors, and the alarms count it as over every armed limit.
+
+Also per sample: the air-gap power and the largest line current, lightly
+smoothed, so that a crash can trip within milliseconds instead of waiting for
+the revolution to close (`safety_check.py`).
 """
 
 from __future__ import annotations
@@ -61,6 +60,7 @@ from millsense.daemon.physics.power import (
 from millsense.daemon.pipeline.per_revolution import RevolutionMeans, RevolutionPhysics
 from millsense.daemon.pipeline.revolutions import STOP_RPM, EncoderAngle, RevolutionSplitter, SpeedAngle
 from millsense.daemon.pipeline.scaling import Scaler
+from millsense.daemon.pipeline.signal_check import SignalCheck
 
 # Electrical frequency window: the revolution itself, but never fewer samples than
 # this (at 4500 rpm a revolution is 13 samples: two phase readings 13 ms apart).
@@ -71,7 +71,9 @@ ACCEL_RISE_MIN_RPM = 2.0           # but never less than this (steady cutting re
                                    # most 1.8: the encoder's resolution over its 16-sample window)
 ACCEL_STEP_PCT = 0.5               # ... or over the revolution before (steady cutting: < 0.08 % in
                                    # every simulated scenario)
-P_GAP_SMOOTH_SAMPLES = 5           # moving average of the sample-level air-gap power
+P_GAP_SMOOTH_SAMPLES = 5           # moving average of the sample-level air-gap power and line current
+# Fields an invalid revolution keeps; every other one (a quantity) is null.
+KEPT_WHEN_INVALID = frozenset({"rev", "seq_end", "samples", "lost_samples", "valid", "invalid", "saturated"})
 
 NULL_FIELDS = (
     "spindle_rpm", "gear", "p_in_w", "p_gap_w", "torque_nm", "torque_sigma_nm", "force_n",
@@ -88,6 +90,9 @@ class BlockResult:
     p_gap_w: np.ndarray = field(default_factory=lambda: np.empty(0))  # per sample, smoothed
     seq: int = 0                                          # seq of p_gap_w[0]
     spindle_stopped: bool = False                         # last sample below the stop speed
+    current_a: np.ndarray = field(default_factory=lambda: np.empty(0))  # largest |line current|, smoothed
+    clip_seq: int | None = None                           # first current sample at its ADC limit while high
+    signal_fault: str | None = None                       # fault `signals` raised (its reason), "" cleared
 
 
 class _PhaseRate:
@@ -111,6 +116,31 @@ class _PhaseRate:
             rate[0] = rate[1] if len(rate) > 1 else self._rate   # no step across a gap
         self._angle, self._rate = float(angle[-1]), float(rate[-1])
         return rate, alpha * alpha + beta * beta
+
+
+class _MovingAverage:
+    """Causal moving average over `width` samples of k signals at once ((k, n) blocks), carried across
+    blocks, restarted after a gap. One pass for all of them: this runs on every frame."""
+
+    def __init__(self, width: int):
+        self.width = int(width)
+        self._tail = np.empty((0, 0))
+
+    def push(self, p: np.ndarray, contiguous: bool) -> np.ndarray:
+        w = self.width
+        k, n = p.shape
+        ext = np.empty((k, n + w - 1))
+        if contiguous and self._tail.shape == (k, w - 1):
+            ext[:, : w - 1] = self._tail
+        else:
+            ext[:, : w - 1] = p[:, :1]
+        ext[:, w - 1 :] = p
+        run = np.cumsum(ext, axis=1)
+        out = run[:, w - 1 :].copy()
+        out[:, 1:] -= run[:, : n - 1]
+        self._tail = ext[:, n:]
+        out /= w
+        return out
 
 
 class Estimator:
@@ -162,7 +192,10 @@ class Estimator:
         self._phase = _PhaseRate(self.sample_rate_hz)
         self._fe_recent: deque[tuple[float, float]] = deque(maxlen=64)   # (f_e integral, duration)
         self._last_seq: int | None = None
-        self._smooth_tail = np.empty(0)
+        self._smooth = _MovingAverage(P_GAP_SMOOTH_SAMPLES)   # air-gap power, largest line current
+        self.signals = SignalCheck(settings, descriptor, roles, self.sample_rate_hz,
+                                   fe_col=self._cols["f_e"], vsq_col=self._cols["v_sq"])
+        self._sp_name = roles.spindle_speed if roles.encoder is not None else None
         self._stopped = True
         self._prev_rev: tuple[float, float] | None = None  # (end position, spindle rpm) of the last valid revolution
         self._last_rpm: float | None = None
@@ -209,6 +242,7 @@ class Estimator:
             self.splitter.push(seq0, np.empty(0), np.empty((0, len(self._cols))), np.empty(0, bool),
                                block.lost_before, block.discontinuity)
             return BlockResult(seq=seq0, spindle_stopped=self._stopped)
+        counts = counts.reshape(n, -1)
         r = self.roles
         phys = self.scaler.scale(counts)
         v_uv, v_vw, v_wu = self._three(phys, r.voltages, ("uv", "vw", "wu"))
@@ -252,25 +286,41 @@ class Estimator:
                 x[:, c["f_mag"]] = np.hypot(x[:, c["fx"]], x[:, c["fy"]])
 
         self._last_seq = seq0 + n - 1
+        # plausibility first: the revolutions closing in this block are judged with this block's samples
+        sp = phys[self._sp_name] if self._sp_name is not None else None
+        clip_seq, signal_fault = self.signals.push(seq0, counts, x, rpm, moving, sp)
         batch = self.splitter.push(seq0, angle_rev, x, moving, block.lost_before, block.discontinuity)
 
         estimates = [self._estimate(batch, k) for k in range(len(batch))]
+        for k, est in enumerate(estimates):
+            self._judge(est, float(batch.start_pos[k]), int(batch.seq_end[k]))
 
-        # sample-level air-gap power for the crash trip, at the latest filter gain
-        p_gap = self._smooth(p_meas / self.physics.last_gain, contiguous)
-        self._stopped = not bool(moving[-1])
-        return BlockResult(estimates=estimates, p_gap_w=p_gap, seq=seq0, spindle_stopped=self._stopped)
+        # sample-level air-gap power and line current for the crash trip, at the latest filter gain
+        both = np.empty((2, n))
+        np.divide(p_meas, self.physics.last_gain, out=both[0])
+        np.abs(np.stack((i_u, i_v, i_w)), out=None).max(axis=0, out=both[1])
+        p_gap, current = self._smooth.push(both, contiguous)
+        # a stuck encoder reads "stopped": not believed while a speed source is among the signal problems
+        self._stopped = not bool(moving[-1]) and not self.signals.speed_suspect
+        return BlockResult(estimates=estimates, p_gap_w=p_gap, seq=seq0, spindle_stopped=self._stopped,
+                           current_a=current, clip_seq=clip_seq, signal_fault=signal_fault)
 
-    def _smooth(self, p: np.ndarray, contiguous: bool) -> np.ndarray:
-        """Causal moving average over P_GAP_SMOOTH_SAMPLES, restarted after a gap."""
-        w = P_GAP_SMOOTH_SAMPLES
-        tail = self._smooth_tail if contiguous and len(self._smooth_tail) == w - 1 else np.full(w - 1, p[0])
-        ext = np.concatenate([tail, p])
-        run = np.cumsum(ext)
-        out = run[w - 1 :].copy()
-        out[1:] -= run[: len(p) - 1]
-        self._smooth_tail = ext[-(w - 1) :]
-        return out / w
+    def _judge(self, est: dict, start_pos: float, seq_end: int) -> None:
+        """Mark a revolution whose samples are implausible: `valid` false, every quantity null, and why."""
+        problems, saturated = self.signals.revolution(start_pos, seq_end)
+        est["saturated"] = saturated
+        if not est.get("valid", True):
+            est.setdefault("invalid", "lost_samples")   # a gap or a discontinuity inside it
+        elif problems or saturated:
+            for key in est:
+                if key not in KEPT_WHEN_INVALID:
+                    est[key] = None
+            est.update(valid=False, invalid="signals", cutting=False, accelerating=False)
+            # what the physics carries to the next revolution must not come from these samples
+            self._fe_recent.clear()
+            self._prev_rev = None
+        else:
+            est.setdefault("invalid", None)
 
     def _accelerating(self, start_pos: float, end_pos: float, spindle_rpm: float, rise_rpm: float) -> bool:
         """Sped up against the revolution just before, or within this one while not slowing on the whole."""
@@ -308,7 +358,7 @@ class Estimator:
             self._fe_recent.clear()
             self._prev_rev = None
             out = dict.fromkeys(NULL_FIELDS)
-            out.update(base, valid=False, cutting=False, accelerating=False)
+            out.update(base, p_inertia_w=None, spindle_accel_rad_s2=None, valid=False, cutting=False, accelerating=False)
             if "f_mag" in self._cols:
                 out["force_measured_n"] = None
             return out
@@ -317,11 +367,15 @@ class Estimator:
         duration = float(batch.end_pos[k] - batch.start_pos[k])
         mean = integ / duration
         spindle_rpm = 60.0 * self.sample_rate_hz / duration
+        prev = self._prev_rev   # the revolution just before, if it ended where this one starts
+        prev_rpm = prev[1] if prev is not None and abs(prev[0] - float(batch.start_pos[k])) < 1e-6 else None
         accelerating = self._accelerating(float(batch.start_pos[k]), float(batch.end_pos[k]), spindle_rpm,
                                           float(integ[c["rpm_rise"]]))
         f_e = self._f_e_hz(float(integ[c["f_e"]]), duration, float(mean[c["v_sq"]]))
         means = RevolutionMeans(
             spindle_rpm=spindle_rpm,
+            speed_rise_rpm=float(integ[c["rpm_rise"]]),   # end − start speed: the inertia term's Δω
+            prev_spindle_rpm=prev_rpm,
             p_in_meas_w=float(mean[c["p_in"]]),
             p_cu_meas_w=float(mean[c["p_cu"]]),
             p_gap_sq_meas_w2=float(mean[c["p_gap_sq"]]),

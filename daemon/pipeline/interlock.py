@@ -6,8 +6,9 @@ Why it is built this way:
   thread that found the overload / crash / breakage (the estimator thread); no
   queue or other thread sits between the decision and the DAQ.
 - **Latching.** Once asserted, feed hold stays until `reset()` (the
-  `cmd/reset` queryable) or a restart of the daemon. A restart forgets the
-  latch but does not write the output: see the start policy below.
+  `cmd/reset` queryable, or the local control socket). The latch outlives a
+  restart: the runner persists it (`latch_store.py`) and `restore()` asserts
+  it again at the next start, with its original reason and time.
 - **Fail-safe by silence.** At start the DAQ's watchdog is set to
   `watchdog_ms`; `beat()` sends heartbeats only while the caller says the
   pipeline is healthy. A daemon that hangs, dies or loses its samples stops
@@ -15,17 +16,22 @@ Why it is built this way:
 - **Start policy.** With the interlock enabled the daemon never clears, on its
   own, a feed hold it did not set in this run: a hold found at start (latched
   by a previous run, by the DAQ's watchdog, or by someone else) is left
-  asserted and reported as `held_by_device`; only an explicit `reset` clears
-  it. So a restart loop can never release a machine that was stopped for a
+  asserted and reported as `held_by_device` (or, when the latch store kept
+  it, latched again with its reason); only an explicit `reset` clears it. So a restart loop can never release a machine that was stopped for a
   reason.
 - **Confirmed, or written again.** A write the DAQ did not take (link down, a
   Modbus exception response) is not reported as a hold: `trip()` says so, and
   while the latch is set the hold is written again every heartbeat period
   until the write succeeds and the DAQ's own status shows feed hold.
-- **Reset authority.** `reset = "open"` accepts any request, `"token"` only a
-  payload carrying `reset_token` (compared with `hmac.compare_digest`, so the
-  reply time does not leak the token), `"off"` none (clear at the machine and
-  restart).
+- **No authority here.** `reset()` clears the latch for whoever calls it:
+  the caller has already decided that the request may be granted (the Zenoh
+  queryable authorises it in `publish/command_auth.py`; the local control
+  socket checks the peer's uid; the runner checks that the condition that
+  latched is gone). `reset_policy` is kept only to be reported in the state.
+- **Persisted by others.** `on_change` (if given) is called with the latch
+  record after every change, from the changing thread, and must return at
+  once (the latch store hands the write to its own thread): the trip never
+  waits for a disk.
 
 `outputs` is the driver (anything with `set_outputs(feed_hold, alarm_lamp)`,
 `heartbeat()`, `set_watchdog_ms(ms)`).
@@ -33,60 +39,33 @@ Why it is built this way:
 
 from __future__ import annotations
 
-import hmac
-import json
 import threading
 import time
-from typing import Any
+from typing import Any, Callable
 
 import structlog
 
 log = structlog.get_logger("millsense.interlock")
 
 RESET_POLICIES = ("open", "token", "off")
-
-
-def _token_from_payload(payload: bytes) -> bytes:
-    """The token a reset request carries: `{"token": "..."}` or the raw bytes."""
-    data = bytes(payload or b"").strip()
-    if data.startswith(b"{"):
-        try:
-            obj = json.loads(data.decode("utf-8"))
-        except (UnicodeDecodeError, ValueError):
-            return data
-        if isinstance(obj, dict) and isinstance(obj.get("token"), str):
-            return obj["token"].encode("utf-8")
-        return b""
-    return data
-
-
-def _secret(settings: Any) -> str:
-    """The reset token as plain text: `InterlockSettings.token()` (also covers
-    `reset_token_file`), a pydantic SecretStr, or a plain string."""
-    reader = getattr(settings, "token", None)
-    if callable(reader):
-        return str(reader() or "")
-    token = getattr(settings, "reset_token", None)
-    if token is None:
-        return ""
-    reveal = getattr(token, "get_secret_value", None)
-    return str(reveal() if callable(reveal) else token)
+TEST_TRIP = "test-trip"  # the reason of a proof test's latch (`Runner.test_trip`)
 
 
 class Interlock:
     """The daemon's side of the feed-hold interlock. Thread-safe."""
 
-    def __init__(self, outputs: Any, settings: Any):
+    def __init__(self, outputs: Any, settings: Any, on_change: Callable[[dict[str, Any]], Any] | None = None):
         self._out = outputs
+        self._on_change = on_change
         self.enabled = bool(getattr(settings, "enabled", False))
         self.heartbeat_ms = int(getattr(settings, "heartbeat_ms", 100) or 100)
         self.watchdog_ms = int(getattr(settings, "watchdog_ms", 500) or 0)
         policy = str(getattr(settings, "reset", "open") or "open")
         self.reset_policy = policy if policy in RESET_POLICIES else "off"
-        self._token = _secret(settings).encode("utf-8")
         self._lock = threading.Lock()
         self.latched = False  # feed hold asserted by this daemon in this run
         self.reason: str | None = None
+        self.since: float | None = None  # Unix time the latch was set (kept across restarts by the latch store)
         self.device_hold = False  # last STATUS from the DAQ said feed hold is on
         self.watchdog_tripped = False
         self.heartbeating = False
@@ -122,13 +101,45 @@ class Interlock:
             return None
         with self._lock:
             if self.latched:
+                if self.reason == TEST_TRIP and reason != TEST_TRIP:
+                    # a real condition during a proof test: the latch now stands for it
+                    self.reason = reason
+                    self._changed()
                 return None if self.hold_unconfirmed else "feed_hold"
             self.latched = True
             self.reason = reason
+            self.since = time.time()
             self.trips += 1
             ok = self._write(True)
+            self._changed()
         log.warning("interlock.feed_hold", reason=reason, written=ok)
         return "feed_hold" if ok else None
+
+    def restore(self, reason: str, since: float | None, trips: int = 0) -> None:
+        """A latch persisted by an earlier run: latch again and write the hold (the link is up or comes up).
+
+        Not a new trip: `since` and the reason are the original ones, nothing is re-persisted.
+        """
+        if not self.enabled:
+            return
+        with self._lock:
+            self.latched = True
+            self.reason = reason
+            self.since = since
+            self.trips = max(self.trips, int(trips or 0))
+            self._write(True)
+
+    def record(self) -> dict[str, Any]:
+        """The latch as the latch store keeps it."""
+        return {"latched": self.latched, "reason": self.reason, "since": self.since, "trips": self.trips}
+
+    def _changed(self) -> None:
+        if self._on_change is None:
+            return
+        try:
+            self._on_change(self.record())
+        except Exception as exc:  # noqa: BLE001 - persistence must never stop a trip
+            log.error("interlock.persist_failed", error=f"{type(exc).__name__}: {exc}")
 
     def reassert(self) -> None:
         """After a reconnect: the DAQ may have restarted; write the latched hold again."""
@@ -163,33 +174,19 @@ class Interlock:
                     log.warning("interlock.feed_hold_rewritten", reason=self.reason)
 
     # -- reset ------------------------------------------------------------
-    def authorise(self, payload: bytes) -> str | None:
-        """None if a reset with this payload is allowed, else why not."""
-        if self.reset_policy == "off":
-            return "reset is disabled (interlock.reset = off): clear feed hold at the machine and restart"
-        if self.reset_policy == "token":
-            given = _token_from_payload(payload)
-            if not self._token:
-                return "reset needs a token but interlock.reset_token is empty"
-            if not hmac.compare_digest(given, self._token):
-                return "wrong or missing reset token"
-        return None
-
-    def reset(self, payload: bytes) -> dict[str, Any]:
-        """Clear the latch and the DAQ's feed hold, if the policy allows it."""
-        refused = self.authorise(payload)
-        if refused is not None:
-            log.warning("interlock.reset_refused", reason=refused)
-            return {"ok": False, "error": refused, **self.state_dict()}
+    def reset(self) -> dict[str, Any]:
+        """Clear the latch and the DAQ's feed hold. The caller has authorised it and checked the condition."""
         with self._lock:
             was = self.latched or self.device_hold
             self.latched = False
             self.reason = None
+            self.since = None
             self.hold_unconfirmed = False
             ok = self._write(False) if self.enabled else True
             if ok:
                 self.device_hold = False
                 self.watchdog_tripped = False
+            self._changed()
         log.info("interlock.reset", cleared=was, write_ok=ok)
         result: dict[str, Any] = {"ok": ok, **self.state_dict()}
         if not ok:
@@ -251,9 +248,133 @@ class Interlock:
             "interlock": self.state,
             "enabled": self.enabled,
             "reason": self.reason,
+            "since": self.since,
             "device_feed_hold": self.device_hold,
             "watchdog_tripped": self.watchdog_tripped,
             "heartbeating": self.heartbeating,
             "hold_unconfirmed": self.hold_unconfirmed,
             "reset": self.reset_policy,
         }
+
+
+class ResetCheck:
+    """Is the condition that latched gone? Judged only on data newer than the hold. Not thread-safe.
+
+    Why only newer data: the revolution that tripped, and the block that held
+    the crash, are over their limits by definition; a reset judged on them
+    would always be refused, one judged on nothing would release a machine
+    whose overload persists (issue 10, finding 4: the feed went 3 → 0 → 3).
+    So `mark()` notes the last sample processed when the hold began, and only
+    revolutions that *started* after it, and blocks after it, count.
+
+    The rule (`refusal()`), in order; the first that holds refuses:
+
+    1. a blind condition (fault `signals` or `descriptor`): nothing can be judged;
+    2. no samples since the hold, or the DAQ link lost or stalled;
+    3. the spindle stopped since the hold and nothing new is over: the condition is gone;
+    4. the latest block is stalled (the stall check holds);
+    5. the latest block's sample-level peaks at or over `crash_power_w` / `crash_current_a`;
+    6. the latest closed valid revolution over an armed overload limit (a
+       `saturated` one counts as over every limit);
+    7. the spindle turns and no valid revolution has closed since the hold
+       (when in doubt, hold) — except after a test-trip, which latched for no
+       condition.
+    """
+
+    def __init__(self, crash_power_w: float | None = None, crash_current_a: float | None = None):
+        self.crash_power_w = crash_power_w
+        self.crash_current_a = crash_current_a
+        self.clear()
+
+    def clear(self) -> None:
+        self.marked = False
+        self.hold_seq: int | None = None
+        self._evidence_reset()
+        self.stopped_since = False
+
+    def _evidence_reset(self) -> None:
+        self.blocks = 0
+        self.rev_over: list[str] | None = None  # None: no valid revolution closed since the hold (or the stop)
+        self.rev: int | None = None
+        self.peaks_over: str | None = None
+        self.stalled = False
+        self.stopped_now = False
+
+    def mark(self, last_seq: int | None) -> None:
+        """A hold began; `last_seq` is the last sample processed before it (None: everything to come counts)."""
+        self.clear()
+        self.marked = True
+        self.hold_seq = last_seq
+
+    def _after(self, seq: int | None) -> bool:
+        return self.hold_seq is None or (seq is not None and seq > self.hold_seq)
+
+    def on_block(self, first_seq: int, peaks: dict[str, float], stalled: bool, stopped: bool) -> None:
+        if not self.marked or not self._after(first_seq):
+            return
+        if stopped:
+            # the condition is gone with the spindle; what comes after a restart is judged afresh
+            self._evidence_reset()
+            self.stopped_since = True
+            self.stopped_now = True
+            self.blocks = 1
+            return
+        self.blocks += 1
+        self.stopped_now = False
+        self.stalled = bool(stalled)
+        self.peaks_over = None
+        p_w, i_a = _number(peaks.get("p_gap_w")), _number(peaks.get("current_a"))
+        if self.crash_power_w is not None and p_w is not None and p_w >= self.crash_power_w:
+            self.peaks_over = f"air-gap power peak {p_w:.0f} W >= crash_power_w {self.crash_power_w:g} W"
+        elif self.crash_current_a is not None and i_a is not None and i_a >= self.crash_current_a:
+            self.peaks_over = f"current peak {i_a:.1f} A >= crash_current_a {self.crash_current_a:g} A"
+
+    def on_estimate(self, est: dict[str, Any], over: list[str]) -> None:
+        """A closed revolution; `over` = AlarmEngine.over_limits(est)."""
+        if not self.marked:
+            return
+        end = est.get("seq_end")
+        if end is None:
+            return
+        span = int(est.get("samples") or 0) + int(est.get("lost_samples") or 0)
+        if not self._after(int(end) - span + 1 if span else None):
+            return  # began before the hold: it is the evidence that tripped, not news
+        if est.get("saturated"):
+            self.rev_over, self.rev = ["saturated"], est.get("rev")
+        elif est.get("valid", True):
+            self.rev_over, self.rev = list(over), est.get("rev")
+
+    def refusal(self, reason: str | None, blind: dict[str, str], daq_fault: str | None) -> dict[str, str] | None:
+        """None: the condition is gone. Else {"error": why, "condition": kind}."""
+        if blind:
+            kind, why = next(iter(blind.items()))
+            return {"condition": "blind", "error": f"the daemon is blind ({kind}: {why}): the condition cannot be judged"}
+        if daq_fault:
+            return {"condition": "no_data", "error": f"no data from the DAQ ({daq_fault}): the condition cannot be judged"}
+        test = reason == TEST_TRIP
+        if self.blocks == 0:
+            if test:
+                return None
+            return {"condition": "no_data", "error": "no samples since the hold yet: the condition cannot be judged"}
+        if self.stopped_now or (self.stopped_since and not self.rev_over and not self.stalled and not self.peaks_over):
+            return None
+        if self.stalled:
+            return {"condition": "stall", "error": "the spindle is still stalled: high current and no revolution closing"}
+        if self.peaks_over:
+            return {"condition": "crash", "error": f"still over the sample-level limit: {self.peaks_over}"}
+        if self.rev_over:
+            what = ", ".join(self.rev_over)
+            return {"condition": "overload",
+                    "error": f"revolution {self.rev} since the hold is still over its limit ({what})"}
+        if self.rev_over is None and not test and not self.stopped_since:
+            return {"condition": "no_revolution",
+                    "error": "the spindle turns and no valid revolution has closed since the hold: try again in a moment"}
+        return None
+
+
+def _number(value: Any) -> float | None:
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        return None
+    return f if f == f and f not in (float("inf"), float("-inf")) else None

@@ -6,9 +6,9 @@ in where time comes from and where results go.
 
 The per-block order matters for the interlock: `Step.trips` lists the events
 that ask for feed hold (the sample-level crash on the block's smoothed
-air-gap power, overloads, breakage) so that the caller acts on them before it
-publishes anything. `Step.items` is in time order: each closed revolution
-followed by the alarms it caused, a crash after the revolutions that ended
+air-gap power or line current, a stall — `safety_check.py` — then overloads,
+breakage) so that the caller acts on them before it publishes anything.
+`Step.items` is in time order: each closed revolution followed by the alarms it caused, a crash after the revolutions that ended
 before its sample.
 """
 
@@ -17,8 +17,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-
 from millsense.daemon.pipeline.alarms import AlarmEngine, AlarmEvent
+from millsense.daemon.pipeline.safety_check import SafetyCheck
 
 # Internal fields of the estimator's dicts that are not part of the `estimate` payload.
 _INTERNAL = ("seq_end",)
@@ -65,6 +65,7 @@ class PipelineCore:
         self.last_rev: int | None = None
         self.lost_samples_before = 0  # lost samples counted by estimators replaced since, and while none fitted
         self._rev_base = 0  # revolutions numbered by estimators replaced since: `rev` never restarts
+        self.safety: SafetyCheck | None = None
 
     def on_descriptor(self, descriptor: Any) -> bool:
         """A (new) descriptor: check the config against it, make the estimator. True if re-made.
@@ -85,6 +86,7 @@ class PipelineCore:
         if hasattr(self.estimator, "rev"):
             self.estimator.rev = self._rev_base  # revolution numbers go on where the last estimator stopped
         self.descriptor = descriptor
+        self.safety = SafetyCheck(getattr(self.settings, "alarms", None), float(descriptor.sample_rate_hz))
         return True
 
     def drop_estimator(self) -> None:
@@ -122,10 +124,23 @@ class PipelineCore:
         step = Step()
         result = self.estimator.process(block)
         crashes: list[AlarmEvent] = []
-        if result.p_gap_w.size:  # BlockResult: smoothed per-sample air-gap power from sample `seq` on
-            for ev in self.alarms.on_power(result.p_gap_w, result.seq):
-                crashes.append(_with_rev(ev, self._rev_at(ev.seq, result.estimates)))
+        if self.safety is None:
+            self.safety = SafetyCheck(getattr(self.settings, "alarms", None),
+                                      float(getattr(self.estimator, "sample_rate_hz", 1000.0)))
+        p_gap = getattr(result, "p_gap_w", None)
+        if p_gap is not None and p_gap.size:  # smoothed per-sample power and current from `seq` on
+            safe = self.safety.on_block(result, self.alarms)
+            crashes = [_with_rev(ev, self._rev_at(ev.seq, result.estimates)) for ev in safe.events]
+            step.peaks, step.stalled = safe.peaks, safe.stalled
         step.trips.extend(crashes)  # the caller trips on these before it publishes anything
+        fault = getattr(result, "signal_fault", None)
+        if fault:
+            step.faults["signals"] = fault
+        elif fault == "":
+            step.clear_faults.add("signals")
+        step.spindle_stopped = bool(getattr(result, "spindle_stopped", False))
+        n = len(getattr(block, "counts", ()))
+        step.last_seq = int(block.seq) + n - 1 if n else None
         for est in result.estimates:
             # publication stays in time order: a crash goes out after the revolutions that ended before it
             while crashes and est.get("seq_end") is not None and int(est["seq_end"]) >= crashes[0].seq:

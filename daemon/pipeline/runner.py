@@ -14,6 +14,12 @@ Threads (one job each, one hand-off queue — the driver's):
 - **status** (1 s): status payload, sd_notify `STATUS=` / `WATCHDOG=1`, the
   debug stats line and the optional live summary callback.
 
+The interlock side (issue 10): every feed hold goes through `_trip` (alarms,
+a blind condition under `[interlock] on_blind = "hold"`, `test_trip`), which
+marks the hold for `ResetCheck`; `reset()` is refused while data newer than
+the hold show the condition still there. With a `latch_store` the latch is
+persisted off the tripping thread and asserted again at the next start.
+
 Whatever goes wrong goes through `fault(kind, reason)`: idempotent per kind,
 every handler in its own `try`, leaves a diagnostic dump in the log;
 `recover(kind)` undoes it. State: starting → running ⇄ degraded → stopping.
@@ -33,8 +39,9 @@ from typing import Any, Callable
 
 import structlog
 
+from millsense.daemon.audit import AuditLog
 from millsense.daemon.pipeline.alarms import AlarmEvent, alarm_payload
-from millsense.daemon.pipeline.interlock import Interlock
+from millsense.daemon.pipeline.interlock import TEST_TRIP, Interlock, ResetCheck
 from millsense.daemon.pipeline.power_check import PowerSignCheck
 from millsense.daemon.pipeline.run_core import PipelineCore, estimate_payload
 from millsense.daemon.pipeline.status import LatencyStats, SeqClock, bad_frames, status_line
@@ -44,6 +51,10 @@ log = structlog.get_logger("millsense.runner")
 HEALTH_STALL_S = 0.5  # no samples / no estimator loop for this long: stop heartbeats
 DAQ_STALL_S = 1.0  # no samples for this long with the link up: `daq_lost`
 PROGRESS_S = 3.0  # sd_notify WATCHDOG=1 only if a revolution closed within this
+BLIND_KINDS = ("signals", "descriptor")  # faults that leave the daemon unable to see a crash
+DAQ_FAULTS = ("daq_link", "daq_stalled")
+CAP_CONTEXT = 0x02  # Descriptor.capabilities bit 1: the DAQ sends CONTEXT frames (protocol 2)
+TEST_TRIP_WAIT_S = 2.0  # longest wait for each confirmation of a test-trip
 
 
 def _noop_notify(**_kw: Any) -> None:
@@ -64,6 +75,8 @@ class Runner:
         effective_config: Callable[[], dict] | None = None,
         estimator_factory: Any = None,
         check_descriptor: Any = None,
+        latch_store: Any = None,
+        audit: AuditLog | None = None,
     ):
         self.settings = settings
         self.machine = str(getattr(settings, "machine", "millsense"))
@@ -73,7 +86,23 @@ class Runner:
         self._on_second = on_second
         self._effective_config = effective_config
         self.core = PipelineCore(settings, estimator_factory, check_descriptor)
-        self.interlock = Interlock(driver, getattr(settings, "interlock", None))
+        il_settings = getattr(settings, "interlock", None)
+        self.latch_store = latch_store
+        self.interlock = Interlock(driver, il_settings, on_change=latch_store.save if latch_store is not None else None)
+        if latch_store is not None:
+            latch_store._on_error = lambda why: self.fault("latch_store", why)
+            latch_store._on_ok = lambda: self.recover("latch_store")
+        self.on_blind = str(getattr(il_settings, "on_blind", "hold") or "hold")
+        # Every command that changes the machine is recorded here (the sink's Zenoh commands too).
+        self.audit = audit if audit is not None else AuditLog(None, self.machine)
+        alarms = getattr(settings, "alarms", None)
+        self._check = ResetCheck(_limit(alarms, "crash_power_w"), _limit(alarms, "crash_current_a"))
+        self._check_lock = threading.Lock()
+        self._blind_lock = threading.Lock()
+        self._blind_acted: set[str] = set()
+        self._last_seq: int | None = None
+        self._spindle_stopped = False
+        self.last_test_trip: dict[str, Any] | None = None
         self.sink: Any = None
         self.latency = LatencyStats()
         self.clock: SeqClock | None = None
@@ -81,6 +110,7 @@ class Runner:
 
         self.state = "starting"
         self.faults: dict[str, str] = {}
+        self._fault_sources: dict[str, dict[str, str]] = {}  # kind -> {check: reason} (see _signal_source)
         self._fault_lock = threading.Lock()
         self._alarm_lock = threading.Lock()  # the engine is touched by the estimator thread and reset()
         self._stop = threading.Event()
@@ -107,6 +137,7 @@ class Runner:
         if self.driver.descriptor is not None:
             self.core.on_descriptor(self.driver.descriptor)  # ConfigError goes to the caller: exit 78
         self.interlock.start()
+        self._restore_latch()
         targets = [("estimator", self._estimate_loop), ("status", self._status_loop)]
         if self.interlock.enabled:
             targets.append(("heartbeat", self._heartbeat_loop))
@@ -125,6 +156,31 @@ class Runner:
         deadline = time.monotonic() + timeout_s
         for t in self._threads:
             t.join(max(0.0, deadline - time.monotonic()))
+        if self.latch_store is not None:
+            self._safe(self.latch_store.close, max(0.2, deadline - time.monotonic()))
+        self._safe(self.audit.flush)
+
+    def _restore_latch(self) -> None:
+        """A latch persisted by an earlier run is asserted again, and the log says why and since when."""
+        store = self.latch_store
+        if store is None:
+            return
+        state = store.load()
+        store.start()
+        if state is None:
+            return
+        since = state.get("since")
+        since_iso = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(since)) if since else None
+        if not self.interlock.enabled:
+            log.warning("interlock.latch_ignored", reason=state["reason"], since=since, since_iso=since_iso,
+                        detail="a latch persisted by an earlier run, but the interlock is disabled now")
+            return
+        self.interlock.restore(state["reason"], since, state.get("trips", 0))
+        with self._check_lock:
+            self._check.mark(None)  # everything this run sees is newer than the hold
+        log.warning("interlock.latched_at_start", reason=state["reason"], since=since, since_iso=since_iso,
+                    path=str(store.path),
+                    detail="feed hold latched by an earlier run is asserted again until an explicit reset")
 
     # ------------------------------------------------------------------ estimator thread
     def _estimate_loop(self) -> None:
@@ -152,6 +208,9 @@ class Runner:
                     self._on_descriptor(ev)
                 elif isinstance(ev, Status):
                     self.interlock.observe_status(ev)
+                    if self.interlock.device_hold and not self._check.marked:
+                        with self._check_lock:  # a hold we did not set (the watchdog): judged from now on
+                            self._check.mark(self._last_seq)
             except Exception as exc:  # noqa: BLE001 - one bad block must not kill the loop
                 self.fault("estimator", f"{type(exc).__name__}: {exc}", tb=traceback.format_exc())
 
@@ -164,6 +223,7 @@ class Runner:
                 self._on_descriptor(self.driver.descriptor)
             if self.core.estimator is None:
                 self.core.skip(block)  # received but unusable; its known losses still count
+                self._check_blind()
                 return
         if self.clock is None:
             self.clock = SeqClock(self.core.descriptor.sample_rate_hz)
@@ -180,10 +240,23 @@ class Runner:
             step = self.core.process(block)
         if "estimator" in self.faults:
             self.recover("estimator")  # only once a block went through again
+        last_seq = step.last_seq if step.last_seq is not None else block.seq + n - 1
+        self._spindle_stopped = bool(step.spindle_stopped or self.core.spindle_stopped)
+        self._last_seq = last_seq  # a hold that begins now is newer than this block: its data do not count
         interlock_by_event: dict[int, str | None] = {}
         for ev in step.trips:  # feed hold first, before anything is published
-            interlock_by_event[id(ev)] = self.interlock.trip(f"{ev.level} {ev.quantity} {ev.value} > {ev.limit}")
+            interlock_by_event[id(ev)] = self._trip(f"{ev.level} {ev.quantity} {ev.value} > {ev.limit}")
             self.last_trip_ms = round((time.monotonic() - now) * 1e3, 3)  # block handed over → output written
+        for kind, reason in step.faults.items():  # signal plausibility: blind while it lasts
+            self._signal_source(kind, "plausibility", reason)
+        for kind in step.clear_faults:
+            self._signal_source(kind, "plausibility", None)
+        self._check_blind()
+        with self._check_lock:  # evidence for a reset: only what is newer than the hold counts
+            self._check.on_block(block.seq, step.peaks, step.stalled, self._spindle_stopped)
+            for kind, item in step.items:
+                if kind == "estimate":
+                    self._check.on_estimate(item, self.core.alarms.over_limits(item))
         for kind, item in step.items:
             if kind == "estimate":
                 self._check_power(item)
@@ -205,9 +278,22 @@ class Runner:
     def _check_power(self, est: dict) -> None:
         verdict = self.power_check.update(est)
         if verdict:
-            self.fault("signals", verdict)
+            self._signal_source("signals", "wiring", verdict)
         elif verdict == "":
-            self.recover("signals")
+            self._signal_source("signals", "wiring", None)
+
+    def _signal_source(self, kind: str, source: str, reason: str | None) -> None:
+        """One fault kind fed by several checks (`signals`: plausibility and the wiring check):
+        raised while any of them holds it, recovered only when none does."""
+        sources = self._fault_sources.setdefault(kind, {})
+        if reason is None:
+            if sources.pop(source, None) is not None and not sources:
+                self.recover(kind)
+            elif kind in self.faults and not sources:
+                self.recover(kind)
+            return
+        sources[source] = reason
+        self.fault(kind, reason)
 
     def _caught_up(self) -> bool:
         """Is the driver's queue empty, i.e. did this block just arrive?"""
@@ -222,7 +308,50 @@ class Runner:
         self.sink.alarm(payload)
         self.alarms_sent += 1
         self.last_alarm = payload
-        log.warning("alarm", **{k: v for k, v in payload.items() if k != "machine"})
+        # The alarm's kind goes under `alarm_level`: structlog's add_log_level writes the log level
+        # into `level` and would overwrite it (issue 10, finding 7).
+        fields = {k: v for k, v in payload.items() if k not in ("machine", "level")}
+        log.warning("alarm", alarm_level=payload["level"], **fields)
+
+    def _trip(self, reason: str) -> str | None:
+        """Every feed hold goes through here: the interlock's trip, then the mark for the reset check."""
+        trips = self.interlock.trips
+        result = self.interlock.trip(reason)
+        if self.interlock.trips != trips:  # a new latch (not one already held)
+            with self._check_lock:
+                self._check.mark(self._last_seq)
+        return result
+
+    def _check_blind(self) -> None:
+        """on_blind: a blind condition while the spindle turns holds the feed ("hold") or only warns ("alarm").
+
+        The time before the DAQ's first descriptor raises no fault, so it is never blind; a
+        `signals` fault with the spindle stopped waits until it turns. A `descriptor` fault leaves
+        no estimator to say whether it turns: it is blind at once (when in doubt, hold).
+        """
+        if not self.interlock.enabled:
+            return
+        events: list[tuple[AlarmEvent, str | None]] = []
+        with self._blind_lock:
+            for kind in BLIND_KINDS:
+                reason = self.faults.get(kind)
+                if reason is None:
+                    if kind in self._blind_acted:
+                        self._blind_acted.discard(kind)
+                        events.append((AlarmEvent("clear", kind, None, None, None, self._last_seq), None))
+                    continue
+                if kind in self._blind_acted or (kind == "signals" and self._spindle_stopped):
+                    continue
+                self._blind_acted.add(kind)
+                if self.on_blind == "hold":
+                    held = self._trip(f"blind: {kind}: {reason}")
+                    events.append((AlarmEvent("overload", kind, None, None, None, self._last_seq), held))
+                else:
+                    log.warning("interlock.blind_not_held", kind=kind, reason=reason,
+                                detail='[interlock] on_blind = "alarm": the machine runs unwatched')
+                    events.append((AlarmEvent("warning", kind, None, None, None, self._last_seq), None))
+        for ev, held in events:
+            self._safe(self._publish_alarm, ev, held if ev.level != "clear" else self._held())
 
     def _on_link(self, ev: Any) -> None:
         if ev.up:  # the driver logged it (`daq.link_up`, with transport and address)
@@ -266,6 +395,8 @@ class Runner:
         self._safe(lambda: self.interlock.beat(self.healthy()))
         if kind in ("daq_link", "daq_stalled"):
             self._safe(self._daq_alarm, False)
+        if kind in BLIND_KINDS:  # and again per block: a `signals` fault waits for a turning spindle
+            self._safe(self._check_blind)
         self._safe(lambda: self._notify(status=f"degraded: {kind}: {reason}"))
 
     def recover(self, kind: str) -> None:
@@ -278,6 +409,8 @@ class Runner:
         if not remaining and self.state == "degraded":
             self.state = "running"
         log.info("recovered", kind=kind)
+        if kind in BLIND_KINDS:
+            self._safe(self._check_blind)
 
     def _daq_alarm(self, ok: bool) -> None:
         with self._alarm_lock:
@@ -384,6 +517,7 @@ class Runner:
             "interlock_detail": self.interlock.state_dict(),
             "heartbeating": self.interlock.heartbeating,
             "last_trip_ms": self.last_trip_ms,
+            "last_test_trip": self.last_test_trip,
             "alarm": alarm,
             "alarms": alarms,
             "faults": dict(self.faults),
@@ -404,13 +538,110 @@ class Runner:
             return {"machine": self.machine}
         return self._effective_config()
 
-    def reset(self, payload: bytes) -> dict[str, Any]:
-        """`cmd/reset`: clear the latched interlock and the latched alarms (policy permitting)."""
-        result = self.interlock.reset(payload)
+    def reset(self, requester: str = "") -> dict[str, Any]:
+        """Clear the latched interlock and the latched alarms, unless the condition that latched persists.
+
+        The caller has authorised the request (Zenoh: command_auth; local: the socket's peer uid).
+        Refused, with the reason and the `condition`, while data newer than the hold show the
+        condition still there (`ResetCheck`): the feed is never released only to be held again.
+        """
+        if not isinstance(requester, str):  # an older caller handing over the request payload
+            requester = ""
+        il = self.interlock
+        with self._check_lock:
+            held = il.latched or il.device_hold
+            blind = {k: self.faults[k] for k in BLIND_KINDS if k in self.faults}
+            daq = next((f"{k}: {self.faults[k]}" for k in DAQ_FAULTS if k in self.faults), None)
+            if daq is None and not self.driver.link_up:
+                daq = "daq_link: the link is down"
+            refusal = self._check.refusal(il.reason, blind, daq) if held and il.enabled else None
+        if refusal is not None:
+            log.warning("interlock.reset_refused", requester=requester or "unknown", reason=il.reason, **refusal)
+            result = {"ok": False, **refusal, **il.state_dict()}
+            result["alarm"] = self.core.alarms.summary()
+            return result
+        result = il.reset()
         if result.get("ok"):
+            with self._check_lock:
+                self._check.clear()
             with self._alarm_lock:
                 events = self.core.alarms.reset()
             for ev in events:
                 self._safe(self._publish_alarm, ev, None)
         result["alarm"] = self.core.alarms.summary()
         return result
+
+    def test_trip(self, requester: str = "", wait_s: float = TEST_TRIP_WAIT_S) -> dict[str, Any]:
+        """Proof test of the path: feed hold through the same trip as a real alarm, timed to confirmation.
+
+        `daq_confirm_ms`: from the trip to the DAQ's STATUS showing feed hold. On a DAQ that sends
+        CONTEXT (protocol 2, capabilities bit 1) `cnc_confirm_ms`: to the CNC's own "feed held"
+        input, else null. The latch is real: the caller sends a reset afterwards.
+        """
+        il, drv = self.interlock, self.driver
+        if not isinstance(requester, str):
+            requester = ""
+        result: dict[str, Any] = {"ok": False, "daq_confirm_ms": None, "cnc_confirm_ms": None}
+        refusal = None
+        if not il.enabled:
+            refusal = "the interlock is disabled ([interlock] enabled = false)"
+        elif il.latched or il.device_hold:
+            refusal = f"feed hold is already asserted ({il.reason or il.state}): reset first, then test"
+        elif not drv.link_up:
+            refusal = "the DAQ link is down"
+        desc = drv.descriptor
+        cnc = bool(int(getattr(desc, "capabilities", 0) or 0) & CAP_CONTEXT)
+        before_ctx = getattr(drv, "last_context", None)
+        if refusal is None and cnc and before_ctx is not None and getattr(before_ctx, "feed_held", False):
+            refusal = "the CNC already reports feed held: nothing to measure"
+        if refusal is not None:
+            log.warning("interlock.test_trip_refused", requester=requester or "unknown", error=refusal)
+            return {**result, "error": refusal, "interlock": il.state, "interlock_detail": il.state_dict()}
+        before_status = drv.last_status
+        t0 = time.monotonic()
+        written = self._trip(TEST_TRIP)
+        log.warning("interlock.test_trip", requester=requester or "unknown", written=written)
+
+        def status_held() -> bool:
+            st = drv.last_status
+            return st is not None and st is not before_status and bool(getattr(st, "feed_hold", False))
+
+        def cnc_held() -> bool:
+            ctx = getattr(drv, "last_context", None)
+            return ctx is not None and ctx is not before_ctx and bool(getattr(ctx, "feed_held", False))
+
+        result["daq_confirm_ms"] = _wait_ms(status_held, t0, wait_s)
+        if cnc:
+            result["cnc_confirm_ms"] = _wait_ms(cnc_held, t0, wait_s)
+        result["cnc_reports_hold"] = cnc
+        result["ok"] = bool(written == "feed_hold" and result["daq_confirm_ms"] is not None
+                            and (not cnc or result["cnc_confirm_ms"] is not None))
+        if not result["ok"]:
+            if written != "feed_hold":
+                result["error"] = "the DAQ did not take the feed-hold command"
+            elif result["daq_confirm_ms"] is None:
+                result["error"] = f"the DAQ's status did not show feed hold within {wait_s:g} s"
+            else:
+                result["error"] = f"the CNC did not report feed held within {wait_s:g} s"
+        result["interlock"] = il.state
+        result["interlock_detail"] = il.state_dict()
+        self.last_test_trip = {k: result[k] for k in ("ok", "daq_confirm_ms", "cnc_confirm_ms")} | {"t": time.time()}
+        log.info("interlock.test_trip_result", requester=requester or "unknown",
+                 **{k: v for k, v in result.items() if k != "interlock_detail"})
+        return result
+
+
+def _wait_ms(done: Callable[[], bool], t0: float, wait_s: float) -> float | None:
+    """Milliseconds from `t0` until `done()`, polled every half millisecond; None if not within wait_s."""
+    while True:
+        now = time.monotonic()
+        if done():
+            return round((now - t0) * 1e3, 2)
+        if now - t0 > wait_s:
+            return None
+        time.sleep(0.0005)
+
+
+def _limit(section: Any, name: str) -> float | None:
+    value = getattr(section, name, None) if section is not None else None
+    return None if value is None else float(value)

@@ -13,6 +13,11 @@ from typing import Any
 
 JSON_ENCODING = "application/json"
 
+# The largest query payload the daemon reads. Every request it understands is
+# under 1 KiB; a larger one is refused by its length, before any parsing, so a
+# flood of 100 KB queries costs one length check each.
+MAX_QUERY_BYTES = 4096
+
 
 def _plain(value: Any) -> Any:
     """numpy scalars and arrays → Python values (used by json.dumps' `default`)."""

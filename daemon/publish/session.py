@@ -7,8 +7,23 @@ inside `zenoh.open` ("Unable to connect to any of [...]"), so the daemon retries
 with a doubling back-off and says once that it is waiting; a *peer* opens
 anyway and finds its peers later.
 
+Bounds on what a remote node can make this process allocate are applied to
+every session (docs/security.md, "Floods and memory"):
+
+- Zenoh shared memory is off unless `[zenoh] shared_memory = true`. With it
+  on, every local peer that sends a large enough query makes this process map
+  that peer's 16 MB segment, never given back (issue 11, finding 5).
+- A peer or client reassembles a fragmented message of at most
+  `MAX_MESSAGE_BYTES` (Zenoh's default is 1 GiB per priority and per link);
+  a bigger one is dropped inside Zenoh, the link stays up.
+- A peer accepts at most `MAX_PEER_SESSIONS` sessions (Zenoh: 1000).
+A session in mode "router" keeps Zenoh's limits: it relays other nodes'
+traffic, and its limits are the plant's to set in its JSON5 file.
+A JSON5 `config_file` that sets one of the last two to something other than
+Zenoh's default keeps its value: a plant that needs more says so there.
+
 Settings are duck-typed: anything with `mode`, `connect`, `listen`,
-`config_file`, `multicast_scouting` attributes (the pydantic `ZenohSettings`
+`config_file`, `multicast_scouting`, `shared_memory` attributes (the pydantic `ZenohSettings`
 of `millsense.daemon.config`, or a `SimpleNamespace` in a test). A missing
 attribute takes the documented default.
 """
@@ -33,7 +48,21 @@ _DEFAULTS: dict[str, Any] = {
     "listen": (),
     "config_file": "",
     "multicast_scouting": True,
+    "shared_memory": False,
 }
+
+# Largest message this process reassembles. The daemon receives only queries (a command or status request
+# is a few hundred bytes; the command queryables refuse bodies over a few KB before parsing) and
+# declarations; `watch` receives estimates of about 1 KB. 1 MiB leaves room and caps a hostile peer at
+# 1 MiB per reassembly buffer instead of 1 GiB.
+MAX_MESSAGE_BYTES = 1 << 20
+# Sessions a peer accepts. A machine's daemon serves a handful of HMIs, a historian and an operator
+# console directly, or one router; 64 keeps room for that while bounding per-session buffers
+# (each holds at least a 64 KB receive buffer).
+MAX_PEER_SESSIONS = 64
+# Zenoh 1.10's own defaults for the two bounds above (a JSON5 file that changed them wins).
+_ZENOH_DEFAULT_MAX_MESSAGE = 1 << 30
+_ZENOH_DEFAULT_MAX_SESSIONS = 1000
 
 
 class ZenohConfigError(ValueError):
@@ -70,7 +99,8 @@ def zenoh_config(zenoh_settings: Any) -> zenoh.Config:
     """Build a `zenoh.Config`: the JSON5 file first, the explicit keys merged over it.
 
     Keys set from settings: `mode`, `connect/endpoints`, `listen/endpoints`,
-    `scouting/multicast/enabled`. Raises `ZenohConfigError` naming the key.
+    `scouting/multicast/enabled`, `transport/shared_memory/enabled`; then the
+    allocation bounds (module docstring). Raises `ZenohConfigError` naming the key.
     """
     zs = zenoh_settings_of(zenoh_settings)
     config_file = str(_field(zs, "config_file") or "")
@@ -98,7 +128,23 @@ def zenoh_config(zenoh_settings: Any) -> zenoh.Config:
 
     if not config_file or _explicit(zs, "multicast_scouting"):
         _insert(conf, "scouting/multicast/enabled", "zenoh.multicast_scouting", bool(_field(zs, "multicast_scouting")))
+    # Always from the TOML key (default off): Zenoh's own default is on, so a JSON5 file cannot say "on" apart
+    # from "not mentioned", and the safe reading of silence is off.
+    _insert(conf, "transport/shared_memory/enabled", "zenoh.shared_memory", bool(_field(zs, "shared_memory")))
+    # A router relays other nodes' traffic: its limits are the plant's to set in its own JSON5 file.
+    # A client has one session (its router), so only a peer needs the session bound.
+    final_mode = json.loads(conf.get_json("mode"))
+    if final_mode != "router":
+        _bound(conf, "transport/link/rx/max_message_size", _ZENOH_DEFAULT_MAX_MESSAGE, MAX_MESSAGE_BYTES)
+    if final_mode == "peer":
+        _bound(conf, "transport/unicast/max_sessions", _ZENOH_DEFAULT_MAX_SESSIONS, MAX_PEER_SESSIONS)
     return conf
+
+
+def _bound(conf: zenoh.Config, key: str, zenoh_default: int, bound: int) -> None:
+    """Set `key` to `bound` unless a JSON5 file already chose a value other than Zenoh's default."""
+    if json.loads(conf.get_json(key)) == zenoh_default:
+        conf.insert_json5(key, json.dumps(bound))
 
 
 def _insert(conf: zenoh.Config, key: str, setting: str, value: Any) -> None:
@@ -117,6 +163,7 @@ def describe(zenoh_settings: Any) -> dict[str, Any]:
         "listen": list(_field(zs, "listen")),
         "multicast_scouting": bool(_field(zs, "multicast_scouting")),
         "config_file": str(_field(zs, "config_file") or "") or None,
+        "shared_memory": bool(_field(zs, "shared_memory")),
     }
 
 

@@ -14,12 +14,15 @@ Keys (interfaces.md), prefix `millsense/<machine>`:
 | `alarm` | publisher, CongestionControl.BLOCK, Priority.REAL_TIME, express |
 | `status` | publisher (DROP) and queryable |
 | `config` | queryable: `controls.config()` |
-| `cmd/reset` | queryable: `controls.reset(payload)` → the new interlock state |
+| `cmd/reset`, `cmd/test-trip` | queryables: the challenge–response of command_auth.py, then `controls.reset(requester=...)` / `controls.test_trip(requester=...)` |
 | `alive` | liveliness token |
 
-Queryable callbacks run on Zenoh's threads. Whatever a query carries and
-whatever `controls` raises, the answer is a JSON error reply, never an
-exception escaping into Zenoh.
+The queryables take bounded ring channels and are served by one worker thread
+(daemon/publish/queryables.py), so a query flood is dropped inside Zenoh and
+never starves the heartbeat. Whatever a query carries and whatever `controls`
+raises, the answer is a JSON reply, never an exception escaping into Zenoh.
+The command policy and token come from `controls.settings.interlock` (the
+Runner's), unless `command_policy` / `command_token` are given.
 """
 
 from __future__ import annotations
@@ -31,7 +34,10 @@ from typing import Any, Protocol
 
 import zenoh
 
-from millsense.daemon.publish.payload import JSON_ENCODING, dumps, loads_object
+from millsense.daemon.audit import AuditLog
+from millsense.daemon.publish.command_auth import CommandGate, policy_and_token
+from millsense.daemon.publish.payload import dumps
+from millsense.daemon.publish.queryables import QueryServer
 
 
 class Controls(Protocol):
@@ -39,7 +45,18 @@ class Controls(Protocol):
 
     def status(self) -> dict: ...
     def config(self) -> dict: ...
-    def reset(self, payload: bytes) -> dict: ...
+    def reset(self, requester: str = "") -> dict: ...
+    # optional: test_trip(requester="") -> dict (then `cmd/test-trip` is declared);
+    # `settings.interlock` (reset policy and token); `audit` (an AuditLog)
+
+
+def _no_args(name: str, method: Any) -> Any:
+    def run(args: dict, requester: str) -> dict:
+        if args:
+            raise ValueError(f"{name} takes no args (got {', '.join(sorted(args))})")
+        return method(requester=requester)
+
+    return run
 
 
 def key_prefix(machine: str) -> str:
@@ -50,12 +67,11 @@ _ESTIMATE, _STATUS = 0, 1
 
 
 class ZenohSink:
-    """Publishes estimates, alarms and status; answers status/config/cmd-reset queries.
+    """Publishes estimates, alarms and status; answers status/config/cmd queries.
 
     `session`: an open `zenoh.Session` (the caller owns it and closes it after
-    `close()`). `controls`: an object with `status()`, `config()` and
-    `reset(payload: bytes)`, or None (then `config` and `cmd/reset` reply with
-    an error and `status` with the latest published status).
+    `close()`). `controls`: a `Controls` or None (then `config` and `cmd/reset`
+    reply with an error and `status` with the latest published status).
     `queue_size`: how many estimates/status may wait before the oldest is dropped.
     `expects_router`: the session is a client, so having no router is worth a warning.
     """
@@ -70,6 +86,8 @@ class ZenohSink:
         close_timeout_s: float = 2.0,
         log: Any = None,
         expects_router: bool = False,
+        command_policy: str | None = None,
+        command_token: str | None = None,
     ) -> None:
         if queue_size < 1:
             raise ValueError("queue_size must be >= 1")
@@ -95,8 +113,13 @@ class ZenohSink:
         self._alarms_published = 0
         self._dropped = 0
         self._errors = 0
-        self._queries = 0
-        self._query_errors = 0
+        self._queries: QueryServer | None = None
+        if controls is None:
+            self.gate: CommandGate | None = None
+        else:
+            policy, token = (command_policy, command_token or "") if command_policy else policy_and_token(controls)
+            audit = getattr(controls, "audit", None) or AuditLog(None, machine)
+            self.gate = CommandGate(machine, policy, token, audit)
 
         encoding = zenoh.Encoding.APPLICATION_JSON
         self._declared: list[Any] = []
@@ -128,11 +151,13 @@ class ZenohSink:
                     express=False,
                 )
             )
-            self._keep(session.declare_queryable(f"{self.prefix}/status", self._on_status_query))
-            self._keep(session.declare_queryable(f"{self.prefix}/config", self._on_config_query))
-            self._keep(session.declare_queryable(f"{self.prefix}/cmd/reset", self._on_reset_query))
+            self._queries = QueryServer(session, self.prefix, status=self._status_answer, config=self._config_answer,
+                                        commands=self._commands(controls), gate=self.gate, log=log,
+                                        cache_status=controls is not None)
             self._token = self._keep(session.liveliness().declare_token(f"{self.prefix}/alive"))
         except BaseException:
+            if self._queries is not None:
+                self._queries.close()
             self._undeclare_all()
             raise
 
@@ -192,6 +217,8 @@ class ZenohSink:
         self._wake.set()
         self._thread.join(self._close_timeout_s)
         self._closed = True
+        if self._queries is not None:
+            self._queries.close(self._close_timeout_s)
         self._undeclare_all()
 
     def __enter__(self) -> ZenohSink:
@@ -235,8 +262,7 @@ class ZenohSink:
             "queue_depth": len(self._queue),
             "alarm_queue_depth": len(self._alarms),
             "publish_errors": self._errors,
-            "queries": self._queries,
-            "query_errors": self._query_errors,
+            **(self._queries.stats() if self._queries is not None else {}),
         }
 
     # ---- publisher thread ----------------------------------------------------------
@@ -273,61 +299,31 @@ class ZenohSink:
         else:
             self._published += 1
 
-    # ---- queryables (called on Zenoh threads) -------------------------------------------
+    # ---- what the queryables answer (called on the query worker, daemon/publish/queryables.py) ----
 
-    def _on_status_query(self, query: zenoh.Query) -> None:
-        def answer() -> dict:
-            if self._controls is not None:
-                return self._controls.status()
-            if self._latest_status is None:
-                raise LookupError("no status published yet")
-            return self._latest_status
+    def _status_answer(self) -> dict:
+        if self._controls is not None:
+            return self._controls.status()
+        if self._latest_status is None:
+            raise LookupError("no status published yet")
+        return self._latest_status
 
-        self._answer(query, f"{self.prefix}/status", answer)
+    def _config_answer(self) -> dict:
+        if self._controls is None:
+            raise LookupError("this daemon exposes no configuration")
+        return self._controls.config()
 
-    def _on_config_query(self, query: zenoh.Query) -> None:
-        def answer() -> dict:
-            if self._controls is None:
-                raise LookupError("this daemon exposes no configuration")
-            return self._controls.config()
-
-        self._answer(query, f"{self.prefix}/config", answer)
-
-    def _on_reset_query(self, query: zenoh.Query) -> None:
-        def answer() -> dict:
-            if self._controls is None:
-                raise LookupError("this daemon has no interlock to reset")
-            payload = query.payload
-            data = payload.to_bytes() if payload is not None else b""
-            if data.strip():
-                loads_object(data)  # refuse garbage here, with the reason, before the interlock sees it
-            else:
-                data = b""  # blank means "no token": one spelling for the interlock
-            result = self._controls.reset(data)
-            self._info("interlock.reset_requested", result=result)
-            return result
-
-        self._answer(query, f"{self.prefix}/cmd/reset", answer)
-
-    def _answer(self, query: zenoh.Query, key: str, produce: Any) -> None:
-        self._queries += 1
-        try:
-            with query:
-                try:
-                    result = produce()
-                    if not isinstance(result, dict):
-                        raise TypeError(f"controls returned {type(result).__name__}, expected a dict")
-                    body = dumps(result)
-                except Exception as exc:  # noqa: BLE001 - a query must never kill the daemon
-                    self._query_errors += 1
-                    reason = str(exc) if isinstance(exc, (ValueError, LookupError)) else f"{type(exc).__name__}: {exc}"
-                    self._warn("zenoh.query_refused", key=key, error=reason)
-                    query.reply_err(dumps({"ok": False, "error": reason}), encoding=JSON_ENCODING)
-                    return
-                query.reply(key, body, encoding=JSON_ENCODING)
-        except Exception as exc:  # noqa: BLE001 - the querier went away, or the session closed
-            self._query_errors += 1
-            self._warn("zenoh.reply_failed", key=key, error=f"{type(exc).__name__}: {exc}")
+    @staticmethod
+    def _commands(controls: Any) -> dict[str, Any]:
+        """`cmd/<name>` -> run(args, requester), for what `controls` can do; args are refused (none is taken)."""
+        if controls is None:
+            return {}
+        out = {}
+        for name, attr in (("reset", "reset"), ("test-trip", "test_trip")):
+            method = getattr(controls, attr, None)
+            if callable(method):
+                out[name] = _no_args(name, method)
+        return out
 
     # ---- teardown and logging ------------------------------------------------------
 

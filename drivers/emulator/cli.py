@@ -27,6 +27,37 @@ def _non_negative(text: str) -> float:
     return value
 
 
+def _uint(lo: int, hi: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"expected a whole number within {lo}..{hi}, got {text!r}")
+        return value
+
+    return parse
+
+
+def _pin(text: str) -> tuple[str, int]:
+    name, sep, count = text.partition("=")
+    try:
+        value = int(count)
+    except ValueError:
+        value = None
+    if not sep or not name or value is None or not -32768 <= value <= 32767:
+        raise argparse.ArgumentTypeError(f"expected CHANNEL=COUNT with COUNT in -32768..32767, got {text!r}")
+    return name, value
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a value > 0, got {text!r}")
+    return value
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", default=None, help="scenario to play ('ramp': a synthetic test ramp)")
     parser.add_argument("--list", action="store_true", help="list the scenarios and exit")
@@ -61,6 +92,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--start-index", type=int, default=0, help="index of the first sample (to test the wrap)")
     parser.add_argument("--ring-depth", type=int, default=4096, help="Modbus ring depth D in samples")
     parser.add_argument("--per-frame", type=int, default=10, help="samples per SAMPLES frame")
+    # sensor and DAQ faults (fault tests): drivers/sim/sensors.py SensorFaults
+    parser.add_argument("--pin", type=_pin, action="append", metavar="CHANNEL=COUNT",
+                        help="a stuck sensor: CHANNEL reads COUNT in every sample (repeatable)")
+    parser.add_argument("--current-gain", type=_positive, default=None, metavar="K",
+                        help="current sensors give K times their datasheet's counts (large K: clipped at the int16 rails)")
+    parser.add_argument("--clip-currents", type=_uint(1, 32767), default=None, metavar="COUNTS",
+                        help="current sensors saturate at +-COUNTS")
+    parser.add_argument("--descriptor-rate", type=_uint(1, 65535), default=None, metavar="HZ",
+                        help="the DESCRIPTOR claims HZ while the samples keep their true rate")
+    # protocol version 2: the simulated CNC beside the DAQ (context, feed held, feed override)
+    parser.add_argument("--protocol", type=int, choices=(1, 2), default=1, help="DAQ protocol version (default 1)")
+    parser.add_argument("--unit", type=_uint(1, 247), default=1, help="Modbus unit id the device answers (default 1)")
+    parser.add_argument("--program", type=_uint(0, 2**32 - 1), default=0, help="protocol 2: the CNC's program number")
+    parser.add_argument("--tool", type=_uint(0, 2**32 - 1), default=0, help="protocol 2: the tool in the spindle")
+    parser.add_argument("--operation", type=_uint(0, 65535), default=0, help="protocol 2: the operation number")
+    parser.add_argument("--cnc-hold-lag-ms", type=_non_negative, default=30.0, metavar="MS",
+                        help="protocol 2: how long after the feed-hold output the CNC reports the feed held (30)")
 
 
 def run(args: argparse.Namespace) -> int:

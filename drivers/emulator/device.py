@@ -3,25 +3,45 @@
 Every server (pty, TCP, Modbus, in-process) drives one ``DeviceModel``; time is
 passed in (``now`` from ``time.monotonic()``) so the watchdog logic is testable
 with a fake clock.
+
+Protocol version 2 adds a simulated CNC beside the DAQ: its context (program,
+tool, operation; cycle and monitoring on) and its "feed held" input, which
+follows the DAQ's feed-hold output ``cnc_hold_lag_s`` later, as a real CNC
+answers its feed-hold input after its own scan time; and the feed-override
+output, which the device returns to 100.0 % when its watchdog trips. The
+plant's feed rate does not follow the override here: the value is carried only.
 """
 
 from __future__ import annotations
 
+import collections
 import json
 import time
+from dataclasses import replace
 from typing import IO
 
 import numpy as np
 
 from millsense.drivers.protocol import (
+    CAP_CONTEXT,
+    CAP_FEED_OVERRIDE,
     CMD_HEARTBEAT,
+    CMD_SET_FEED_OVERRIDE,
     CMD_SET_OUTPUTS,
+    CTX_CYCLE,
+    CTX_FEED_HELD,
+    CTX_MONITOR,
+    FEED_OVERRIDE_MAX,
+    FEED_OVERRIDE_NEUTRAL,
     FLAG_WATCHDOG,
     INDEX_MOD,
     OUT_FEED_HOLD,
     Command,
+    Context,
     Status,
 )
+
+PROTOCOLS = (1, 2)
 
 
 class StatusLog:
@@ -53,9 +73,20 @@ class DeviceModel:
         ring_depth: int = 4096,
         watchdog_ms: int = 0,
         status_log: StatusLog | None = None,
+        protocol: int = 1,
+        program: int = 0,
+        tool: int = 0,
+        operation: int = 0,
+        cnc_hold_lag_ms: float = 30.0,
     ) -> None:
+        if protocol not in PROTOCOLS:
+            raise ValueError(f"protocol version {protocol} not one of {PROTOCOLS}")
         self.source = source
+        self.protocol = protocol
+        self.capabilities = CAP_FEED_OVERRIDE | CAP_CONTEXT if protocol >= 2 else 0
         self.descriptor = source.descriptor
+        if protocol >= 2:
+            self.descriptor = replace(source.descriptor, protocol_version=protocol, capabilities=self.capabilities)
         self.channel_count = self.descriptor.channel_count
         self.sample_rate_hz = self.descriptor.sample_rate_hz
         self.ring_depth = ring_depth
@@ -76,6 +107,16 @@ class DeviceModel:
         self._last_heartbeat_time = 0.0
         self._heard_heartbeat = False
         self.log = status_log or StatusLog(None)
+        # version 2: the feed override and the simulated CNC's context
+        self.feed_override = FEED_OVERRIDE_NEUTRAL  # a restart starts at 100.0 %
+        self.program = program
+        self.tool = tool
+        self.operation = operation
+        self.cnc_flags = CTX_CYCLE | CTX_MONITOR
+        self.context_index = self.head  # the first sample index at which the context holds
+        self.cnc_hold_lag_s = max(0.0, cnc_hold_lag_ms) / 1000.0
+        self._cnc_pending: collections.deque[tuple[float, bool]] = collections.deque()
+        self._cnc_target = False  # what the CNC will report once the pending changes are through
 
     # -- samples --------------------------------------------------------------
 
@@ -97,7 +138,56 @@ class DeviceModel:
     # -- outputs and watchdog -------------------------------------------------
 
     def status(self) -> Status:
+        if self.protocol >= 2:
+            return Status(self.outputs, self.flags, self.last_heartbeat, self.feed_override)
         return Status(self.outputs, self.flags, self.last_heartbeat)
+
+    # -- version 2: feed override and the CNC ----------------------------------
+
+    def context(self) -> Context | None:
+        if self.protocol < 2:
+            return None
+        return Context(self.context_index, self.program, self.tool, self.operation, self.cnc_flags)
+
+    @property
+    def cnc_feed_held(self) -> bool:
+        return bool(self.cnc_flags & CTX_FEED_HELD)
+
+    def set_feed_override(self, tenths: int, now: float, cause: str = "command") -> bool:
+        """Set the override (0.1 % steps); False if out of 0..2000 (refused) or no such output."""
+        if self.protocol < 2:
+            return False
+        if not 0 <= tenths <= FEED_OVERRIDE_MAX:
+            self.log.write("feed_override_refused", now, value=tenths, cause=cause)
+            return False
+        if tenths != self.feed_override:
+            self.feed_override = tenths
+            self.log.write("feed_override", now, feed_override=tenths, cause=cause)
+        return True
+
+    def _feed_hold_changed(self, now: float) -> None:
+        """The feed-hold output may have changed: the CNC follows it after its lag."""
+        held = self.feed_hold
+        if self.protocol >= 2 and held != self._cnc_target:
+            self._cnc_target = held
+            self._cnc_pending.append((now + self.cnc_hold_lag_s, held))
+
+    def next_cnc_time(self) -> float | None:
+        """When the CNC's next pending change is due (monotonic), or None."""
+        return self._cnc_pending[0][0] if self._cnc_pending else None
+
+    def update_cnc(self, now: float) -> bool:
+        """Apply the CNC changes that are due; True if the context changed."""
+        changed = False
+        while self._cnc_pending and self._cnc_pending[0][0] <= now:
+            due, held = self._cnc_pending.popleft()
+            flags = (self.cnc_flags | CTX_FEED_HELD) if held else (self.cnc_flags & ~CTX_FEED_HELD)
+            if flags != self.cnc_flags:
+                self.cnc_flags = flags
+                self.context_index = self.head
+                changed = True
+                self.log.write("cnc_feed_held", now, feed_held=held, due_mono=due, index=self.head)
+        return changed
 
     @property
     def feed_hold(self) -> bool:
@@ -113,6 +203,7 @@ class DeviceModel:
         self.source.feed_hold = bool(bits & OUT_FEED_HOLD)
         if changed:
             self._log_outputs(now, cause)
+        self._feed_hold_changed(now)
         return bool(changed)
 
     def heartbeat(self, counter: int, now: float) -> None:
@@ -148,6 +239,9 @@ class DeviceModel:
         self.flags |= FLAG_WATCHDOG
         self.source.feed_hold = True
         self._log_outputs(now, "watchdog", last_heartbeat_mono=self._last_heartbeat_time)
+        self._feed_hold_changed(now)
+        # a silent host must not leave the machine at a feed it chose
+        self.set_feed_override(FEED_OVERRIDE_NEUTRAL, now, cause="watchdog")
         return True
 
     def apply_command(self, cmd: Command, now: float) -> bool:
@@ -156,6 +250,8 @@ class DeviceModel:
             return self.set_outputs(cmd.argument or 0, now)
         if cmd.command == CMD_HEARTBEAT:
             self.heartbeat(cmd.argument or 0, now)
+        elif cmd.command == CMD_SET_FEED_OVERRIDE:
+            self.set_feed_override(cmd.argument or 0, now)
         return False
 
     def _log_outputs(self, now: float, cause: str, **extra) -> None:

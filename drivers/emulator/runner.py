@@ -36,6 +36,7 @@ def serve(args) -> int:
         )
     except SourceError as exc:
         raise EmulatorError(str(exc), 2) from exc
+    source = _with_sensor_faults(source, args)
     if args.ring_depth < 1:
         raise EmulatorError("--ring-depth must be at least 1", 2)
     status_log = StatusLog(args.status_log)
@@ -45,8 +46,16 @@ def serve(args) -> int:
         ring_depth=args.ring_depth,
         watchdog_ms=args.watchdog_ms,
         status_log=status_log,
+        protocol=args.protocol,
+        program=args.program,
+        tool=args.tool,
+        operation=args.operation,
+        cnc_hold_lag_ms=args.cnc_hold_lag_ms,
     )
-    status_log.write("start", first_index=device.head, scenario=args.scenario)
+    status_log.write("start", first_index=device.head, scenario=args.scenario, protocol=device.protocol,
+                     feed_override=device.feed_override if device.protocol >= 2 else None)
+    # the samples come at the source's true rate, whatever its descriptor claims (--descriptor-rate)
+    device.sample_rate_hz = int(getattr(source, "sample_rate_hz", device.sample_rate_hz))
     rate = device.sample_rate_hz
     duration_samples = None
     if args.duration_s is not None:
@@ -69,18 +78,35 @@ def serve(args) -> int:
     return code
 
 
+def _with_sensor_faults(source, args):
+    """--pin, --current-gain, --clip-currents, --descriptor-rate: the sensors or the DAQ gone wrong."""
+    pin = dict(getattr(args, "pin", None) or [])
+    gain = getattr(args, "current_gain", None)
+    clip = getattr(args, "clip_currents", None)
+    rate = getattr(args, "descriptor_rate", None)
+    if not pin and gain is None and clip is None and rate is None:
+        return source
+    from millsense.drivers.sim.sensors import SensorFaults
+
+    try:
+        return SensorFaults(source, pin=pin, current_gain=gain, clip_currents=clip, descriptor_rate_hz=rate)
+    except ValueError as exc:
+        raise EmulatorError(str(exc), 2) from exc
+
+
 async def _main(args, device, pacer, duration_samples) -> int:
     loop = asyncio.get_running_loop()
     modbus = bool(args.modbus_tcp or args.modbus_rtu)
     if args.modbus_tcp:
         from millsense.drivers.emulator.modbus_server import ModbusDeviceServer
 
-        server = ModbusDeviceServer(device, pacer, *args.modbus_tcp, duration_samples=duration_samples)
+        server = ModbusDeviceServer(device, pacer, *args.modbus_tcp, unit=args.unit, duration_samples=duration_samples)
         where = f"modbus-tcp {args.modbus_tcp[0]}:{args.modbus_tcp[1]}"
     elif args.modbus_rtu:
         from millsense.drivers.emulator.modbus_server import ModbusDeviceServer
 
-        server = ModbusDeviceServer(device, pacer, rtu_link=args.modbus_rtu, duration_samples=duration_samples)
+        server = ModbusDeviceServer(device, pacer, rtu_link=args.modbus_rtu, unit=args.unit,
+                                    duration_samples=duration_samples)
         where = f"modbus-rtu {args.modbus_rtu}"
     else:
         from millsense.drivers.emulator.stream_server import StreamServer

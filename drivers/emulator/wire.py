@@ -11,6 +11,7 @@ import numpy as np
 
 from millsense.drivers.protocol import (
     MAX_SAMPLES_PER_FRAME,
+    encode_context,
     encode_descriptor,
     encode_sample_frames,
     encode_samples,
@@ -55,8 +56,16 @@ class WireEmitter:
         return bytes(out)
 
     def descriptor(self, now: float) -> bytes:
+        """The DESCRIPTOR, and on version 2 the CONTEXT with it (both at start, once a second, on request)."""
         self._next_descriptor = now + self.descriptor_period_s
-        return self._maybe_corrupt(encode_descriptor(self.device.descriptor), now, "descriptor")
+        return self._maybe_corrupt(encode_descriptor(self.device.descriptor), now, "descriptor") + self.context(now)
+
+    def context(self, now: float) -> bytes:
+        """The CNC's CONTEXT frame (version 2), b"" on version 1."""
+        ctx = self.device.context()
+        if ctx is None:
+            return b""
+        return self._maybe_corrupt(encode_context(ctx), now, "context")
 
     def status(self, now: float) -> bytes:
         return self._maybe_corrupt(encode_status(self.device.status()), now, "status")

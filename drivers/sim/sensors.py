@@ -11,7 +11,7 @@ aliases into the 1 kHz samples undiminished, as on a real DAQ without one.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import signal
@@ -129,3 +129,70 @@ def encoder_counts(theta_rad: np.ndarray, turns: np.ndarray) -> np.ndarray:
         theta_rad * (ENCODER_COUNTS_PER_REV / (2 * np.pi))
     ).astype(np.int64)
     return (total & 0xFFFF).astype(np.uint16).view(np.int16)
+
+
+class SensorFaults:
+    """A DAQ front end gone wrong, around any sample source (a `Plant`, the ramp): for fault tests.
+
+    What a shop sees on real machines, written from the sensor's side, knowing
+    nothing of how the daemon judges it:
+
+    - `pin` {channel: count}: a stuck sensor or a broken ADC input, every sample
+      the same count;
+    - `current_gain` K: a hall sensor of the wrong rating, K times as many
+      counts per ampere as the datasheet says (with K large the int16 rails
+      clip the currents);
+    - `clip_currents` C: hall sensors saturating at ±C counts;
+    - `descriptor_rate_hz`: a DAQ that announces another rate than it samples at
+      (the samples keep coming at the true rate).
+
+    Everything else (feed hold, truth, history, duration) is the source's.
+    """
+
+    def __init__(self, source, *, pin: dict[str, int] | None = None, current_gain: float | None = None,
+                 clip_currents: int | None = None, descriptor_rate_hz: int | None = None) -> None:
+        object.__setattr__(self, "_source", source)
+        desc = source.descriptor
+        names = [ch.name for ch in desc.channels]
+        pin = dict(pin or {})
+        unknown = [n for n in pin if n not in names]
+        if unknown:
+            raise ValueError(f"cannot pin {', '.join(unknown)}: the DAQ sends {', '.join(names)}")
+        for name, count in pin.items():
+            if not INT16_MIN <= int(count) <= INT16_MAX:
+                raise ValueError(f"pin {name}={count}: a count is {INT16_MIN}..{INT16_MAX}")
+        if clip_currents is not None and not 0 < int(clip_currents) <= INT16_MAX:
+            raise ValueError(f"clip-currents {clip_currents}: counts 1..{INT16_MAX}")
+        if current_gain is not None and not current_gain > 0:
+            raise ValueError(f"current gain {current_gain}: must be > 0")
+        currents = [k for k, ch in enumerate(desc.channels) if ChannelKind(ch.kind) == ChannelKind.CURRENT]
+        state = {
+            "_pin": [(names.index(n), int(c)) for n, c in pin.items()],
+            "_currents": np.array(currents, dtype=np.intp),
+            "_gain": None if current_gain is None else float(current_gain),
+            "_clip": None if clip_currents is None else int(clip_currents),
+            "descriptor": desc if descriptor_rate_hz is None else replace(desc, sample_rate_hz=int(descriptor_rate_hz)),
+            "sample_rate_hz": desc.sample_rate_hz,   # the rate the samples really come at
+        }
+        for key, value in state.items():
+            object.__setattr__(self, key, value)
+
+    def step(self, n: int) -> np.ndarray:
+        counts = np.array(self._source.step(n), dtype=np.int16)
+        cur = self._currents
+        if len(cur) and (self._gain is not None or self._clip is not None):
+            x = counts[:, cur].astype(np.float64)
+            if self._gain is not None:
+                x = np.rint(x * self._gain)
+            top = self._clip if self._clip is not None else INT16_MAX
+            bottom = -self._clip if self._clip is not None else INT16_MIN
+            counts[:, cur] = np.clip(x, bottom, top).astype(np.int16)
+        for col, count in self._pin:
+            counts[:, col] = count
+        return counts
+
+    def __getattr__(self, name):
+        return getattr(self._source, name)
+
+    def __setattr__(self, name, value):
+        setattr(self._source, name, value)   # feed_hold from the device goes to the machine

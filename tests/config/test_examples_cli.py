@@ -1,8 +1,17 @@
-"""Every shipped example validates; `millsense check-config` as a real subprocess."""
+"""Every shipped example validates; `millsense check-config` as a real subprocess.
+
+Examples that take commands over the network name a reset token file next to
+themselves (a relative `reset_token_file`). The repository ships no secret,
+so as shipped they are refused until the token is made; the tests install a
+copy the way systemd/install.sh does (the file copied verbatim, a token of
+43 random characters beside it, mode 0600) and check that copy.
+"""
 
 from __future__ import annotations
 
 import re
+import secrets
+import shutil
 import subprocess
 import tomllib
 from pathlib import Path
@@ -10,9 +19,29 @@ from pathlib import Path
 import pytest
 
 from millsense.daemon.config import demo_config, load_config
+from millsense.daemon.config_models import loopback_only
 from tests.config.helpers import REPO, base, dumps, write
 
 EXAMPLES = sorted((REPO / "config").glob("*.toml"))
+# What `check-config` may print as warnings for each installed example (daemon/config_warnings.py):
+# nothing. A shipped file that needs a warning is a shipped file to fix.
+EXPECTED_WARNINGS: dict[str, list[str]] = {p.name: [] for p in EXAMPLES}
+
+
+def install(example: Path, etc: Path) -> Path:
+    """Copy `example` into `etc` unchanged and make the token file it names, as install.sh would."""
+    etc.mkdir(exist_ok=True)
+    target = etc / example.name
+    shutil.copyfile(example, target)
+    target.chmod(0o640)
+    token_file = tomllib.loads(example.read_text()).get("interlock", {}).get("reset_token_file")
+    if token_file:
+        path = Path(token_file)
+        assert not path.is_absolute(), f"{example.name}: keep the token path relative, next to the config"
+        token = etc / path
+        token.write_text(secrets.token_urlsafe(32) + "\n")  # what `millsense token new` makes: 256 bits
+        token.chmod(0o600)
+    return target
 # docs/architecture.md, "Simulated sensors": physical = (raw - offset) * scale
 SIM_SCALES = {"v_uv": 0.02, "v_vw": 0.02, "v_wu": 0.02, "i_u": 0.002, "i_v": 0.002, "i_w": 0.002,
               "sp_rpm": 0.1, "mot_rpm": 0.2, "ix_feed": 0.001, "fx_rate": 0.1, "fx": 0.5, "fy": 0.5, "fz": 0.5}
@@ -29,8 +58,8 @@ def test_the_expected_examples_exist():
 
 
 @pytest.mark.parametrize("path", EXAMPLES + [REPO / "daemon" / "demo.toml"], ids=lambda p: p.name)
-def test_example_validates_and_uses_the_simulated_sensor_scales(path):
-    s = load_config(path)
+def test_example_validates_and_uses_the_simulated_sensor_scales(path, tmp_path):
+    s = load_config(install(path, tmp_path / "etc"))
     for name, ch in s.channels.items():
         if name == "sp_enc":
             assert ch.counts_per_rev == 4096
@@ -38,8 +67,8 @@ def test_example_validates_and_uses_the_simulated_sensor_scales(path):
             assert ch.scale == SIM_SCALES[name] and ch.offset == 0, name
 
 
-def test_paper_set_ups():
-    p = load_config(REPO / "config" / "mch10-spindle-power.toml")
+def test_paper_set_ups(tmp_path):
+    p = load_config(install(REPO / "config" / "mch10-spindle-power.toml", tmp_path / "etc"))
     assert (p.tool.diameter_mm, p.tool.flutes, p.motor.winding, p.motor.stator_resistance_ohm, p.motor.pole_pairs) == (
         20.0, 2, "delta", 0.349, 2)
     assert [(g.ratio, g.max_spindle_rpm, g.friction_torque_nm, g.viscous_nms) for g in p.gears] == [
@@ -51,7 +80,7 @@ def test_paper_set_ups():
         646.08, -0.4362, 0.2201, -0.2667, 0.1244, 0.1702)  # [D] Table 2
     ff = d.feed_force["ix_feed"]
     assert (ff.newton_per_amp, ff.friction_n) == (950.0, 120.0)
-    assert load_config(REPO / "config" / "modbus.toml").daq.transport == "modbus-tcp"
+    assert load_config(install(REPO / "config" / "modbus.toml", tmp_path / "etc")).daq.transport == "modbus-tcp"
     assert load_config(REPO / "config" / "serial.toml").daq.transport == "serial"
 
 
@@ -65,12 +94,50 @@ def test_demo_config_is_the_simulated_step_cut_on_loopback():
     assert tomllib.loads((REPO / "daemon" / "demo.toml").read_text())["machine"] == s.machine
 
 
-def test_check_config_accepts_a_good_file(millsense_cmd):
-    path = REPO / "config" / "mch10-spindle-power.toml"
+def test_check_config_accepts_a_good_file(millsense_cmd, tmp_path):
+    path = install(REPO / "config" / "mch10-spindle-power.toml", tmp_path / "etc")
     p = check_config(millsense_cmd, path)
     assert p.returncode == 0, p.stderr
     assert p.stdout.splitlines()[-1].startswith(f"{path}: OK (machine mch10-01, daq serial /dev/ttyACM0, 8 channels, 2 gears")
     assert len(p.stdout.splitlines()) == 1 and p.stderr == ""
+
+
+@pytest.mark.parametrize("example", EXAMPLES, ids=lambda p: p.name)
+def test_installed_example_passes_check_config_with_the_expected_warnings(millsense_cmd, tmp_path, example):
+    path = install(example, tmp_path / "etc")
+    p = check_config(millsense_cmd, path)
+    assert p.returncode == 0, p.stderr
+    lines = p.stdout.splitlines()
+    assert lines[-1].startswith(f"{path}: OK (") and p.stderr == ""
+    warnings = [line.removeprefix("warning: ") for line in lines[:-1]]
+    assert all(line.startswith("warning: ") for line in lines[:-1]), lines
+    assert warnings == EXPECTED_WARNINGS[example.name]
+
+
+@pytest.mark.parametrize("example", EXAMPLES + [REPO / "daemon" / "demo.toml"], ids=lambda p: p.name)
+def test_no_shipped_config_is_open_to_other_hosts(example, tmp_path):
+    # finding 3: mch10-spindle-power.toml listened on 0.0.0.0 with reset = "open", modbus.toml (a router
+    # client) had no reset key
+    s = load_config(install(example, tmp_path / "etc"))
+    if not loopback_only(s.zenoh):
+        assert s.interlock.reset in ("token", "off"), f"{example.name}: reset = {s.interlock.reset!r} off loopback"
+        if s.interlock.reset == "token":
+            assert s.interlock.token(), f"{example.name}: token mode with no token: nobody could reset over Zenoh"
+    else:
+        assert s.interlock.reset in ("open", "token", "off")
+
+
+def test_a_shipped_example_without_its_token_is_refused_and_says_how_to_make_one(millsense_cmd):
+    # As shipped (no secret in the repository) the file must not quietly run open: exit 78, naming the key.
+    needing = [p for p in EXAMPLES if tomllib.loads(p.read_text()).get("interlock", {}).get("reset_token_file")]
+    assert {p.name for p in needing} >= {"mch10-spindle-power.toml", "modbus.toml"}
+    for path in needing:
+        assert "millsense token new --out" in path.read_text(), f"{path.name}: say how to make the token"
+        if (path.parent / tomllib.loads(path.read_text())["interlock"]["reset_token_file"]).exists():
+            continue  # someone made the token in their checkout: nothing to refuse
+        p = check_config(millsense_cmd, path)
+        assert p.returncode == 78, p.stdout
+        assert p.stderr.startswith("interlock.reset_token_file: ") and "does not exist" in p.stderr, p.stderr
 
 
 def test_check_config_lists_every_problem_and_exits_78(millsense_cmd, tmp_path):

@@ -187,3 +187,47 @@ def test_a_plant_scenario_serves_and_writes_its_truth(tmp_path):
     assert sum(len(f.counts) for f in frames if isinstance(f, Samples)) == 2000
     revs = [json.loads(line) for line in truth.read_text().splitlines()]
     assert revs and all("torque_nm" in r or "event" in r for r in revs)
+
+
+def _capture_frames(tmp_path, name, *flags):
+    out = tmp_path / f"{name}.cap"
+    res = subprocess.run([*SIM_CMD, "--scenario", "step", "--capture", str(out), "--duration-s", "2", *flags],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    frames = StreamDecoder().feed(out.read_bytes())
+    desc = next(f for f in frames if isinstance(f, Descriptor))
+    counts = np.concatenate([f.counts for f in frames if isinstance(f, Samples)])
+    return desc, counts
+
+
+def test_sensor_fault_flags_change_only_what_they_say(tmp_path):
+    desc, clean = _capture_frames(tmp_path, "clean")
+    col = {ch.name: k for k, ch in enumerate(desc.channels)}
+    cur = [col[n] for n in ("i_u", "i_v", "i_w")]
+    assert np.abs(clean[:, cur]).max() > 1000  # the plant's currents swing thousands of counts
+
+    _, pinned = _capture_frames(tmp_path, "pinned", "--pin", "i_v=1234", "--pin", "sp_enc=-7")
+    assert (pinned[:, col["i_v"]] == 1234).all() and (pinned[:, col["sp_enc"]] == -7).all()
+    others = [k for k in range(clean.shape[1]) if k not in (col["i_v"], col["sp_enc"])]
+    np.testing.assert_array_equal(pinned[:, others], clean[:, others])  # same seed, same plant
+
+    _, clipped = _capture_frames(tmp_path, "clipped", "--clip-currents", "900")
+    assert np.abs(clipped[:, cur]).max() == 900
+    np.testing.assert_array_equal(clipped[:, cur], np.clip(clean[:, cur], -900, 900))
+
+    _, gained = _capture_frames(tmp_path, "gained", "--current-gain", "20")
+    assert gained[:, cur].max() == 32767 and gained[:, cur].min() == -32768
+
+    lying, samples = _capture_frames(tmp_path, "lying", "--descriptor-rate", "500")
+    assert lying.sample_rate_hz == 500 and desc.sample_rate_hz == 1000
+    assert len(samples) == 2000  # 2 s of samples at the rate the DAQ really samples at
+    np.testing.assert_array_equal(samples, clean)
+
+
+def test_sensor_fault_flags_refuse_nonsense():
+    for flags, expected in ((["--pin", "nope=1"], "cannot pin nope"), (["--pin", "i_u"], "CHANNEL=COUNT"),
+                            (["--pin", "i_u=40000"], "CHANNEL=COUNT"), (["--clip-currents", "0"], "1..32767"),
+                            (["--current-gain", "-1"], "> 0"), (["--descriptor-rate", "0"], "1..65535")):
+        res = subprocess.run([*SIM_CMD, "--scenario", "step", "--capture", "/dev/null", "--duration-s", "0.1",
+                              *flags], capture_output=True, text=True, timeout=60)
+        assert res.returncode == 2 and expected in res.stderr and "Traceback" not in res.stderr, (flags, res.stderr)

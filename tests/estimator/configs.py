@@ -43,6 +43,12 @@ friction_torque_nm = 1.6160
 viscous_nms = 0.0022
 """
 
+# The simulated machine's rotating masses referred to the spindle (machine data, like the friction
+# above: drivers/sim/machine.py, rotor_inertia·ratio² + spindle_inertia).
+PLANT_INERTIA_KGM2 = {"low-speed": 0.06 * 4.81**2 + 0.08, "high-speed": 0.06 * 1.157**2 + 0.08}
+GEARS_WITH_INERTIA = (GEARS.replace("viscous_nms = 0.0400\n", f"viscous_nms = 0.0400\ninertia_kgm2 = {PLANT_INERTIA_KGM2['low-speed']}\n")
+                      .replace("viscous_nms = 0.0022\n", f"viscous_nms = 0.0022\ninertia_kgm2 = {PLANT_INERTIA_KGM2['high-speed']}\n"))
+
 
 def toml_text(
     *,

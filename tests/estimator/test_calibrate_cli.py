@@ -46,6 +46,38 @@ def test_calibration_recovers_table2_friction(tmp_path, aircuts, millsense_cmd):
         assert g["friction_torque_nm"] == pytest.approx(t_f, rel=0.02), name
         assert g["viscous_nms"] == pytest.approx(b, rel=0.02), name
         assert g["samples"] >= 20 and g["r2"] > 0.9
+        # J from the run-ups between the plateaus: the plant's rotor·ratio² + spindle (machine data)
+        assert g["inertia_kgm2"] == pytest.approx(configs.PLANT_INERTIA_KGM2[name], rel=0.05), name
+    assert "J =" in out
+    # the file is a calibration the daemon loads: J reaches the gears
+    from millsense.daemon.config import load_config
+
+    cfg.write_text(cfg.read_text().replace("machine =", f'calibration = "{out_file}"\nmachine =', 1))
+    assert {g.name: g.inertia_kgm2 for g in load_config(cfg).gears} == {
+        name: fitted[name]["inertia_kgm2"] for name in TABLE2}
+
+
+def test_no_speed_change_no_inertia_fit_and_no_file(tmp_path, millsense_cmd):
+    """Two steady air cuts (300 and 600 rpm, no run-up between): friction could be fitted, J cannot."""
+    import dataclasses
+
+    from millsense.drivers.sim import write_capture
+    from millsense.drivers.sim.scenarios import get_scenario
+
+    caps = []
+    for rpm in (300.0, 600.0):
+        steady = dataclasses.replace(get_scenario("aircut-low"), name=f"air-{rpm:.0f}", duration_s=4.0,
+                                     spindle_schedule=((0.0, rpm),))
+        caps.append(tmp_path / f"air-{rpm:.0f}.bin")
+        write_capture(steady, str(caps[-1]), seed=7)
+    cfg = tmp_path / "mill.toml"
+    cfg.write_text(configs.toml_text())
+    out_file = tmp_path / "cal.toml"
+    code, out, err = _run([*millsense_cmd, "calibrate", *map(str, caps), "--config", str(cfg), "--out", str(out_file)])
+    assert code == 1, out + err
+    assert "inertia" in err and "speed steps" in err and "aircut-low" in err and "Traceback" not in err
+    assert "T_f'" in out   # friction was fitted: the refusal is the inertia's
+    assert not out_file.exists()
 
 
 def test_calibration_without_filter_correction_is_biased(tmp_path, aircuts, millsense_cmd):

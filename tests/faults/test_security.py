@@ -1,4 +1,4 @@
-"""Who can do what to a running daemon: `reset = "off"`, and the daemon behind mutual TLS with an ACL.
+"""Who can do what to a running daemon: `reset = "off"` (and the local reset), and mutual TLS with an ACL.
 
 Both run the real `millsense run` as a subprocess with the in-process
 simulated DAQ (`transport = "sim"`). To have a feed hold to clear, the daemon is
@@ -41,7 +41,7 @@ def _hold_by_stopping(daemon, wait_hold) -> None:
     wait_hold()
 
 
-def test_reset_off_refuses_every_request(tmp_path):
+def test_reset_off_refuses_every_network_request_and_the_local_reset_still_works(tmp_path):
     z_port = free_tcp_port()
     machine = "off-01"
     cfg = write_config(
@@ -51,29 +51,42 @@ def test_reset_off_refuses_every_request(tmp_path):
         zenoh_listen=[tcp(z_port)],
         interlock=f'enabled = true\nheartbeat_ms = 50\nwatchdog_ms = {WATCHDOG_MS}\nreset = "off"',
     )
+    state = {"STATE_DIRECTORY": str(tmp_path / "state")}
+    challenge = json.dumps({"step": "challenge", "client_nonce": "ab" * 16}).encode()
     with Procs(tmp_path) as procs:
-        daemon = procs.start("daemon", ["run", "--config", str(cfg)])
+        daemon = procs.start("daemon", ["run", "--config", str(cfg)], env_extra=state)
         sub = Subscriber([tcp(z_port)], machine)
         try:
             wait_for(lambda: len(sub.get("estimate")) >= 3 or daemon.poll() is not None, 60.0, "estimates")
             assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
             _hold_by_stopping(daemon, lambda: wait_status(sub, machine, lambda s: s["interlock"] == "held_by_device",
                                                           5.0, "hold by the DAQ's watchdog"))
-            replies = [sub.query(f"millsense/{machine}/cmd/reset", p) for p in (b"{}", b'{"token": "anything"}', None)]
+            replies = [sub.query(f"millsense/{machine}/cmd/reset", p) for p in (challenge, b"{}", b'{"token": "anything"}')]
             cli = subprocess.run([*CMD, "reset", "--machine", machine, "--connect", tcp(z_port), "--no-scouting",
                                   "--timeout", "5"], capture_output=True, text=True, timeout=60)
             time.sleep(0.5)
             after = status(sub, machine)
+            # at the machine the operator keeps control: the local socket, whatever the network policy
+            local = subprocess.run([*CMD, "reset", "--local", "--config", str(cfg)], capture_output=True, text=True,
+                                   timeout=60, env=dict(os.environ, **state))
+            cleared = wait_status(sub, machine, lambda s: s["interlock"] != "held_by_device", 5.0, "local reset")
             daemon.send_signal(signal.SIGTERM)
             assert daemon.wait(10) == 0
         finally:
             sub.close()
-    for (reply,) in replies:
-        assert reply["ok"] is False and reply["error"].startswith("reset is disabled"), reply
-        assert reply["interlock"] == "held_by_device"
-    assert cli.returncode == 1 and "reset is disabled" in cli.stderr
+    for (wrapped,) in replies:
+        reply = wrapped["error"]  # an error reply (the Subscriber wraps those)
+        assert reply["ok"] is False and reply["error"].startswith("commands over the network are off on off-01"), reply
+        assert reply["error"].endswith("millsense reset --local") and reply["policy"] == "off"
+    assert cli.returncode == 1 and "commands over the network are off" in cli.stderr, cli.stderr
     assert after["interlock"] == "held_by_device" and after["interlock_detail"]["device_feed_hold"] is True
-    assert sum(e["event"] == "interlock.reset_refused" for e in log_events(procs.text("daemon", "out"))) == 4
+    assert local.returncode == 0, local.stderr
+    assert json.loads(local.stdout)["ok"] is True and cleared["interlock"] == "armed"
+    # four refusals (three queries and the CLI's challenge), logged as counts, not a line each
+    events = log_events(procs.text("daemon", "out"))
+    refused = [e for e in events if e["event"] == "audit.refused"]
+    assert 1 <= len(refused) <= 2 and sum(e["refused_since_last"] for e in refused) == 4, refused
+    assert all(e["command"] == "reset" for e in refused)
     assert_clean_exit(procs, "daemon")
 
 

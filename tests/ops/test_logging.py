@@ -126,3 +126,48 @@ def test_rate_limited_logger_counts_what_it_suppressed():
         assert rl.warning("decoder.bad_crc", port="p")
     assert [(e["event"], e.get("suppressed")) for e in logs] == [
         ("decoder.bad_crc", None), ("queue.overflow", None), ("decoder.bad_crc", 41)]
+
+
+def test_the_journal_keeps_the_alarm_kind_and_the_docs_recipe_finds_overloads_alone(tmp_path):
+    """Issue 10, finding 7: a real daemon, the crash scenario, an overload and then a crash.
+
+    The daemon logs JSON lines to stdout (the journal under systemd). The docs' recipe
+    `journalctl -u millsense@M -o cat | grep '"alarm_level": "overload"'` is run here on those
+    lines with grep itself: it must find the overload and nothing else.
+    """
+    import shutil
+    import signal as _signal
+
+    from tests.conftest import free_tcp_port
+    from tests.e2e.helpers import Procs, wait_for, write_config
+
+    daq_port = free_tcp_port()
+    cfg = write_config(
+        tmp_path / "d.toml",
+        machine="log-kinds",
+        daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}',
+        # the steady slot cut is about 4 N·m: over 3 N·m is an overload; the boss passes 15 kW: a crash.
+        # The interlock is off so that the feed keeps going into the boss.
+        alarms="torque_limit_nm = 3.0\nrevolutions = 2\ncrash_power_w = 15000.0",
+        interlock="enabled = false",
+    )
+    with Procs(tmp_path) as procs:
+        procs.start("sim", ["sim", "--scenario", "crash", "--tcp", f"127.0.0.1:{daq_port}", "--realtime"])
+        wait_for(lambda: "serving" in procs.text("sim"), 30.0, "emulator serving")
+        daemon = procs.start("daemon", ["run", "--config", str(cfg)])
+        wait_for(lambda: '"alarm_level": "crash"' in procs.text("daemon", "out") or daemon.poll() is not None,
+                 60.0, "the crash alarm in the log")
+        daemon.send_signal(_signal.SIGTERM)
+        assert daemon.wait(10) == 0, procs.text("daemon")
+    journal = tmp_path / "daemon.out"
+    alarms = [json.loads(x) for x in journal.read_text().splitlines() if x.startswith("{") and '"event": "alarm"' in x]
+    kinds = [a["alarm_level"] for a in alarms]
+    assert "overload" in kinds and "crash" in kinds, kinds
+    assert all(a["level"] == "warning" for a in alarms)  # the log level, as before
+    for a in alarms:  # every field of the payload is kept
+        assert {"t", "rev", "quantity", "value", "limit", "interlock"} <= set(a), a
+    grep = shutil.which("grep")
+    found = subprocess.run([grep, '"alarm_level": "overload"', str(journal)], capture_output=True, text=True).stdout
+    lines = [json.loads(x) for x in found.splitlines()]
+    assert lines and all(x["event"] == "alarm" and x["alarm_level"] == "overload" for x in lines)
+    assert len(lines) == kinds.count("overload")

@@ -58,7 +58,7 @@ def test_unit_has_the_required_settings():
     expected = {
         "Type": "notify", "NotifyAccess": "main", "WatchdogSec": "5", "Restart": "on-failure", "RestartSec": "2",
         "RestartPreventExitStatus": "78", "User": "millsense", "Group": "millsense", "SupplementaryGroups": "dialout",
-        "UMask": "0077", "Environment": "PYTHONUNBUFFERED=1", "StateDirectory": "millsense", "LogsDirectory": "millsense",
+        "UMask": "0077", "Environment": "PYTHONUNBUFFERED=1", "StateDirectory": "millsense/%i", "StateDirectoryMode": "0750", "LogsDirectory": "millsense",
         "NoNewPrivileges": "yes", "ProtectSystem": "strict", "ProtectHome": "yes", "PrivateTmp": "yes",
         "MemoryDenyWriteExecute": "yes", "SystemCallArchitectures": "native", "CapabilityBoundingSet": "",
         "AmbientCapabilities": "", "RestrictAddressFamilies": "AF_UNIX AF_INET AF_INET6 AF_NETLINK", "DevicePolicy": "closed",

@@ -60,3 +60,16 @@ def test_cf_fit_through_origin():
     assert noisy.residuals_n.shape == (4,)
     with pytest.raises(ValueError, match="non-zero"):
         fit_cf([0.0, 0.0], [0.0, 0.0], radius_mm)
+
+
+def test_inertia_fit_recovers_j_and_refuses_a_capture_without_speed_change():
+    from millsense.daemon.physics.calibration import fit_inertia
+
+    rng = np.random.default_rng(4)
+    accel = np.concatenate([np.zeros(40), rng.choice([-1.0, 1.0], 12) * rng.uniform(10.0, 45.0, 12)])
+    torque = 1.47 * accel + rng.normal(0.0, 0.4, accel.size)      # noise of the speed reading's rise
+    fit = fit_inertia(accel, torque)
+    assert abs(fit.inertia_kgm2 - 1.47) < 4 * fit.sigma_kgm2 and fit.sigma_kgm2 < 0.02
+    assert fit.changing == 12 and fit.samples == accel.size
+    with pytest.raises(ValueError, match="no speed change"):
+        fit_inertia(rng.normal(0.0, 0.6, 50), rng.normal(0.0, 0.4, 50))

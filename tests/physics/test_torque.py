@@ -71,3 +71,17 @@ def test_select_gear_by_measured_ratio_wins_at_changeover():
     assert select_gear(900, MAX_RPM, RATIOS, motor_to_spindle_ratio=float("nan")) == 0
     with pytest.raises(ValueError):
         select_gear(900, [900.0], RATIOS)
+
+
+def test_inertia_torque_is_the_change_of_kinetic_energy_per_radian():
+    """½J(ω1² − ω0²) over a revolution of Δt = 2π/ω̄ turned into torque: J·Δω/Δt when ω̄ is the midpoint."""
+    from millsense.daemon.physics.torque import inertia_torque_nm
+
+    j, w0, w1 = 1.5, 60.0, 64.0
+    wm = (w0 + w1) / 2
+    dt = 2 * np.pi / wm
+    energy = 0.5 * j * (w1**2 - w0**2)
+    assert inertia_torque_nm(j, w0, w1, dt, wm) == pytest.approx(energy / (2 * np.pi))
+    assert inertia_torque_nm(j, w0, w1, dt, wm) == pytest.approx(j * (w1 - w0) / dt)
+    assert inertia_torque_nm(j, w1, w0, dt, wm) == pytest.approx(-j * (w1 - w0) / dt)   # slowing: given back
+    assert np.isnan(inertia_torque_nm(j, w0, w1, 0.0, wm)) and np.isnan(inertia_torque_nm(j, 0.0, 0.0, dt, 0.0))

@@ -63,12 +63,19 @@ class Collector:
 
 
 class FakeInterlock:
-    """A Controls object with real behaviour: a latched feed hold that a valid token clears."""
+    """A Controls object with real behaviour: a latched feed hold that an authorised reset clears.
 
-    def __init__(self, token: str | None = "s3cret") -> None:
+    Authorisation is the sink's (daemon/publish/command_auth.py): like the Runner, this object
+    only carries `settings.interlock` (the policy, and the token it reads). `token=None`: policy "open".
+    """
+
+    def __init__(self, token: str | None = "s3cret-" + "0" * 32, policy: str | None = None) -> None:
         self.token = token
+        policy = policy or ("token" if token else "open")
+        self.settings = SimpleNamespace(interlock=SimpleNamespace(reset=policy, token=lambda: self.token or ""))
         self.latched = True
-        self.reset_payloads: list[bytes] = []
+        self.requesters: list[str] = []
+        self.reset_payloads = self.requesters  # the old name (tests/publish/test_tls.py)
         self.fail_with: Exception | None = None
 
     def status(self) -> dict:
@@ -77,13 +84,10 @@ class FakeInterlock:
     def config(self) -> dict:
         return {"machine": "m1", "interlock": {"enabled": True}}
 
-    def reset(self, payload: bytes) -> dict:
-        self.reset_payloads.append(payload)
+    def reset(self, requester: str = "") -> dict:
+        self.requesters.append(requester)
         if self.fail_with is not None:
             raise self.fail_with
-        given = json.loads(payload or b"{}").get("token")
-        if self.token is not None and given != self.token:
-            return {"ok": False, "error": "bad token", "interlock": "feed_hold" if self.latched else "clear"}
         self.latched = False
         return {"ok": True, "interlock": "clear"}
 

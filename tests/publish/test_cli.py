@@ -1,12 +1,14 @@
-"""`millsense watch` and `millsense reset` as real subprocesses against sessions in the test."""
+"""`millsense watch`, `reset` and `token` as real subprocesses against sessions in the test."""
 
 from __future__ import annotations
 
 import json
 import os
 import pty
+import re
 import select
 import signal
+import stat
 import subprocess
 import time
 
@@ -121,6 +123,9 @@ def test_watch_bad_machine_id_is_a_usage_error(millsense_cmd, port):
     assert "--machine 'a/b'" in proc.stderr and "Traceback" not in proc.stderr
 
 
+TOKEN = "Hk3vQ9xW2mPz7LcN5tRb8yFd4sGj6aUe1oKi0nVw_-E"
+
+
 def _reset(millsense_cmd, port, *extra, timeout=30, token_env=None):
     env = {k: v for k, v in os.environ.items() if k != "MILLSENSE_RESET_TOKEN"}
     if token_env is not None:
@@ -131,38 +136,43 @@ def _reset(millsense_cmd, port, *extra, timeout=30, token_env=None):
     )
 
 
-def test_reset_gets_the_daemons_reply(millsense_cmd, port, daemon_session, tmp_path):
-    controls = FakeInterlock(token="s3cret")
+def test_reset_gets_the_daemons_verified_reply(millsense_cmd, port, daemon_session, tmp_path):
+    controls = FakeInterlock(token=TOKEN)
     sink = ZenohSink(daemon_session, "mch10-01", controls)
     try:
         token_file = tmp_path / "token"
-        token_file.write_text("s3cret\n")
+        token_file.write_text(TOKEN + "\n")
         proc = _reset(millsense_cmd, port, "--machine", "mch10-01", "--token-file", str(token_file))
         assert proc.returncode == 0, proc.stderr
         assert json.loads(proc.stdout) == {"ok": True, "interlock": "clear"}
-        assert [json.loads(p) for p in controls.reset_payloads] == [{"token": "s3cret"}]
-        assert not controls.latched
+        assert len(controls.requesters) == 1 and not controls.latched
+        assert "cannot be verified" not in proc.stderr
         # the token from the environment, so that it is not on a command line
         controls.latched = True
-        proc = _reset(millsense_cmd, port, "--machine", "mch10-01", token_env="s3cret")
+        proc = _reset(millsense_cmd, port, "--machine", "mch10-01", token_env=TOKEN)
         assert proc.returncode == 0, proc.stderr
-        assert [json.loads(p) for p in controls.reset_payloads][-1] == {"token": "s3cret"} and not controls.latched
+        assert len(controls.requesters) == 2 and not controls.latched
     finally:
         sink.close()
 
 
 def test_reset_refused_exits_1_with_the_reason(millsense_cmd, port, daemon_session):
-    controls = FakeInterlock(token="s3cret")
+    controls = FakeInterlock(token=TOKEN)
     sink = ZenohSink(daemon_session, "mch10-01", controls)
     try:
-        proc = _reset(millsense_cmd, port, "--machine", "mch10-01", "--token", "guess")
+        proc = _reset(millsense_cmd, port, "--machine", "mch10-01", "--token", "guess-" + TOKEN)
         assert proc.returncode == 1
-        assert "mch10-01 refused the reset: bad token" in proc.stderr
+        assert "mch10-01 refused reset: the proof does not match (wrong or missing reset token)" in proc.stderr
         assert controls.latched
 
-        controls.fail_with = PermissionError("interlock disabled in config")
         proc = _reset(millsense_cmd, port, "--machine", "mch10-01")
         assert proc.returncode == 1
+        assert "mch10-01 requires a reset token for reset and none was given" in proc.stderr
+
+        controls.fail_with = PermissionError("interlock disabled in config")
+        proc = _reset(millsense_cmd, port, "--machine", "mch10-01", token_env=TOKEN)
+        assert proc.returncode == 1
+        assert json.loads(proc.stdout) == {"ok": False, "error": "PermissionError: interlock disabled in config"}
         assert "refused the reset: PermissionError: interlock disabled in config" in proc.stderr
         assert "Traceback" not in proc.stderr
     finally:
@@ -170,16 +180,16 @@ def test_reset_refused_exits_1_with_the_reason(millsense_cmd, port, daemon_sessi
 
 
 def test_reset_without_machine_asks_the_only_daemon_alive(millsense_cmd, port, daemon_session):
-    controls = FakeInterlock(token=None)
+    controls = FakeInterlock(token=TOKEN)
     sink = ZenohSink(daemon_session, "solo", controls)
     try:
-        proc = _reset(millsense_cmd, port)
+        proc = _reset(millsense_cmd, port, token_env=TOKEN)
         assert proc.returncode == 0, proc.stderr
         assert json.loads(proc.stdout)["interlock"] == "clear"
-        assert controls.reset_payloads == [b"{}"]
-        second = ZenohSink(daemon_session, "duo", FakeInterlock(token=None))
+        assert len(controls.requesters) == 1
+        second = ZenohSink(daemon_session, "duo", FakeInterlock(token=TOKEN))
         try:
-            proc = _reset(millsense_cmd, port)
+            proc = _reset(millsense_cmd, port, token_env=TOKEN)
             assert proc.returncode == 1
             assert "several daemons are alive (duo, solo); choose one with --machine" in proc.stderr
         finally:
@@ -188,13 +198,103 @@ def test_reset_without_machine_asks_the_only_daemon_alive(millsense_cmd, port, d
         sink.close()
 
 
-def test_reset_with_no_daemon_says_so(millsense_cmd, port, daemon_session):
+def test_reset_open_daemon_answer_is_marked_unverifiable(millsense_cmd, port, daemon_session):
+    controls = FakeInterlock(token=None)  # policy "open"
+    sink = ZenohSink(daemon_session, "mch10-01", controls)
+    try:
+        proc = _reset(millsense_cmd, port, "--machine", "mch10-01")
+        assert proc.returncode == 0, proc.stderr
+        assert json.loads(proc.stdout)["interlock"] == "clear"
+        assert 'takes commands from anyone (reset = "open"): this answer cannot be verified' in proc.stderr
+    finally:
+        sink.close()
+
+
+class _FakeDaemon:
+    """Finding 1: a program that declares `cmd/reset` and an `alive` token, records what it gets, says ok."""
+
+    def __init__(self, session, machine, challenge_policy=None):
+        self.payloads: list[bytes] = []
+        self.policy = challenge_policy
+        self.q = session.declare_queryable(f"millsense/{machine}/cmd/reset", self._on)
+        self.alive = session.liveliness().declare_token(f"millsense/{machine}/alive")
+        self.machine = machine
+
+    def _on(self, query):
+        data = query.payload.to_bytes() if query.payload is not None else b""
+        self.payloads.append(data)
+        req = json.loads(data) if data.startswith(b"{") else {}
+        if self.policy and req.get("step") == "challenge":
+            body = {"step": "challenge", "machine": self.machine, "command": "reset", "policy": self.policy,
+                    "server_nonce": "e" * 64, "expires_s": 10}
+        elif self.policy == "token":  # a well-formed success, with a MAC it cannot compute
+            body = {"result": json.dumps({"ok": True, "interlock": "clear"}), "server_mac": "0" * 64}
+        else:
+            body = {"ok": True, "interlock": "clear"}
+        query.reply(f"millsense/{self.machine}/cmd/reset", json.dumps(body).encode())
+
+    def close(self):
+        self.alive.undeclare()
+        self.q.undeclare()
+
+
+@pytest.mark.parametrize("policy", [None, "open", "token"])
+def test_reset_to_a_fake_daemon_sends_no_token_and_fails(millsense_cmd, port, daemon_session, policy):
+    fake = _FakeDaemon(daemon_session, "mch10-01", policy)
+    try:
+        proc = _reset(millsense_cmd, port, token_env=TOKEN)  # no --machine: it picks the only one alive
+    finally:
+        fake.close()
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert '"ok": true' not in proc.stdout.lower()
+    assert fake.payloads, "the fake daemon was never asked"
+    assert not any(TOKEN.encode() in p for p in fake.payloads)
+    expected = {None: "is not a millsense challenge", "open": "open to anyone",
+                "token": "failed the daemon's MAC"}[policy]
+    assert expected in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_reset_with_no_daemon_says_so_and_what_to_try(millsense_cmd, port, daemon_session):
     started = time.monotonic()
     proc = _reset(millsense_cmd, port, "--machine", "mch10-01")
     assert proc.returncode == 1
-    assert proc.stderr.strip() == "millsense reset: no daemon answered on millsense/mch10-01/cmd/reset within 2 s"
+    first, hint = proc.stderr.strip().split("\n")
+    assert first == "millsense reset: no daemon answered on millsense/mch10-01/cmd/reset within 2 s"
+    assert hint.startswith("try: ") and "--connect" in hint and "millsense reset --local" in hint
     assert proc.stdout == ""
     assert time.monotonic() - started < 20
+
+
+def test_reset_with_config_connects_where_the_daemon_listens_and_reads_its_token_file(millsense_cmd, port,
+                                                                                      daemon_session, tmp_path):
+    controls = FakeInterlock(token=TOKEN)
+    sink = ZenohSink(daemon_session, "cfg-01", controls)
+    token_file = tmp_path / "token"
+    token_file.write_text(TOKEN + "\n")
+    cfg = tmp_path / "d.toml"
+    cfg.write_text(f'machine = "cfg-01"\n[interlock]\nreset = "token"\nreset_token_file = "{token_file}"\n'
+                   f'[zenoh]\nlisten = ["tcp/0.0.0.0:{port}"]\nmulticast_scouting = false\n')
+    env = {k: v for k, v in os.environ.items() if k != "MILLSENSE_RESET_TOKEN"}
+    try:
+        proc = subprocess.run([*millsense_cmd, "reset", "--config", str(cfg)], capture_output=True, text=True,
+                              timeout=30, env=env)
+        assert proc.returncode == 0, proc.stderr
+        assert json.loads(proc.stdout) == {"ok": True, "interlock": "clear"} and not controls.latched
+    finally:
+        sink.close()
+
+
+def test_reset_local_without_a_machine_is_a_usage_error(millsense_cmd):
+    proc = subprocess.run([*millsense_cmd, "reset", "--local"], capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 2 and "--local needs --machine or --config" in proc.stderr
+
+
+def test_reset_local_with_no_daemon_at_the_machine_says_so(millsense_cmd, tmp_path):
+    env = dict(os.environ, STATE_DIRECTORY=str(tmp_path / "state"))
+    proc = subprocess.run([*millsense_cmd, "reset", "--local", "--machine", "m1"], capture_output=True, text=True,
+                          timeout=30, env=env)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert proc.stderr.startswith("millsense reset: error: ") and str(tmp_path / "state") in proc.stderr
 
 
 def test_reset_client_with_no_router_says_so(millsense_cmd, port):
@@ -202,6 +302,21 @@ def test_reset_client_with_no_router_says_so(millsense_cmd, port):
     assert proc.returncode == 1
     assert f"could not open a session to {tcp(port)}" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_token_new_prints_or_writes_a_43_character_token_and_never_overwrites(millsense_cmd, tmp_path):
+    first = subprocess.run([*millsense_cmd, "token", "new"], capture_output=True, text=True, timeout=30)
+    second = subprocess.run([*millsense_cmd, "token", "new"], capture_output=True, text=True, timeout=30)
+    tokens = [first.stdout.strip(), second.stdout.strip()]
+    assert first.returncode == second.returncode == 0
+    assert all(len(t) == 43 and re.fullmatch(r"[A-Za-z0-9_-]{43}", t) for t in tokens) and tokens[0] != tokens[1]
+    out = tmp_path / "reset.token"
+    made = subprocess.run([*millsense_cmd, "token", "new", "--out", str(out)], capture_output=True, text=True, timeout=30)
+    assert made.returncode == 0 and made.stdout == ""
+    written = out.read_text()
+    assert re.fullmatch(r"[A-Za-z0-9_-]{43}\n", written) and stat.S_IMODE(out.stat().st_mode) == 0o600
+    again = subprocess.run([*millsense_cmd, "token", "new", "--out", str(out)], capture_output=True, text=True, timeout=30)
+    assert again.returncode == 1 and "exists; not overwritten" in again.stderr and out.read_text() == written
 
 
 def test_watch_on_a_terminal_draws_one_line_per_machine(millsense_cmd, port, daemon_session):

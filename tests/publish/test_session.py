@@ -11,6 +11,8 @@ import pytest
 import zenoh
 
 from millsense.daemon.publish.session import (
+    MAX_MESSAGE_BYTES,
+    MAX_PEER_SESSIONS,
     ZenohConfigError,
     ZenohUnavailable,
     open_session,
@@ -159,3 +161,94 @@ def test_settings_from_the_toml_config(tmp_path, port):
     conf = zenoh_config(zs)
     assert _get(conf, "mode") == "client"
     assert _get(conf, "connect/endpoints") == [tcp(port)]
+
+
+# -- bounds on what a remote node can make the daemon allocate (issue 11, finding 5) -------------------------
+
+
+def test_shared_memory_is_off_unless_configured():
+    assert _get(zenoh_config(zsettings("peer")), "transport/shared_memory/enabled") is False
+    assert _get(zenoh_config(zsettings("peer", shared_memory=True)), "transport/shared_memory/enabled") is True
+    # from the TOML model too: the key's default is off
+    from millsense.daemon import config
+
+    assert _get(zenoh_config(config.demo_config().zenoh), "transport/shared_memory/enabled") is False
+
+
+def test_shared_memory_off_even_when_a_json5_file_is_silent_or_says_on(tmp_path):
+    f = tmp_path / "z.json5"
+    f.write_text('{ transport: { shared_memory: { enabled: true } } }')
+    assert _get(zenoh_config(zsettings(config_file=str(f))), "transport/shared_memory/enabled") is False
+
+
+def test_message_and_session_bounds(tmp_path):
+    peer = zenoh_config(zsettings("peer"))
+    assert _get(peer, "transport/link/rx/max_message_size") == MAX_MESSAGE_BYTES
+    assert _get(peer, "transport/unicast/max_sessions") == MAX_PEER_SESSIONS
+    client = zenoh_config(zsettings("client", connect=["tcp/127.0.0.1:7447"]))
+    assert _get(client, "transport/link/rx/max_message_size") == MAX_MESSAGE_BYTES
+    router = zenoh_config(zsettings("router"))  # relays others' traffic: Zenoh's limits, the plant's to change
+    assert _get(router, "transport/link/rx/max_message_size") == _get(zenoh.Config(), "transport/link/rx/max_message_size")
+    assert _get(router, "transport/unicast/max_sessions") == _get(zenoh.Config(), "transport/unicast/max_sessions")
+    # a plant that needs more says so in its JSON5 file, and that wins
+    f = tmp_path / "z.json5"
+    f.write_text('{ transport: { unicast: { max_sessions: 200 }, link: { rx: { max_message_size: 4194304 } } } }')
+    conf = zenoh_config(zsettings(config_file=str(f)))
+    assert _get(conf, "transport/unicast/max_sessions") == 200
+    assert _get(conf, "transport/link/rx/max_message_size") == 4194304
+
+
+# A process standing in for the daemon: millsense's own session helper, a queryable that refuses.
+_SERVER = r"""
+import json, sys, time
+from types import SimpleNamespace
+from millsense.daemon.publish.session import open_session
+zs = SimpleNamespace(mode="peer", listen=[sys.argv[1]], connect=[], multicast_scouting=False, config_file="",
+                     shared_memory=sys.argv[2] == "on")
+s = open_session(zs, retry_for_s=0)
+q = s.declare_queryable("millsense/mem-01/cmd/reset", lambda q: q.reply(q.key_expr, b'{"ok": false}'))
+print("ready", flush=True)
+while True:
+    time.sleep(1)
+"""
+
+
+def _rss_growth_kb_through_local_peers(port: int, shm: str, sessions: int = 20, queries: int = 20) -> tuple[int, int]:
+    """RSS growth of a millsense session while `sessions` local peers each send `queries` 64 KB queries."""
+    import os
+    import subprocess
+    import sys
+
+    from tests.procstat import proc_kb
+
+    server = subprocess.Popen([sys.executable, "-c", _SERVER, tcp(port), shm], stdout=subprocess.PIPE, text=True)
+    answered = 0
+    try:
+        assert server.stdout.readline().strip() == "ready"
+        blob = os.urandom(65536)
+        # one peer first, so the growth counts sessions, not the first-use warm-up of the runtime
+        warm = open_session(zsettings("peer", connect=[tcp(port)], shared_memory=True), retry_for_s=0)
+        wait_for(lambda: list(warm.get("millsense/mem-01/cmd/reset", payload=blob, timeout=2.0)), 10.0, "first answer")
+        warm.close()
+        rss0 = proc_kb(server.pid)
+        for _ in range(sessions):
+            # The peers are as an attacker's would be: shared memory on, on their side.
+            peer = open_session(zsettings("peer", connect=[tcp(port)], shared_memory=True), retry_for_s=0)
+            try:
+                wait_for(lambda p=peer: list(p.info.peers_zid()), 5.0, "peer linked")
+                for _ in range(queries):
+                    answered += len(list(peer.get("millsense/mem-01/cmd/reset", payload=blob, timeout=5.0)))
+            finally:
+                peer.close()
+        return proc_kb(server.pid) - rss0, answered
+    finally:
+        server.kill()
+        server.wait(5)
+
+
+def test_local_peers_with_large_queries_do_not_grow_memory(port):
+    growth_kb, answered = _rss_growth_kb_through_local_peers(port, "off")
+    print(f"RSS growth through 20 local peer sessions x 20 queries of 64 KB: {growth_kb} kB")
+    assert answered == 400  # every query reached the queryable: the load was real
+    # Generous (the bench budget is 10 MB): with shared memory on, each session added ~8-16 MB (170 MB in all).
+    assert growth_kb < 40_000, f"RSS grew by {growth_kb} kB"

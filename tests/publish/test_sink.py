@@ -236,3 +236,45 @@ def test_router_mode_session_routes_between_two_clients(port):
         hmi.close()
         daemon.close()
         router.close()
+
+
+class _Log:
+    """A logger that keeps (level, event, fields)."""
+
+    def __init__(self) -> None:
+        self.lines: list[tuple[str, str, dict]] = []
+
+    def warning(self, event, **fields):
+        self.lines.append(("warning", event, fields))
+
+    def info(self, event, **fields):
+        self.lines.append(("info", event, fields))
+
+
+def test_refused_queries_do_not_flood_the_log(pair):
+    """Finding 6: every refused query logged a warning (37 343 lines in one flood). Now counted, a line per 10 s."""
+    from millsense.daemon.audit import AuditLog
+
+    a, b = pair
+    log = _Log()
+    controls = FakeInterlock()
+    controls.audit = AuditLog(None, "m1")
+    sink = ZenohSink(a, "m1", controls, log=log)
+    try:
+        q = b.declare_querier("millsense/m1/cmd/reset")
+        wait_for(lambda: q.matching_status.matching, 5.0, "queryable known")
+        q.undeclare()
+        controls.fail_with = None
+        sink._controls = None  # status now fails: "no status published yet", a refusal each time
+        for i in range(150):
+            list(b.get("millsense/m1/cmd/reset", payload=b"garbage %d" % i, timeout=3.0))
+            list(b.get("millsense/m1/status", payload=b"x" * 5000, timeout=3.0))
+            list(b.get("millsense/m1/config", timeout=3.0))
+        stats = sink.stats()
+    finally:
+        sink.close()
+    assert controls.audit.refusals == 150 and controls.audit.records <= 2  # counted, written once per 10 s
+    refused_lines = [f for lvl, e, f in log.lines if e == "zenoh.queries_refused"]
+    assert len(refused_lines) <= 3 and sum(f["count"] for f in refused_lines) == 300  # closing flushes the count
+    assert len(log.lines) == len(refused_lines)
+    assert stats["queries_too_large"] == 150 and stats["query_errors"] == 300

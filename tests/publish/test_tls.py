@@ -1,50 +1,57 @@
 """config/zenoh-tls.json5 for real: mutual TLS on loopback and access control by certificate CN.
 
-Certificates come from the system's openssl (a throw-away CA per test run).
+Certificates come from the `cryptography` package (a throw-away CA per test
+run, tests/publish/pki.py): no openssl binary, so these tests never skip.
 """
 
 from __future__ import annotations
 
 import json
-import shutil
-import subprocess
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 import zenoh
 
+from millsense.daemon.publish.command_auth import CommandError, send_command
 from millsense.daemon.publish.session import open_session
 from millsense.daemon.publish.sink import ZenohSink
 
 from .helpers import Collector, FakeInterlock, wait_for
+from .pki import Pki
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "config" / "zenoh-tls.json5"
-
-pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command to make certificates")
-
-
-def _openssl(*args: str, cwd: Path) -> None:
-    subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True, timeout=60)
+EXAMPLES = sorted(EXAMPLE.parent.glob("zenoh-*.json5"))
 
 
 @pytest.fixture(scope="module")
 def pki(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("pki")
-    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes"]
-    _openssl("req", "-x509", *ec, "-days", "2", "-subj", "/CN=millsense test CA", "-keyout", "ca.key", "-out", "ca.pem", cwd=d)
-    names = {
-        "daemon": ("mch10-01", "subjectAltName=DNS:localhost,IP:127.0.0.1\nextendedKeyUsage=serverAuth,clientAuth\n"),
-        "hmi": ("hmi-01", "extendedKeyUsage=clientAuth\n"),
-        "operator": ("operator-01", "extendedKeyUsage=clientAuth\n"),
-        "intruder": ("intruder", "extendedKeyUsage=clientAuth\n"),  # signed by the same CA, but in no policy
-    }
-    for stem, (cn, ext) in names.items():
-        (d / f"{stem}.ext").write_text(ext)
-        _openssl("req", *ec, "-subj", f"/CN={cn}", "-keyout", f"{stem}.key", "-out", f"{stem}.csr", cwd=d)
-        _openssl("x509", "-req", "-in", f"{stem}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
-                 "-days", "2", "-extfile", f"{stem}.ext", "-out", f"{stem}.pem", cwd=d)
+    ca = Pki(d)
+    for stem, cn in {"daemon": "mch10-01", "hmi": "hmi-01", "operator": "operator-01",
+                     "intruder": "intruder"}.items():  # intruder: signed by the same CA, but in no policy
+        ca.issue(stem, cn)
     return d
+
+
+@pytest.mark.parametrize("path", EXAMPLES, ids=lambda p: p.name)
+def test_every_shipped_zenoh_file_loads_in_the_installed_zenoh(path):
+    conf = zenoh.Config.from_file(str(path))  # zenoh rejects any unknown key
+    tls = json.loads(conf.get_json("transport/link/tls"))
+    assert tls["enable_mtls"] is True
+    assert json.loads(conf.get_json("transport/link/protocols")) == ["tls"]
+
+
+def test_no_rule_lets_a_client_send_what_it_may_only_receive():
+    # finding 2: a rule for both flows let viewers put and declare queryables on millsense/**
+    for path in EXAMPLES:
+        conf = zenoh.Config.from_file(str(path))
+        acl = json.loads(conf.get_json("access_control"))
+        if not acl["enabled"]:
+            continue
+        assert acl["default_permission"] == "deny", path.name
+        for rule in acl["rules"]:
+            assert len(rule["flows"]) == 1, (path.name, rule["id"])
 
 
 def test_example_is_valid_for_the_installed_zenoh():
@@ -87,7 +94,7 @@ def _replies(session: zenoh.Session, key: str, payload: bytes | None = None) -> 
 def test_mutual_tls_and_access_control_by_common_name(pki, port):
     # The daemon side goes through millsense's own session helper, with the example as config_file.
     daemon = open_session(_from_file(_daemon_config(pki, port)), retry_for_s=0)
-    controls = FakeInterlock(token=None)
+    controls = FakeInterlock()  # reset = "token": the challenge–response of docs/zenoh.md, over TLS
     sink = ZenohSink(daemon, "mch10-01", controls)
     sessions = []
     try:
@@ -104,13 +111,14 @@ def test_mutual_tls_and_access_control_by_common_name(pki, port):
         assert seen_intruder.items == []
 
         assert _replies(intruder, "millsense/mch10-01/cmd/reset", b"{}") == []
-        assert _replies(hmi, "millsense/mch10-01/cmd/reset", b"{}") == []  # viewers cannot reset
-        assert controls.reset_payloads == [] and controls.latched
+        assert _replies(hmi, "millsense/mch10-01/cmd/reset", b"{}") == []  # viewers cannot reach commands
+        with pytest.raises(CommandError):
+            send_command(hmi, "mch10-01", "reset", controls.token, timeout_s=1.0)  # not even with the token
+        assert controls.requesters == [] and controls.latched
         status = _replies(hmi, "millsense/mch10-01/status")
         assert json.loads(status[0].ok.payload.to_bytes())["interlock"] == "feed_hold"
 
-        [reply] = _replies(operator, "millsense/mch10-01/cmd/reset", b"{}")
-        assert json.loads(reply.ok.payload.to_bytes()) == {"ok": True, "interlock": "clear"}
+        assert send_command(operator, "mch10-01", "reset", controls.token) == {"ok": True, "interlock": "clear"}
         assert not controls.latched
         assert seen_intruder.items == []
     finally:

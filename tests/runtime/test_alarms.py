@@ -112,7 +112,7 @@ def test_breakage_on_a_step_between_steady_levels():
     assert feed(e, [0.1, 0.1]) == [[], []]  # latched: said once
     assert [x.level for x in e.reset()] == ["clear"]
     e = AlarmEngine(cfg(torque_warn_nm=None, torque_limit_nm=None, breakage_drop_pct=20.0))
-    assert feed(e, [10, 10, 10, 11, 12.6, 12.7])[-1] == [("tool_breakage", "torque_nm")]  # +26 %: the same log step
+    assert feed(e, [10, 10, 10, 11, 12.6, 12.7])[-1] == []  # +26 %: a rise is load, never a breakage
     e = AlarmEngine(cfg(torque_warn_nm=None, torque_limit_nm=None, breakage_drop_pct=20.0))
     assert feed(e, [10, 10, 10, 4, 0.2, 0.1])[-1] == [("tool_breakage", "torque_nm")]  # snapped off: to air at once
 
@@ -215,3 +215,70 @@ def test_reset_rearms_levels_so_a_persisting_overload_trips_again():
     assert e.summary() == "ok"
     assert e.on_revolution(rev(2, 35)) == []
     assert [x.level for x in e.on_revolution(rev(3, 35))] == ["overload"]
+
+
+def test_a_torque_rise_is_an_overload_and_never_a_breakage():
+    """Issue 10, finding 6: a rise 10 -> 40 N·m raised `tool_breakage` beside the overload."""
+    for drop in (None, 20.0):   # not armed (the default now), and armed: rises never fire it
+        e = AlarmEngine(cfg(torque_warn_nm=None, breakage_drop_pct=drop))
+        levels = [x.level for got in [e.on_revolution(rev(i, t)) for i, t in enumerate([10, 10, 10, 25, 40, 40, 40])]
+                  for x in got]
+        assert levels == ["overload"], (drop, levels)
+        assert "tool_breakage" not in e.active()
+
+
+def test_breakage_not_armed_by_the_default_config():
+    from millsense.daemon.config_models import AlarmSettings
+
+    defaults = AlarmSettings()
+    assert defaults.breakage_drop_pct is None
+    e = AlarmEngine(defaults)
+    assert not e.breakage.armed
+    assert all(g == [] for g in feed(e, [10, 10.2, 9.9, 8.6, 5.0, 5.0, 0.1, 0.1]))  # even a real drop: not armed
+    armed = AlarmEngine(AlarmSettings(breakage_drop_pct=20.0))
+    assert feed(armed, [10, 10.2, 9.9, 8.6, 5.0, 5.0])[-1] == [("tool_breakage", "torque_nm")]
+
+
+def test_accelerating_revolutions_count_like_any_other():
+    """`accelerating` is information only: the estimator takes the masses' share out of the torque."""
+    e = AlarmEngine(cfg(torque_warn_nm=None, breakage_drop_pct=None))
+    assert feed(e, [35, 35], accelerating=True)[-1] == [("overload", "torque_nm")]
+
+
+def test_the_power_limit_compares_the_power_less_what_went_into_the_masses():
+    e = AlarmEngine(cfg(torque_warn_nm=None, torque_limit_nm=None, power_limit_w=2000.0, revolutions=1,
+                        breakage_drop_pct=None))
+    # a speed step in air: 6 kW of air-gap power, 5.8 kW of it into the rotating masses
+    assert e.on_revolution(rev(0, 1.0, p_gap_w=6000.0, p_inertia_w=5800.0)) == []
+    assert e.over_limits(rev(0, 1.0, p_gap_w=6000.0, p_inertia_w=5800.0)) == []
+    # slowing under load: the masses give 1 kW to the cut, on top of 1.5 kW from the motor
+    evs = e.on_revolution(rev(1, 1.0, p_gap_w=1500.0, p_inertia_w=-1000.0))
+    assert [(x.level, x.quantity) for x in evs] == [("overload", "p_gap_w")]
+    # J unknown: p_inertia_w null, the air-gap power as measured (the safe side)
+    assert AlarmEngine(cfg(torque_limit_nm=None, power_limit_w=2000.0)).over_limits(
+        rev(2, 1.0, p_gap_w=6000.0, p_inertia_w=None)) == ["p_gap_w"]
+
+
+def _saturated(i):
+    """What the estimator publishes when a current clipped while high: invalid, no numbers."""
+    return {"rev": i, "seq_end": 100 * i + 99, "valid": False, "invalid": "signals", "saturated": True,
+            "torque_nm": None, "force_n": None, "p_gap_w": None, "cutting": False, "accelerating": False}
+
+
+def test_saturated_revolutions_count_as_over_every_armed_limit():
+    e = AlarmEngine(cfg(force_limit_n=3000.0, power_limit_w=7500.0, breakage_drop_pct=None))
+    assert e.on_revolution(_saturated(0)) == []          # one revolution: not yet (revolutions = 2)
+    evs = e.on_revolution(_saturated(1))
+    assert sorted((x.level, x.quantity) for x in evs) == [
+        ("overload", "force_n"), ("overload", "p_gap_w"), ("overload", "torque_nm")]
+    assert all(x.trips and x.value is None for x in evs)
+    assert sorted(e.over_limits(_saturated(2))) == ["force_n", "p_gap_w", "torque_nm"]
+    # a saturated revolution after a valid over-limit one completes the run
+    e = AlarmEngine(cfg(torque_warn_nm=None, breakage_drop_pct=None))
+    assert e.on_revolution(rev(0, 35.0)) == []
+    assert [(x.level, x.quantity) for x in e.on_revolution(_saturated(1))] == [("overload", "torque_nm")]
+    # only armed limits; an invalid revolution that is not saturated stays over nothing
+    e = AlarmEngine(cfg(torque_warn_nm=None, breakage_drop_pct=None))
+    assert e.over_limits(_saturated(0)) == ["torque_nm"]
+    assert e.over_limits(dict(_saturated(0), saturated=False)) == []
+    assert AlarmEngine(SimpleNamespace()).on_revolution(_saturated(0)) == []

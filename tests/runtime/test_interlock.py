@@ -1,4 +1,7 @@
-"""Interlock policy: latch, reset authority, heartbeats, start policy.
+"""Interlock policy: latch, heartbeats, start policy, and the reset's condition check.
+
+Who may reset is decided before the interlock is asked (publish/command_auth.py,
+the local control socket): tests/publish and tests/runtime/test_latch.py.
 
 The DAQ side here is a recorder of the three output calls (the interface the
 interlock drives); the real emulator on TCP is exercised in tests/e2e.
@@ -6,10 +9,9 @@ interlock drives); the real emulator on TCP is exercised in tests/e2e.
 
 from __future__ import annotations
 
-import json
 from types import SimpleNamespace
 
-from millsense.daemon.pipeline.interlock import Interlock
+from millsense.daemon.pipeline.interlock import TEST_TRIP, Interlock, ResetCheck
 
 
 class Outputs:
@@ -42,7 +44,7 @@ def test_disabled_interlock_never_touches_the_daq():
     il.start()
     assert il.trip("overload") is None
     il.beat(True)
-    assert il.reset(b"{}")["ok"] is True
+    assert il.reset()["ok"] is True
     assert out.calls == [] and il.state == "disabled"
 
 
@@ -55,35 +57,56 @@ def test_trip_latches_and_writes_once():
     assert il.trip("again") == "feed_hold"
     assert out.calls[1:] == [("outputs", True, True)]
     assert il.state == "feed_hold" and il.reason == "torque overload"
-    r = il.reset(b"{}")
+    r = il.reset()
     assert r["ok"] is True and r["interlock"] == "armed"
     assert out.calls[-1] == ("outputs", False, False)
 
 
-def test_token_policy_compares_the_token():
-    out = Outputs()
-    il = Interlock(out, cfg(reset="token", reset_token="s3cret"))
-    il.trip("x")
-    for bad in (b"", b"{}", json.dumps({"token": "nope"}).encode(), b"s3cre", b"{not json"):
-        r = il.reset(bad)
-        assert r["ok"] is False and r["interlock"] == "feed_hold", bad
-    assert il.reset(json.dumps({"token": "s3cret"}).encode())["ok"] is True
-    il.trip("y")
-    assert il.reset(b"s3cret\n")["ok"] is True
-
-
-def test_token_policy_with_empty_token_refuses_everything():
-    il = Interlock(Outputs(), cfg(reset="token", reset_token=""))
-    il.trip("x")
-    assert il.reset(b"")["ok"] is False
-    assert il.reset(json.dumps({"token": ""}).encode())["ok"] is False
-
-
-def test_reset_off_refuses():
+def test_reset_takes_no_payload_and_has_no_authority_inside():
     il = Interlock(Outputs(), cfg(reset="off"))
     il.trip("x")
-    r = il.reset(b"{}")
-    assert r["ok"] is False and "off" in r["error"] and il.state == "feed_hold"
+    # the policy is reported, not enforced here: the caller authorised the request
+    r = il.reset()
+    assert r["ok"] is True and r["reset"] == "off" and il.state == "armed"
+    assert not hasattr(il, "authorise")
+
+
+def test_every_latch_change_is_handed_to_the_store_with_its_time():
+    seen = []
+    il = Interlock(Outputs(), cfg(), on_change=seen.append)
+    il.trip("overload torque_nm 35 > 30")
+    assert seen[-1]["latched"] is True and seen[-1]["reason"].startswith("overload") and seen[-1]["trips"] == 1
+    assert seen[-1]["since"] is not None
+    il.trip("again")  # already latched: nothing new to keep
+    assert len(seen) == 1
+    il.reset()
+    assert seen[-1] == {"latched": False, "reason": None, "since": None, "trips": 1}
+
+
+def test_a_persisting_store_failure_never_stops_the_trip():
+    def broken(_record):
+        raise OSError("read-only file system")
+
+    out = Outputs()
+    il = Interlock(out, cfg(), on_change=broken)
+    assert il.trip("crash") == "feed_hold"
+    assert out.calls == [("outputs", True, True)]
+
+
+def test_restore_latches_again_with_the_original_reason_and_time():
+    seen = []
+    out = Outputs()
+    il = Interlock(out, cfg(), on_change=seen.append)
+    il.restore("overload p_gap_w 900 > 500", 1700000000.0, trips=3)
+    assert il.state == "feed_hold" and il.since == 1700000000.0 and il.trips == 3
+    assert out.calls == [("outputs", True, True)] and seen == []  # not a new trip
+
+
+def test_a_real_trip_during_a_test_trip_takes_over_the_reason():
+    il = Interlock(Outputs(), cfg())
+    il.trip(TEST_TRIP)
+    il.trip("crash p_gap_w 20000 > 15000")
+    assert il.reason.startswith("crash")
 
 
 def test_heartbeats_only_while_healthy():
@@ -104,7 +127,7 @@ def test_a_hold_found_at_start_is_left_alone_until_reset():
     il.start()
     assert il.state == "held_by_device"
     assert not any(c[0] == "outputs" for c in out.calls)
-    assert il.reset(b"{}")["interlock"] == "armed"
+    assert il.reset()["interlock"] == "armed"
     assert out.calls[-1] == ("outputs", False, False)
 
 
@@ -118,10 +141,84 @@ def test_failed_write_keeps_the_latch_and_is_reasserted():
     assert out.calls == [("outputs", True, True)]
 
 
-def test_token_is_read_from_a_secret_not_its_mask():
-    from pydantic import SecretStr
+# -- the reset's condition check: only data newer than the hold count -------------------------
 
-    il = Interlock(Outputs(), cfg(reset="token", reset_token=SecretStr("s3cret")))
-    il.trip("x")
-    assert il.reset(b'{"token": "**********"}')["ok"] is False
-    assert il.reset(b'{"token": "s3cret"}')["ok"] is True
+def rev(rev_no, seq_end, valid=True, samples=100, **kw):
+    return {"rev": rev_no, "seq_end": seq_end, "samples": samples, "lost_samples": 0, "valid": valid, **kw}
+
+
+def check(**limits):
+    c = ResetCheck(limits.get("crash_power_w"), limits.get("crash_current_a"))
+    c.mark(999)  # the hold began after sample 999
+    return c
+
+
+def refused(c, reason="overload", blind=None, daq=None):
+    r = c.refusal(reason, blind or {}, daq)
+    return None if r is None else r["condition"]
+
+
+def test_the_revolution_that_tripped_is_not_news():
+    c = check()
+    c.on_block(1000, {}, False, False)
+    c.on_estimate(rev(10, 1050), ["torque_nm"])  # samples 951..1050: began before the hold
+    assert refused(c) == "no_revolution"
+    c.on_estimate(rev(11, 1150), ["torque_nm"])
+    assert refused(c) == "overload"
+    c.on_estimate(rev(12, 1250), [])
+    assert refused(c) is None
+
+
+def test_an_invalid_revolution_is_no_evidence_but_a_saturated_one_is_over():
+    c = check()
+    c.on_block(1000, {}, False, False)
+    c.on_estimate(rev(11, 1150), [])
+    c.on_estimate(rev(12, 1250, valid=False), [])
+    assert refused(c) is None  # the latest *valid* revolution decides
+    c.on_estimate(rev(13, 1350, valid=False, saturated=True), [])
+    assert refused(c) == "overload"
+
+
+def test_sample_level_peaks_and_stall_of_the_latest_block():
+    c = check(crash_power_w=15000.0, crash_current_a=60.0)
+    c.on_block(1000, {"p_gap_w": 16000.0, "current_a": 10.0}, False, False)
+    c.on_estimate(rev(11, 1150), [])
+    assert refused(c) == "crash"
+    c.on_block(1010, {"p_gap_w": 900.0, "current_a": 61.0}, False, False)
+    assert refused(c) == "crash"
+    c.on_block(1020, {"p_gap_w": 900.0, "current_a": 12.0}, True, False)
+    assert refused(c) == "stall"
+    c.on_block(1030, {"p_gap_w": 900.0, "current_a": 12.0}, False, False)
+    assert refused(c) is None
+
+
+def test_a_block_from_before_the_hold_counts_for_nothing():
+    c = check(crash_power_w=15000.0)
+    c.on_block(990, {"p_gap_w": 20000.0}, True, False)
+    assert c.blocks == 0 and refused(c) == "no_data"
+
+
+def test_a_spindle_stopped_since_the_hold_is_the_condition_gone():
+    c = check(crash_power_w=15000.0)
+    c.on_block(1000, {"p_gap_w": 20000.0}, False, False)
+    c.on_estimate(rev(11, 1150), ["torque_nm"])
+    assert refused(c) == "crash"
+    c.on_block(1200, {}, False, True)
+    assert refused(c) is None
+    # turning again: a new over-limit revolution is a condition again
+    c.on_block(1300, {"p_gap_w": 500.0}, False, False)
+    assert refused(c) is None
+    c.on_estimate(rev(12, 1450), ["p_gap_w"])
+    assert refused(c) == "overload"
+
+
+def test_blind_or_no_data_refuses_and_a_test_trip_needs_no_revolution():
+    c = check()
+    assert refused(c) == "no_data"
+    assert refused(c, reason=TEST_TRIP) is None
+    c.on_block(1000, {}, False, False)
+    assert refused(c, blind={"signals": "i_u pinned at 32767"}) == "blind"
+    assert refused(c, reason=TEST_TRIP, daq="daq_link: down") == "no_data"
+    assert refused(c, reason=TEST_TRIP) is None
+    c.on_estimate(rev(11, 1150), ["torque_nm"])
+    assert refused(c, reason=TEST_TRIP) == "overload"  # a real condition since: not granted either

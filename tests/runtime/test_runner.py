@@ -126,7 +126,8 @@ def rig():
 
 
 def test_overload_asserts_feed_hold_before_anything_is_published(rig):
-    est = ScriptedEstimator(lambda rev: 35.0 if rev >= 5 else 10.0)
+    torque = {"nm": 35.0}
+    est = ScriptedEstimator(lambda rev: torque["nm"] if rev >= 5 else 10.0)
     runner, drv, sink = rig(est)
     wait_for(lambda: sink.of("alarm"), 5, "overload alarm")
     (alarm, held), *_ = sink.of("alarm")
@@ -136,16 +137,35 @@ def test_overload_asserts_feed_hold_before_anything_is_published(rig):
     assert by_rev[6] is True and by_rev[4] is False
     assert drv.device.feed_hold and runner.status()["interlock"] == "feed_hold"
     # latched: it stays although the torque stays over the limit and nothing new trips
-    time.sleep(0.3)
+    n_est = len(sink.of("estimate"))
+    wait_for(lambda: len(sink.of("estimate")) >= n_est + 2, 3, "revolutions newer than the hold")
     assert [p["level"] for p, _ in sink.of("alarm")] == ["overload"]
-    result = runner.reset(b"{}")
+    # the overload persists: the reset is refused and says why; the feed stays held
+    refused = runner.reset("test")
+    assert refused["ok"] is False and refused["condition"] == "overload" and "torque_nm" in refused["error"]
+    assert drv.device.feed_hold and runner.interlock.state == "feed_hold"
+    torque["nm"] = 10.0
+    n_est = len(sink.of("estimate"))
+    wait_for(lambda: len(sink.of("estimate")) >= n_est + 2, 3, "revolutions under the limit")
+    result = runner.reset("test")
     assert result["ok"] and result["interlock"] == "armed"
     wait_for(lambda: not drv.device.feed_hold, 1, "feed hold released on the DAQ")
-    # reset re-arms: the overload still there trips again two revolutions later
+    # reset re-arms: an overload that comes back trips again two revolutions later
+    torque["nm"] = 35.0
     wait_for(lambda: [p["level"] for p, _ in sink.of("alarm")].count("overload") == 2, 3, "second overload")
     assert drv.device.feed_hold
     revs = [p["rev"] for p, _ in sink.of("estimate")]
     assert revs == list(range(1, len(revs) + 1))
+
+
+def test_a_reset_right_after_the_trip_is_refused_for_want_of_news(rig):
+    est = ScriptedEstimator(lambda rev: 35.0 if rev >= 5 else 10.0)
+    runner, drv, sink = rig(est)
+    wait_for(lambda: runner.interlock.latched, 5, "overload trip")
+    r = runner.reset()
+    # nothing newer than the hold says the overload is gone: when in doubt, hold
+    assert r["ok"] is False and r["condition"] in ("no_data", "no_revolution", "overload"), r
+    assert drv.device.feed_hold
 
 
 class FirstNoteClock(SeqClock):
@@ -209,3 +229,32 @@ def test_status_and_stop(rig):
     assert time.monotonic() - t0 < 1.2
     assert all(not t.is_alive() for t in runner._threads)
     assert runner.state == "stopping"
+
+
+def test_test_trip_holds_through_the_trip_path_and_reports_the_daq_confirmation(rig):
+    runner, drv, sink = rig(ScriptedEstimator(lambda rev: 5.0))
+    wait_for(lambda: len(sink.of("estimate")) >= 2, 5, "revolutions")
+    writes_before = runner.interlock.hold_writes
+    r = runner.test_trip("pytest")
+    assert r["ok"] is True, r
+    assert r["daq_confirm_ms"] is not None and r["daq_confirm_ms"] >= 0
+    assert r["cnc_confirm_ms"] is None and r["cnc_reports_hold"] is False  # the simulated DAQ speaks protocol 1
+    assert drv.device.feed_hold and runner.interlock.reason == "test-trip" and runner.interlock.trips == 1
+    assert runner.interlock.hold_writes == writes_before + 1
+    # a second test while held proves nothing: refused
+    again = runner.test_trip("pytest")
+    assert again["ok"] is False and "already" in again["error"]
+    # a test-trip latched for no condition: the reset that follows is granted at once
+    assert runner.reset("pytest")["ok"] is True
+    wait_for(lambda: not drv.device.feed_hold, 1, "released")
+    assert runner.status()["last_test_trip"]["ok"] is True
+
+
+def test_test_trip_without_a_daq_confirmation_is_not_ok(rig):
+    runner, drv, sink = rig(ScriptedEstimator(lambda rev: 5.0))
+    wait_for(lambda: len(sink.of("estimate")) >= 1, 5, "revolutions")
+    # a DAQ that takes the command but never shows it in its status (a stuck output stage)
+    real = drv.device.status
+    drv.device.status = lambda: real().__class__(real().outputs & ~1, real().flags, real().last_heartbeat)
+    r = runner.test_trip("pytest", wait_s=0.3)
+    assert r["ok"] is False and r["daq_confirm_ms"] is None and "did not show" in r["error"]

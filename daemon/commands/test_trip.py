@@ -1,0 +1,155 @@
+"""`millsense test-trip`: proof test of the feed-hold path, then a reset.
+
+Asks the running daemon to assert feed hold through the same path as a real
+trip (reason "test-trip"), prints how long the DAQ took to show it in its
+STATUS and, on a protocol-2 DAQ that reports the CNC's context, how long the
+CNC took to report "feed held". Then it asks for a reset.
+
+- `--local`: through the daemon's control socket at the machine (root or the
+  daemon's user; the state directory from `--config` or `--machine`);
+- else over Zenoh (`cmd/test-trip`, then `cmd/reset`), authorised like
+  `millsense reset` (`--token-file`, or the environment variable
+  MILLSENSE_RESET_TOKEN).
+
+Exit 0 when the daemon confirmed the hold (the DAQ's status, and the CNC's
+flag where the DAQ reports it) and granted the reset; 1 otherwise. When the
+test itself failed, no reset is sent: the feed stays held until someone has
+looked at the path and runs `millsense reset`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from millsense.daemon.publish.cli_args import add_zenoh_arguments, check_machine, zenoh_settings_from_args
+
+PROG = "millsense test-trip"
+TOKEN_ENV = "MILLSENSE_RESET_TOKEN"
+DEFAULT_TIMEOUT_S = 6.0  # the daemon waits up to 2 s for each confirmation
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--machine", "-m", metavar="ID", default=None, help="the machine id of the daemon")
+    parser.add_argument("--local", action="store_true",
+                        help="ask through the daemon's control socket at the machine (root or the daemon's user)")
+    parser.add_argument("--config", "-c", metavar="FILE", default=None,
+                        help="the daemon's configuration (gives the machine id for --local)")
+    parser.add_argument("--token-file", metavar="FILE", default=None,
+                        help=f"reset token for Zenoh (first line of FILE; or the environment variable {TOKEN_ENV})")
+    parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="S",
+                        help=f"how long to wait for each answer (default {DEFAULT_TIMEOUT_S:g} s)")
+    add_zenoh_arguments(parser, listen=False)
+
+
+def _fail(message: str, code: int = 1) -> int:
+    print(f"{PROG}: {message}", file=sys.stderr)
+    return code
+
+
+def run(args: argparse.Namespace) -> int:
+    if check_machine(args.machine, PROG):
+        return 2
+    if not (0 < args.timeout < 3600):
+        return _fail("error: --timeout must be between 0 and 3600 seconds", 2)
+    machine = args.machine
+    if args.config:
+        from millsense.daemon.config import load_config
+
+        machine = machine or load_config(args.config).machine  # ConfigError -> 78 in cli.main
+    if args.local:
+        if machine is None:
+            return _fail("error: --local needs --machine or --config (to find the daemon's state directory)", 2)
+        return _local(machine, args.timeout)
+    if machine is None:
+        return _fail("error: give --machine (a proof test is not sent to a guessed machine)", 2)
+    return _zenoh(args, machine)
+
+
+def _local(machine: str, timeout_s: float) -> int:
+    from millsense.daemon.pipeline.latch_store import state_dir
+    from millsense.daemon.pipeline.local_control import LocalControlError, local_command
+
+    directory = state_dir(machine)
+    try:
+        trip = local_command(directory, "test-trip", timeout_s)
+    except LocalControlError as exc:
+        return _fail(f"error: {exc}")
+    if not _report_trip(machine, trip):
+        return 1
+    try:
+        reset = local_command(directory, "reset", timeout_s)
+    except LocalControlError as exc:
+        return _fail(f"error: the reset after the test was not answered: {exc}; the feed stays held")
+    return _report_reset(machine, reset)
+
+
+def _zenoh(args: argparse.Namespace, machine: str) -> int:
+    try:
+        from millsense.daemon.publish.command_auth import CommandError, send_command
+    except ImportError:
+        return _fail("error: this build has no authorised Zenoh commands; use --local at the machine")
+    from millsense.daemon.publish.session import ZenohConfigError, ZenohUnavailable, open_session
+
+    token = None
+    if args.token_file:
+        try:
+            lines = Path(args.token_file).read_text(encoding="utf-8").splitlines()
+        except (OSError, UnicodeDecodeError) as exc:
+            return _fail(f"error: cannot read --token-file {args.token_file}: {exc}")
+        token = lines[0].strip() if lines else ""
+    elif os.environ.get(TOKEN_ENV):
+        token = os.environ[TOKEN_ENV].strip()
+    try:
+        session = open_session(zenoh_settings_from_args(args), retry_for_s=args.timeout)
+    except (ZenohUnavailable, ZenohConfigError) as exc:
+        return _fail(f"error: {exc}")
+    try:
+        try:
+            trip = send_command(session, machine, "test-trip", token, timeout_s=args.timeout)
+        except CommandError as exc:
+            return _fail(f"error: {machine}: test-trip: {exc}")
+        if not _report_trip(machine, trip):
+            return 1
+        try:
+            reset = send_command(session, machine, "reset", token, timeout_s=args.timeout)
+        except CommandError as exc:
+            return _fail(f"error: {machine}: the reset after the test was refused or not answered: {exc}; "
+                         "the feed stays held")
+        return _report_reset(machine, reset)
+    finally:
+        session.close()
+
+
+def _ms(value: Any) -> str:
+    return "–" if value is None else f"{float(value):.1f} ms"
+
+
+def _report_trip(machine: str, reply: dict[str, Any]) -> bool:
+    """Print the measured times; True if the test passed (then the reset is sent)."""
+    daq_ms, cnc_ms = reply.get("daq_confirm_ms"), reply.get("cnc_confirm_ms")
+    print(f"{machine}: feed hold asserted (reason test-trip)" if daq_ms is not None or reply.get("ok")
+          else f"{machine}: test-trip")
+    print(f"  DAQ status shows feed hold after: {_ms(daq_ms)}")
+    if reply.get("cnc_reports_hold"):
+        print(f"  CNC reports feed held after:      {_ms(cnc_ms)}")
+    else:
+        print("  CNC confirmation: not measured (the DAQ reports no CNC context; protocol 1)")
+    if not reply.get("ok"):
+        held = reply.get("interlock") == "feed_hold"
+        print(f"{PROG}: {machine}: the test failed: {reply.get('error') or reply}"
+              + ("; the feed stays held: check the path, then `millsense reset`" if held else ""), file=sys.stderr)
+        return False
+    return True
+
+
+def _report_reset(machine: str, reply: dict[str, Any]) -> int:
+    if reply.get("ok"):
+        print(f"{machine}: reset granted; interlock {reply.get('interlock')}")
+        return 0
+    print(f"{PROG}: {machine}: the reset after the test was refused: {reply.get('error') or reply}; "
+          "the feed stays held", file=sys.stderr)
+    return 1

@@ -1,0 +1,209 @@
+"""Commands at the machine: a Unix socket in the daemon's state directory, for root and the daemon's user.
+
+Why a local socket beside the Zenoh commands: an operator standing at the
+machine must always be able to clear a latched hold, even with
+`[interlock] reset = "off"` (that policy is about the network) or with the
+network down. Who may ask is decided by the kernel, not by a secret: the
+peer's credentials (`SO_PEERCRED`) must be uid 0 or the daemon's own uid.
+The socket file is mode 0660 in the state directory.
+
+Protocol: one connection per request; the client sends one JSON line
+`{"command": "reset" | "test-trip" | "status"}` and gets one JSON line back.
+`reset` and `test-trip` go through `Runner.reset` / `Runner.test_trip`, so a
+reset is still refused while the condition that latched persists; both are
+recorded in the audit log, granted or refused, with the peer's uid and pid.
+
+Requests are served one at a time by one thread (a test-trip takes up to a
+few seconds; a second request waits for it), each with a read deadline, so a
+client that connects and says nothing cannot hold the socket.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import struct
+import threading
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+log = structlog.get_logger("millsense.local_control")
+
+SOCKET_NAME = "control.sock"
+COMMANDS = ("reset", "test-trip", "status")
+MAX_REQUEST_BYTES = 4096
+READ_DEADLINE_S = 2.0
+SOCKET_MODE = 0o660
+
+
+class LocalControlError(Exception):
+    """The local command could not be asked or answered (no daemon, no permission, a bad reply)."""
+
+
+def socket_path(state_dir: Path) -> Path:
+    return Path(state_dir) / SOCKET_NAME
+
+
+# -- client ----------------------------------------------------------------------
+def local_command(state_dir: Path, command: str, timeout_s: float = 2.0) -> dict[str, Any]:
+    """Ask the daemon whose state directory is `state_dir`; its JSON reply.
+
+    Raises `LocalControlError` with a sentence for the user when no daemon
+    listens there, the socket is not ours to use, or nothing came back in time.
+    """
+    path = socket_path(state_dir)
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.settimeout(timeout_s)
+    try:
+        try:
+            sock.connect(str(path))
+        except FileNotFoundError:
+            raise LocalControlError(f"no daemon's control socket at {path} (is millsense running for this machine?)") from None
+        except PermissionError:
+            raise LocalControlError(f"not allowed to use {path}: run as root or as the daemon's user") from None
+        except ConnectionRefusedError:
+            raise LocalControlError(f"no daemon listens on {path} (a socket left by a stopped daemon?)") from None
+        except OSError as exc:
+            raise LocalControlError(f"cannot connect to {path}: {exc}") from None
+        try:
+            sock.sendall((json.dumps({"command": command}) + "\n").encode())
+            data = _read_line(sock)
+        except socket.timeout:
+            raise LocalControlError(f"no answer from the daemon within {timeout_s:g} s") from None
+        except OSError as exc:
+            raise LocalControlError(f"the daemon closed the connection: {exc}") from None
+    finally:
+        sock.close()
+    if not data:
+        raise LocalControlError("the daemon closed the connection without an answer")
+    try:
+        reply = json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError):
+        raise LocalControlError("the daemon's answer is not JSON") from None
+    if not isinstance(reply, dict):
+        raise LocalControlError("the daemon's answer is not a JSON object")
+    return reply
+
+
+def _read_line(sock: socket.socket) -> bytes:
+    buf = b""
+    while b"\n" not in buf and len(buf) <= MAX_REQUEST_BYTES * 64:
+        chunk = sock.recv(65536)
+        if not chunk:
+            break
+        buf += chunk
+    return buf.split(b"\n", 1)[0]
+
+
+# -- server ----------------------------------------------------------------------
+def peer_credentials(conn: socket.socket) -> tuple[int, int, int]:
+    """(pid, uid, gid) of the process at the other end (Linux SO_PEERCRED)."""
+    raw = conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+    pid, uid, gid = struct.unpack("3i", raw)
+    return pid, uid, gid
+
+
+class LocalControl:
+    """The server side: one thread accepting on `state_dir/control.sock`."""
+
+    def __init__(self, state_dir: Path, runner: Any, allowed_uids: tuple[int, ...] | None = None):
+        self.path = socket_path(state_dir)
+        self.runner = runner
+        self.allowed_uids = allowed_uids if allowed_uids is not None else tuple(sorted({0, os.getuid()}))
+        self._sock: socket.socket | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self.served = 0
+
+    def start(self) -> bool:
+        """Bind and serve. False (after logging a fault) if the socket cannot be made: the daemon runs on."""
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
+            if self.path.is_socket() or self.path.exists():
+                self.path.unlink()  # left by a daemon that died; one daemon per state directory
+            sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            try:
+                sock.bind(str(self.path))
+                os.chmod(self.path, SOCKET_MODE)
+                sock.listen(8)
+                sock.settimeout(0.2)  # the accept loop looks at the stop flag
+            except OSError:
+                sock.close()
+                raise
+        except OSError as exc:
+            self.runner.fault("local_control", f"cannot open the local control socket {self.path}: {exc}")
+            return False
+        self._sock = sock
+        self._thread = threading.Thread(target=self._serve, name="millsense-local-control", daemon=True)
+        self._thread.start()
+        log.info("local_control.listening", path=str(self.path), uids=list(self.allowed_uids))
+        return True
+
+    def close(self, timeout_s: float = 1.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            self._thread = None
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+            try:
+                self.path.unlink()
+            except OSError:
+                pass
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._sock.accept()
+            except socket.timeout:
+                continue
+            except OSError as exc:
+                if not self._stop.is_set():
+                    log.error("local_control.accept_failed", error=str(exc))
+                    self._stop.wait(0.2)
+                continue
+            try:
+                self._handle(conn)
+            except Exception as exc:  # noqa: BLE001 - one bad client must not end the server
+                log.error("local_control.request_failed", error=f"{type(exc).__name__}: {exc}")
+            finally:
+                conn.close()
+
+    def _handle(self, conn: socket.socket) -> None:
+        conn.settimeout(READ_DEADLINE_S)
+        pid, uid, _gid = peer_credentials(conn)
+        requester = f"local uid={uid} pid={pid}"
+        try:
+            line = _read_line(conn)
+        except (socket.timeout, OSError):
+            return
+        command = _command_of(line)
+        audit = self.runner.audit
+        if uid not in self.allowed_uids:
+            reply = {"ok": False, "error": f"uid {uid} may not command this daemon (root or uid {os.getuid()} only)"}
+            audit.record(command or "?", requester, False, reason=reply["error"])
+        elif command is None:
+            reply = {"ok": False, "error": f"bad request: expected one JSON line {{\"command\": one of {list(COMMANDS)}}}"}
+        elif command == "status":
+            reply = {"ok": True, **self.runner.status()}
+        else:
+            fn = self.runner.reset if command == "reset" else self.runner.test_trip
+            reply = fn(requester=requester)
+            audit.record(command, requester, bool(reply.get("ok")), reason=reply.get("error"),
+                         result={k: v for k, v in reply.items() if k not in ("interlock_detail",)})
+        self.served += 1
+        conn.settimeout(READ_DEADLINE_S)
+        conn.sendall((json.dumps(reply, default=str) + "\n").encode())
+
+
+def _command_of(line: bytes) -> str | None:
+    try:
+        obj = json.loads(line.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError):
+        return None
+    command = obj.get("command") if isinstance(obj, dict) else None
+    return command if command in COMMANDS else None

@@ -1,0 +1,221 @@
+"""The daemon's queryables: bounded in Zenoh, served by one Python thread, cheap to flood.
+
+Each queryable (`status`, `config`, `cmd/*`) takes a Zenoh ring channel of a
+few entries: when queries come faster than they are served, Zenoh drops the
+oldest inside its own threads, before any Python runs or the GIL is taken
+(finding 4 of issue 11: a query flood starved the heartbeat thread through
+the per-query Python callbacks). One worker serves the rings in turn, one
+query from each per pass, so a flood on one key delays another key's query by
+at most one query per ring; it also stops after `max_rate_hz` queries in a
+tenth of a second, which bounds the Python time a flood can take.
+
+Per query: the payload's length is checked before anything reads it
+(`MAX_QUERY_BYTES`); `status` and `config` answers are kept as bytes for a
+moment, so a burst of status queries costs one `Runner.status()`. Refusals are
+never logged one line each (finding 6): `cmd/*` refusals go to the audit log,
+which writes them at most once per 10 s with a count, and other failed queries
+are summed in one `zenoh.queries_refused` line per 10 s.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from millsense.daemon.publish.command_auth import Answer, CommandGate
+from millsense.daemon.publish.payload import JSON_ENCODING, MAX_QUERY_BYTES, dumps, loads_object
+
+RING_CAPACITY = 8
+IDLE_WAIT_S = 0.005  # how long the worker sleeps when every ring is empty
+LOG_EVERY_S = 10.0
+STATUS_CACHE_S = 0.2
+CONFIG_CACHE_S = 2.0
+TOO_LARGE = dumps({"ok": False, "error": f"payload over {MAX_QUERY_BYTES} bytes: refused unread"})
+
+
+@dataclass
+class _Entry:
+    key: str
+    serve: Callable[[Any, str | None], tuple[bool, bytes]]  # (query, command) -> (ok, body)
+    command: str | None = None
+    queryable: Any = None
+
+
+class QueryServer:
+    """Declares the queryables on `session` and serves them from one thread until `close()`."""
+
+    def __init__(self, session: zenoh.Session, prefix: str, *, status: Callable[[], dict],
+                 config: Callable[[], dict], commands: dict[str, Callable[[dict, str], dict]],
+                 gate: CommandGate | None, log: Any = None, capacity: int = RING_CAPACITY,
+                 max_rate_hz: float = 1000.0, cache_status: bool = True):
+        self._status, self._config, self._gate, self._log = status, config, gate, log
+        self._commands = commands
+        self._max_per_tick = max(1, int(max_rate_hz / 10))
+        self._cache: dict[str, tuple[float, bytes]] = {}
+        self._cache_status = cache_status
+        self._stop = threading.Event()
+        self.queries = 0
+        self.errors = 0
+        self.too_large = 0
+        self._busy_s = 0.0
+        self._busy_max_s = 0.0
+        self._refused_pending = 0
+        self._refused_last: dict[str, Any] = {}
+        self._refused_mark = -1e18
+
+        entries = [_Entry(f"{prefix}/status", self._serve_status), _Entry(f"{prefix}/config", self._serve_config)]
+        for name in commands or {"reset": None}:
+            entries.append(_Entry(f"{prefix}/cmd/{name}", self._serve_command, command=name))
+        self._entries: list[_Entry] = []
+        try:
+            for e in entries:
+                e.queryable = session.declare_queryable(e.key, zenoh.handlers.RingChannel(capacity))
+                self._entries.append(e)
+        except BaseException:
+            self._undeclare()
+            raise
+        self._thread = threading.Thread(target=self._run, name=f"zenoh-queries-{prefix}", daemon=True)
+        self._thread.start()
+
+    # ---- worker ----------------------------------------------------------------------
+    def _run(self) -> None:
+        tick_end, served = time.monotonic() + 0.1, 0
+        while not self._stop.is_set():
+            busy = False
+            for entry in self._entries:
+                try:
+                    query = entry.queryable.handler.try_recv()
+                except Exception:  # noqa: BLE001 - the channel closed: we are stopping
+                    query = None
+                if query is None:
+                    continue
+                busy = True
+                t0 = time.perf_counter()
+                self._answer(entry, query)
+                dt = time.perf_counter() - t0
+                self._busy_s += dt
+                self._busy_max_s = max(self._busy_max_s, dt)
+                served += 1
+            now = time.monotonic()
+            if now >= tick_end:
+                tick_end, served = now + 0.1, 0
+            elif served >= self._max_per_tick:
+                self._stop.wait(tick_end - now)  # over budget: the rings hold (and drop) the rest
+            if not busy:
+                self._stop.wait(IDLE_WAIT_S)
+
+    def _answer(self, entry: _Entry, query: Any) -> None:
+        self.queries += 1
+        try:
+            with query:
+                payload = query.payload
+                if payload is not None and len(payload) > MAX_QUERY_BYTES:
+                    self.too_large += 1
+                    ok, body = False, TOO_LARGE
+                    if entry.command is not None and self._gate is not None:
+                        self._gate.refuse_unparsed(entry.command, f"payload over {MAX_QUERY_BYTES} bytes")
+                    else:
+                        self._note_refusal(entry.key, "payload too large")
+                else:
+                    ok, body = entry.serve(query, entry.command)
+                if ok:
+                    query.reply(entry.key, body, encoding=JSON_ENCODING)
+                else:
+                    query.reply_err(body, encoding=JSON_ENCODING)
+        except Exception as exc:  # noqa: BLE001 - the querier went away, or the session closed
+            self._note_refusal(entry.key, f"reply failed: {type(exc).__name__}: {exc}")
+
+    # ---- the three kinds of query ---------------------------------------------------------
+    def _serve_status(self, _query: Any, _command: str | None) -> tuple[bool, bytes]:
+        return self._cached("status", STATUS_CACHE_S if self._cache_status else 0.0, self._status)
+
+    def _serve_config(self, _query: Any, _command: str | None) -> tuple[bool, bytes]:
+        return self._cached("config", CONFIG_CACHE_S, self._config)
+
+    def _cached(self, name: str, keep_s: float, produce: Callable[[], dict]) -> tuple[bool, bytes]:
+        now = time.monotonic()
+        hit = self._cache.get(name)
+        if hit is not None and now < hit[0]:
+            return True, hit[1]
+        try:
+            result = produce()
+            if not isinstance(result, dict):
+                raise TypeError(f"controls returned {type(result).__name__}, expected a dict")
+            body = dumps(result)
+        except Exception as exc:  # noqa: BLE001 - a query must never kill the daemon
+            reason = str(exc) if isinstance(exc, (ValueError, LookupError)) else f"{type(exc).__name__}: {exc}"
+            self._note_refusal(name, reason)
+            return False, dumps({"ok": False, "error": reason})
+        if keep_s > 0:
+            self._cache[name] = (now + keep_s, body)
+        return True, body
+
+    def _serve_command(self, query: Any, command: str | None) -> tuple[bool, bytes]:
+        command = command or "reset"
+        if self._gate is None or command not in self._commands:
+            self._note_refusal(f"cmd/{command}", "no controls")
+            return False, dumps({"ok": False, "error": f"this daemon has no interlock to {command}"})
+        payload = query.payload
+        data = payload.to_bytes() if payload is not None else b""
+        try:
+            if not data.strip():
+                raise ValueError('payload is empty: send {"step": "challenge", ...} (docs/zenoh.md)')
+            request = loads_object(data)
+        except ValueError as exc:
+            return self._sent(self._gate.refuse_unparsed(command, str(exc)))
+        return self._sent(self._gate.handle(command, request, self._commands[command]))
+
+    def _sent(self, answer: Answer) -> tuple[bool, bytes]:
+        if answer.ran:
+            self._cache.clear()  # the next status shows what the command changed
+        return answer.ok, answer.body
+
+    # ---- counters, logging, teardown ---------------------------------------------------
+    def stats(self) -> dict[str, Any]:
+        served = max(1, self.queries)
+        return {
+            "queries": self.queries,
+            "query_errors": self.errors,
+            "queries_too_large": self.too_large,
+            "query_python_ms_mean": round(1000 * self._busy_s / served, 3),
+            "query_python_ms_max": round(1000 * self._busy_max_s, 3),
+        }
+
+    def _note_refusal(self, key: str, reason: str) -> None:
+        """Counted always; logged at most once per LOG_EVERY_S, with the count since the last line."""
+        self.errors += 1
+        self._refused_pending += 1
+        self._refused_last = {"key": key, "error": reason}
+        now = time.monotonic()
+        if now - self._refused_mark < LOG_EVERY_S:
+            return
+        self._refused_mark = now
+        self._flush_refusals()
+
+    def _flush_refusals(self) -> None:
+        if self._refused_pending and self._log is not None:
+            try:
+                self._log.warning("zenoh.queries_refused", count=self._refused_pending, last=self._refused_last,
+                                  every_s=LOG_EVERY_S)
+            except Exception:  # noqa: BLE001 - logging must not break the queryables
+                pass
+        self._refused_pending = 0
+
+    def close(self, timeout_s: float = 1.0) -> None:
+        self._stop.set()
+        self._thread.join(timeout_s)
+        self._undeclare()
+        self._flush_refusals()
+
+    def _undeclare(self) -> None:
+        for e in self._entries:
+            try:
+                e.queryable.undeclare()
+            except Exception:  # noqa: BLE001 - already undeclared, or the session closed
+                pass
+        self._entries = []
