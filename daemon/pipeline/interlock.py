@@ -327,7 +327,8 @@ class ResetCheck:
         if self.crash_power_w is not None and p_w is not None and p_w >= self.crash_power_w:
             self.peaks_over = f"air-gap power peak {p_w:.0f} W >= crash_power_w {self.crash_power_w:g} W"
         elif self.crash_current_a is not None and i_a is not None and i_a >= self.crash_current_a:
-            self.peaks_over = f"current peak {i_a:.1f} A >= crash_current_a {self.crash_current_a:g} A"
+            shown = "clipped at the sensor's limit" if i_a == float("inf") else f"{i_a:.1f} A"
+            self.peaks_over = f"current peak {shown} >= crash_current_a {self.crash_current_a:g} A"
 
     def on_estimate(self, est: dict[str, Any], over: list[str]) -> None:
         """A closed revolution; `over` = AlarmEngine.over_limits(est)."""
@@ -377,4 +378,4 @@ def _number(value: Any) -> float | None:
         f = float(value)
     except (TypeError, ValueError):
         return None
-    return f if f == f and f not in (float("inf"), float("-inf")) else None
+    return f if f == f else None  # inf stays: a current clipped while high is beyond what the sensor measures

@@ -190,6 +190,9 @@ def test_sample_level_peaks_and_stall_of_the_latest_block():
     assert refused(c) == "stall"
     c.on_block(1030, {"p_gap_w": 900.0, "current_a": 12.0}, False, False)
     assert refused(c) is None
+    # a current clipped at its sensor's limit while high is reported as inf: beyond any limit, not "no number"
+    c.on_block(1040, {"p_gap_w": 900.0, "current_a": float("inf")}, False, False)
+    assert refused(c) == "crash"
 
 
 def test_a_block_from_before_the_hold_counts_for_nothing():
