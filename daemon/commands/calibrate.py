@@ -15,9 +15,10 @@ friction line leaves of `P_g/ω` is `J·Δω/Δt`, fitted through the origin
 against the revolution's acceleration as the daemon measures it (the speed
 reading's rise over the revolution). It needs run-ups: captures in which the
 speed steps in air, in each gear fitted (`millsense sim --scenario aircut-low
---capture F`; on a machine, S-word changes in air). A J that cannot be fitted
-(no speed change), comes out negative, or is poorly determined is refused:
-exit 1, no file written.
+--capture F`; on a machine, S-word changes in air). Captures with no speed
+change say nothing of J: the friction is written without it, with a warning
+naming the capture that would fit it. A J that comes out negative, or poorly
+determined, says the captures are wrong: refused, exit 1, no file written.
 
 With `--dynamometer` (captures with fx, fy channels), revolutions the
 dynamometer sees as cutting are kept out of the friction fit and used to fit
@@ -199,9 +200,11 @@ def _fit_inertia(runs, settings, fits, fit_inertia) -> dict | None:
         try:
             j = fit_inertia(rows[:, 2], left_nm)
         except ValueError as exc:
-            print(f"millsense calibrate: gear {gear.name}: cannot fit the inertia ({exc}); needs {RUN_UP_HINT}",
-                  file=sys.stderr)
-            return None
+            # No run-up in the captures: nothing says what J is, and nothing contradicts the friction fit.
+            # The friction is written; J is left as the config has it (config_warnings says when it has none).
+            print(f"millsense calibrate: warning: gear {gear.name}: inertia not fitted ({exc}); friction is "
+                  f"written without it; to fit J, add {RUN_UP_HINT}", file=sys.stderr)
+            continue
         print(f"  {gear.name}: J = {j.inertia_kgm2:.4f} kg.m2 (+/- {j.sigma_kgm2:.4f})  R2 = {j.r2:.4f}"
               f"  revolutions = {j.samples}, {j.changing} changing speed")
         if not j.inertia_kgm2 > 0.0 or j.sigma_kgm2 > J_REL_SIGMA_MAX * abs(j.inertia_kgm2):
@@ -242,7 +245,7 @@ def _write_toml(path: Path, fits: dict, inertia: dict, cf: float | None) -> None
             f'name = "{name}"',
             f"friction_torque_nm = {fit.friction_torque_nm:.6f}",
             f"viscous_nms = {fit.viscous_nms:.8f}",
-            f"inertia_kgm2 = {inertia[name].inertia_kgm2:.6f}",
+            *([f"inertia_kgm2 = {inertia[name].inertia_kgm2:.6f}"] if name in inertia else []),
             f"samples = {int(fit.samples)}",
             f"r2 = {fit.r2:.6f}",
             "",

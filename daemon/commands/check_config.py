@@ -24,8 +24,9 @@ def summary(settings) -> str:
         "serial": daq.port, "modbus-rtu": daq.port, "tcp": f"{daq.host}:{daq.tcp_port}",
         "modbus-tcp": f"{daq.host}:{daq.tcp_port}", "sim": f"scenario {daq.scenario}",
     }[daq.transport]
-    armed = [k for k, v in settings.alarms.model_dump().items() if k.endswith(("_nm", "_n", "_w")) and v is not None
-             and k not in ("breakage_min_torque_nm",)]
+    armed = [k for k, v in settings.alarms.model_dump().items()
+             if k.endswith(("_nm", "_n", "_w", "_a", "_pct")) and v is not None
+             and k not in ("breakage_min_torque_nm", "hysteresis_pct")]
     parts = [
         f"machine {settings.machine}",
         f"daq {daq.transport} {where}",
