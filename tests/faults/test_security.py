@@ -6,8 +6,8 @@ stopped (SIGSTOP) for longer than the DAQ's watchdog: on SIGCONT the simulated
 DAQ finds the heartbeats missing and holds the feed by itself.
 
 The TLS case uses config/zenoh-tls.json5 itself (paths and port rewritten),
-with certificates made by openssl in the test (the fixture of
-tests/publish/test_tls.py, which runs the same file against a `ZenohSink` in the
+with certificates made in the test by the `cryptography` package (tests/publish/pki.py, through the
+fixture of tests/publish/test_tls.py, which runs the same file against a `ZenohSink` in the
 test process; this is the daemon-subprocess variant).
 """
 
@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 import time
@@ -90,7 +89,6 @@ def test_reset_off_refuses_every_network_request_and_the_local_reset_still_works
     assert_clean_exit(procs, "daemon")
 
 
-needs_openssl = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command to make certificates")
 
 
 def _operator_json5(pki_dir, port: int):
@@ -107,7 +105,6 @@ def _operator_json5(pki_dir, port: int):
     return path
 
 
-@needs_openssl
 def test_daemon_behind_mutual_tls_and_acl(pki, tmp_path):  # noqa: F811 - the fixture
     port = free_tcp_port()
     machine = "mch10-01"
