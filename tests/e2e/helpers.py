@@ -97,6 +97,9 @@ class Procs:
         out = open(self.tmp / f"{name}.out", "wb")  # noqa: SIM115 - closed with the process
         err = open(self.tmp / f"{name}.err", "wb")  # noqa: SIM115
         env = dict(os.environ, PYTHONUNBUFFERED="1", **(env_extra or {}))
+        # A daemon keeps its latch in its state directory: one started from a bench (tests set their own
+        # in conftest) must not leave a held feed in the user's ~/.local/state for the next run.
+        env.setdefault("XDG_STATE_HOME", str(self.tmp / "state"))
         p = subprocess.Popen(CMD + args, stdout=out, stderr=err, env=env, **kw)
         p.name = name  # type: ignore[attr-defined]
         self.procs.append(p)
