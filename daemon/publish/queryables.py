@@ -3,11 +3,12 @@
 Each queryable (`status`, `config`, `cmd/*`) takes a Zenoh ring channel of a
 few entries: when queries come faster than they are served, Zenoh drops the
 oldest inside its own threads, before any Python runs or the GIL is taken
-(finding 4 of issue 11: a query flood starved the heartbeat thread through
-the per-query Python callbacks). One worker serves the rings in turn, one
-query from each per pass, so a flood on one key delays another key's query by
-at most one query per ring; it also stops after `max_rate_hz` queries in a
-tenth of a second, which bounds the Python time a flood can take.
+(a query flood starved the heartbeat thread through per-query Python
+callbacks). Each ring has its own worker thread, blocked in Zenoh's `recv()`
+with the GIL released, so an idle daemon spends nothing here and a flood on
+one key never queues another key's query behind it. Together the workers stop
+after `max_rate_hz` queries in a tenth of a second, which bounds the Python
+time a flood can take.
 
 Per query: the payload's length is checked before anything reads it
 (`MAX_QUERY_BYTES`); `status` and `config` answers are kept as bytes for a
@@ -31,7 +32,6 @@ from millsense.daemon.publish.command_auth import Answer, CommandGate
 from millsense.daemon.publish.payload import JSON_ENCODING, MAX_QUERY_BYTES, dumps, loads_object
 
 RING_CAPACITY = 8
-IDLE_WAIT_S = 0.005  # how long the worker sleeps when every ring is empty
 LOG_EVERY_S = 10.0
 STATUS_CACHE_S = 0.2
 CONFIG_CACHE_S = 2.0
@@ -47,7 +47,7 @@ class _Entry:
 
 
 class QueryServer:
-    """Declares the queryables on `session` and serves them from one thread until `close()`."""
+    """Declares the queryables on `session` and serves each from its own thread until `close()`."""
 
     def __init__(self, session: zenoh.Session, prefix: str, *, status: Callable[[], dict],
                  config: Callable[[], dict], commands: dict[str, Callable[[dict, str], dict]],
@@ -59,6 +59,7 @@ class QueryServer:
         self._cache: dict[str, tuple[float, bytes]] = {}
         self._cache_status = cache_status
         self._stop = threading.Event()
+        self._lock = threading.Lock()  # counters and the refusal log line, shared by the workers
         self.queries = 0
         self.errors = 0
         self.too_large = 0
@@ -79,38 +80,45 @@ class QueryServer:
         except BaseException:
             self._undeclare()
             raise
-        self._thread = threading.Thread(target=self._run, name=f"zenoh-queries-{prefix}", daemon=True)
-        self._thread.start()
+        self._budget_lock = threading.Lock()
+        self._tick_end, self._served = time.monotonic() + 0.1, 0
+        self._threads = [threading.Thread(target=self._run, args=(e,), name=f"zenoh-query-{e.key.rsplit('/', 1)[-1]}",
+                                          daemon=True) for e in self._entries]
+        for t in self._threads:
+            t.start()
 
-    # ---- worker ----------------------------------------------------------------------
-    def _run(self) -> None:
-        tick_end, served = time.monotonic() + 0.1, 0
+    # ---- workers ---------------------------------------------------------------------
+    def _run(self, entry: _Entry) -> None:
         while not self._stop.is_set():
-            busy = False
-            for entry in self._entries:
-                try:
-                    query = entry.queryable.handler.try_recv()
-                except Exception:  # noqa: BLE001 - the channel closed: we are stopping
-                    query = None
-                if query is None:
-                    continue
-                busy = True
-                t0 = time.perf_counter()
-                self._answer(entry, query)
-                dt = time.perf_counter() - t0
+            try:
+                query = entry.queryable.handler.recv()  # blocks in Zenoh, GIL released
+            except Exception:  # noqa: BLE001 - the channel closed: we are stopping
+                return
+            self._wait_for_budget()
+            t0 = time.perf_counter()
+            self._answer(entry, query)
+            dt = time.perf_counter() - t0
+            with self._lock:
                 self._busy_s += dt
                 self._busy_max_s = max(self._busy_max_s, dt)
-                served += 1
-            now = time.monotonic()
-            if now >= tick_end:
-                tick_end, served = now + 0.1, 0
-            elif served >= self._max_per_tick:
-                self._stop.wait(tick_end - now)  # over budget: the rings hold (and drop) the rest
-            if not busy:
-                self._stop.wait(IDLE_WAIT_S)
+
+    def _wait_for_budget(self) -> None:
+        """At most `max_rate_hz / 10` queries a tenth of a second, all workers together; over it, the
+        worker waits for the next tenth while its ring holds (and drops) what comes meanwhile."""
+        while not self._stop.is_set():
+            with self._budget_lock:
+                now = time.monotonic()
+                if now >= self._tick_end:
+                    self._tick_end, self._served = now + 0.1, 0
+                if self._served < self._max_per_tick:
+                    self._served += 1
+                    return
+                wait_s = self._tick_end - now
+            self._stop.wait(wait_s)
 
     def _answer(self, entry: _Entry, query: Any) -> None:
-        self.queries += 1
+        with self._lock:
+            self.queries += 1
         try:
             with query:
                 payload = query.payload
@@ -188,14 +196,15 @@ class QueryServer:
 
     def _note_refusal(self, key: str, reason: str) -> None:
         """Counted always; logged at most once per LOG_EVERY_S, with the count since the last line."""
-        self.errors += 1
-        self._refused_pending += 1
-        self._refused_last = {"key": key, "error": reason}
-        now = time.monotonic()
-        if now - self._refused_mark < LOG_EVERY_S:
-            return
-        self._refused_mark = now
-        self._flush_refusals()
+        with self._lock:
+            self.errors += 1
+            self._refused_pending += 1
+            self._refused_last = {"key": key, "error": reason}
+            now = time.monotonic()
+            if now - self._refused_mark < LOG_EVERY_S:
+                return
+            self._refused_mark = now
+            self._flush_refusals()
 
     def _flush_refusals(self) -> None:
         if self._refused_pending and self._log is not None:
@@ -208,8 +217,10 @@ class QueryServer:
 
     def close(self, timeout_s: float = 1.0) -> None:
         self._stop.set()
-        self._thread.join(timeout_s)
-        self._undeclare()
+        self._undeclare()  # closes the rings: each worker's recv() returns with an error and the worker ends
+        deadline = time.monotonic() + timeout_s
+        for t in self._threads:
+            t.join(max(0.0, deadline - time.monotonic()))
         self._flush_refusals()
 
     def _undeclare(self) -> None:
