@@ -17,7 +17,7 @@ Keys (interfaces.md), prefix `millsense/<machine>`:
 | `cmd/reset`, `cmd/test-trip` | queryables: the challenge–response of command_auth.py, then `controls.reset(requester=...)` / `controls.test_trip(requester=...)` |
 | `alive` | liveliness token |
 
-The queryables take bounded ring channels and are served by one worker thread
+The queryables take bounded ring channels, each served by its own worker thread
 (daemon/publish/queryables.py), so a query flood is dropped inside Zenoh and
 never starves the heartbeat. Whatever a query carries and whatever `controls`
 raises, the answer is a JSON reply, never an exception escaping into Zenoh.
