@@ -149,11 +149,11 @@ def _loopback(endpoint: str) -> str:
 
 
 def _local(machine: str, timeout_s: float) -> int:
-    from millsense.daemon.pipeline.latch_store import state_dir
+    from millsense.daemon.pipeline.latch_store import daemon_state_dir
     from millsense.daemon.pipeline.local_control import LocalControlError, local_command
 
     try:
-        result = local_command(state_dir(machine), "reset", timeout_s)
+        result = local_command(daemon_state_dir(machine), "reset", timeout_s)
     except LocalControlError as exc:
         return _fail(f"error: {exc}")
     print(json.dumps(result))

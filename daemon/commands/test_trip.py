@@ -70,10 +70,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _local(machine: str, timeout_s: float) -> int:
-    from millsense.daemon.pipeline.latch_store import state_dir
+    from millsense.daemon.pipeline.latch_store import daemon_state_dir
     from millsense.daemon.pipeline.local_control import LocalControlError, local_command
 
-    directory = state_dir(machine)
+    directory = daemon_state_dir(machine)
     try:
         trip = local_command(directory, "test-trip", timeout_s)
     except LocalControlError as exc:

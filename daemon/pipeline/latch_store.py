@@ -51,6 +51,25 @@ def state_dir(machine: str, env: dict[str, str] | None = None) -> Path:
     return root / "millsense" / machine
 
 
+SYSTEMD_STATE_ROOT = Path("/var/lib/millsense")  # the unit's StateDirectory=millsense/%i
+
+
+def daemon_state_dir(machine: str, env: dict[str, str] | None = None, systemd_root: Path = SYSTEMD_STATE_ROOT) -> Path:
+    """Where a *client* at the machine finds a daemon's state (its control socket).
+
+    A shell has no STATE_DIRECTORY: a daemon run by the unit keeps its state in
+    /var/lib/millsense/<machine>, one run by hand in the user's state directory.
+    The unit's place is taken when a daemon's socket is there.
+    """
+    e = os.environ if env is None else env
+    if (e.get("STATE_DIRECTORY") or "").strip():
+        return state_dir(machine, e)
+    unit_dir = systemd_root / machine
+    if (unit_dir / "control.sock").exists():
+        return unit_dir
+    return state_dir(machine, e)
+
+
 def ensure_dir(directory: Path) -> None:
     """Create the state directory (owner and group may enter: the control socket is group-accessible)."""
     directory.mkdir(parents=True, exist_ok=True, mode=0o750)

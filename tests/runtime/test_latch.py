@@ -169,3 +169,18 @@ def test_the_socket_is_group_accessible_only(daemon, tmp_path):
     daemon(lambda rev: 5.0)
     mode = os.stat(tmp_path / "state" / "control.sock").st_mode & 0o777
     assert mode == 0o660
+
+
+def test_a_client_at_the_machine_finds_the_units_state_directory(tmp_path):
+    """`millsense reset --local` from a root shell has no STATE_DIRECTORY: it must still find the daemon
+    the unit runs (StateDirectory=millsense/%i → /var/lib/millsense/<machine>), not look in root's home."""
+    from millsense.daemon.pipeline.latch_store import daemon_state_dir
+
+    unit_root = tmp_path / "var-lib-millsense"
+    env = {"HOME": str(tmp_path / "home")}
+    by_hand = tmp_path / "home" / ".local" / "state" / "millsense" / "m1"
+    assert daemon_state_dir("m1", env, unit_root) == by_hand  # no unit daemon: the user's own
+    (unit_root / "m1").mkdir(parents=True)
+    (unit_root / "m1" / "control.sock").touch()
+    assert daemon_state_dir("m1", env, unit_root) == unit_root / "m1"
+    assert daemon_state_dir("m1", {**env, "STATE_DIRECTORY": str(tmp_path / "s")}, unit_root) == tmp_path / "s"
