@@ -72,12 +72,10 @@ ACCEL_RISE_MIN_RPM = 2.0           # but never less than this (steady cutting re
 ACCEL_STEP_PCT = 0.5               # ... or over the revolution before (steady cutting: < 0.08 % in
                                    # every simulated scenario)
 P_GAP_SMOOTH_SAMPLES = 5           # moving average of the sample-level air-gap power and line current
-# Fields an invalid revolution keeps; every other one (a quantity) is null.
-KEPT_WHEN_INVALID = frozenset({"rev", "seq_end", "samples", "lost_samples", "valid", "invalid", "saturated"})
 
 NULL_FIELDS = (
-    "spindle_rpm", "gear", "p_in_w", "p_gap_w", "torque_nm", "torque_sigma_nm", "force_n",
-    "force_tangential_n", "force_feed_n", "feed_per_tooth_mm", "radial_depth_mm",
+    "spindle_rpm", "gear", "p_in_w", "p_gap_w", "p_inertia_w", "spindle_accel_rad_s2", "torque_nm",
+    "torque_sigma_nm", "force_n", "force_tangential_n", "force_feed_n", "feed_per_tooth_mm", "radial_depth_mm",
     "axial_depth_mm", "depth_status",
 )
 
@@ -291,9 +289,14 @@ class Estimator:
         clip_seq, signal_fault = self.signals.push(seq0, counts, x, rpm, moving, sp)
         batch = self.splitter.push(seq0, angle_rev, x, moving, block.lost_before, block.discontinuity)
 
-        estimates = [self._estimate(batch, k) for k in range(len(batch))]
-        for k, est in enumerate(estimates):
-            self._judge(est, float(batch.start_pos[k]), int(batch.seq_end[k]))
+        estimates = []
+        for k in range(len(batch)):
+            # judged before any physics: a revolution built on implausible samples gets none
+            problems, saturated = self.signals.revolution(float(batch.start_pos[k]), int(batch.seq_end[k]))
+            invalid = "lost_samples" if batch.damaged[k] else "signals" if problems or saturated else None
+            est = self._estimate(batch, k, invalid)
+            est["saturated"] = saturated
+            estimates.append(est)
 
         # sample-level air-gap power and line current for the crash trip, at the latest filter gain
         both = np.empty((2, n))
@@ -305,29 +308,10 @@ class Estimator:
         return BlockResult(estimates=estimates, p_gap_w=p_gap, seq=seq0, spindle_stopped=self._stopped,
                            current_a=current, clip_seq=clip_seq, signal_fault=signal_fault)
 
-    def _judge(self, est: dict, start_pos: float, seq_end: int) -> None:
-        """Mark a revolution whose samples are implausible: `valid` false, every quantity null, and why."""
-        problems, saturated = self.signals.revolution(start_pos, seq_end)
-        est["saturated"] = saturated
-        if not est.get("valid", True):
-            est.setdefault("invalid", "lost_samples")   # a gap or a discontinuity inside it
-        elif problems or saturated:
-            for key in est:
-                if key not in KEPT_WHEN_INVALID:
-                    est[key] = None
-            est.update(valid=False, invalid="signals", cutting=False, accelerating=False)
-            # what the physics carries to the next revolution must not come from these samples
-            self._fe_recent.clear()
-            self._prev_rev = None
-        else:
-            est.setdefault("invalid", None)
-
-    def _accelerating(self, start_pos: float, end_pos: float, spindle_rpm: float, rise_rpm: float) -> bool:
+    @staticmethod
+    def _accelerating(spindle_rpm: float, rise_rpm: float, prev_rpm: float | None) -> bool:
         """Sped up against the revolution just before, or within this one while not slowing on the whole."""
-        prev, self._prev_rev = self._prev_rev, (end_pos, spindle_rpm)
-        step_pct = None
-        if prev is not None and abs(prev[0] - start_pos) < 1e-6:  # not after a stop or a dropped revolution
-            step_pct = 100.0 * (spindle_rpm - prev[1]) / spindle_rpm
+        step_pct = None if prev_rpm is None else 100.0 * (spindle_rpm - prev_rpm) / spindle_rpm
         if step_pct is not None and step_pct > ACCEL_STEP_PCT:
             return True
         # A rise within the revolution while its mean speed fell clearly is a drive catching up after a
@@ -349,16 +333,18 @@ class Estimator:
                 break
         return abs(total / span)
 
-    def _estimate(self, batch, k: int) -> dict:
+    def _estimate(self, batch, k: int, invalid: str | None) -> dict:
+        """One revolution's estimate; `invalid` (why, or None) publishes it `valid: false` with no quantity."""
         self.rev += 1
         samples = int(batch.samples[k])
         base = {"rev": self.rev, "seq_end": int(batch.seq_end[k]), "samples": samples,
                 "lost_samples": int(batch.lost[k])}
-        if batch.damaged[k]:
+        if invalid is not None:
+            # what the physics carries to the next revolution must not come from these samples
             self._fe_recent.clear()
             self._prev_rev = None
             out = dict.fromkeys(NULL_FIELDS)
-            out.update(base, p_inertia_w=None, spindle_accel_rad_s2=None, valid=False, cutting=False, accelerating=False)
+            out.update(base, valid=False, invalid=invalid, cutting=False, accelerating=False)
             if "f_mag" in self._cols:
                 out["force_measured_n"] = None
             return out
@@ -367,10 +353,10 @@ class Estimator:
         duration = float(batch.end_pos[k] - batch.start_pos[k])
         mean = integ / duration
         spindle_rpm = 60.0 * self.sample_rate_hz / duration
-        prev = self._prev_rev   # the revolution just before, if it ended where this one starts
+        prev = self._prev_rev   # the revolution just before, if it ended where this one starts (no stop, none dropped)
         prev_rpm = prev[1] if prev is not None and abs(prev[0] - float(batch.start_pos[k])) < 1e-6 else None
-        accelerating = self._accelerating(float(batch.start_pos[k]), float(batch.end_pos[k]), spindle_rpm,
-                                          float(integ[c["rpm_rise"]]))
+        self._prev_rev = (float(batch.end_pos[k]), spindle_rpm)
+        accelerating = self._accelerating(spindle_rpm, float(integ[c["rpm_rise"]]), prev_rpm)
         f_e = self._f_e_hz(float(integ[c["f_e"]]), duration, float(mean[c["v_sq"]]))
         means = RevolutionMeans(
             spindle_rpm=spindle_rpm,
@@ -388,7 +374,7 @@ class Estimator:
             force_y_n=float(mean[c["fy"]]) if "fx" in c else None,
         )
         out = self.physics.estimate(means)
-        out.update(base, valid=True, accelerating=accelerating)
+        out.update(base, valid=True, invalid=None, accelerating=accelerating)
         if "f_mag" in c:
             out["force_measured_n"] = float(mean[c["f_mag"]])
         return out

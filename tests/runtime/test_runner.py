@@ -207,12 +207,13 @@ def test_crash_trips_on_the_block_with_the_time_of_the_crossing_sample(rig, monk
 def test_heartbeats_flow_while_healthy_and_stop_when_the_estimator_stalls(rig):
     est = ScriptedEstimator(lambda rev: 5.0, stall_at_rev=15, stall_s=0.9)
     runner, drv, sink = rig(est)
-    wait_for(lambda: drv.device.last_heartbeat > 5, 2, "heartbeats")
+    # (the deadlines are for events on a loaded 2-core box, not budgets: the outcomes are what is checked)
+    wait_for(lambda: drv.device.last_heartbeat > 5, 10, "heartbeats")
     assert not drv.device.feed_hold and runner.status()["heartbeating"]
     # rev 15 closes after ~1.5 s and then the estimator hangs for 0.9 s (> watchdog 200 ms)
-    wait_for(lambda: drv.device.feed_hold, 4, "the DAQ's watchdog tripping")
+    wait_for(lambda: drv.device.feed_hold, 10, "the DAQ's watchdog tripping")
     assert drv.device.flags & 0x01, "feed hold must come from the watchdog"
-    wait_for(lambda: runner.state == "running" and runner.interlock.heartbeating, 3, "recovery after the stall")
+    wait_for(lambda: runner.state == "running" and runner.interlock.heartbeating, 10, "recovery after the stall")
     assert runner.interlock.state == "held_by_device"  # not cleared by the daemon
 
 
