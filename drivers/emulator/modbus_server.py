@@ -34,6 +34,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 from pymodbus.simulator.simcore import SimCore
 
+from millsense.drivers.emulator.pacing import CncTimer
 from millsense.drivers.emulator.pty import PtyBridge
 from millsense.drivers.protocol import FLAG_WATCHDOG, OUT_ALARM_LAMP, OUT_FEED_HOLD
 
@@ -151,7 +152,7 @@ class ModbusDeviceServer:
         )
         self.simdevice = SimDevice(id=unit, simdata=simdata, action=self._action)
         self._server: ModbusTcpServer | ModbusSerialServer | None = None
-        self._cnc_timer: asyncio.TimerHandle | None = None
+        self._cnc = CncTimer(device)  # applies the CNC's changes when due, so the status log has their times
         self.stop = asyncio.Event()
 
     def _in_map(self, fc: int, address: int, count: int) -> bool:
@@ -190,7 +191,7 @@ class ModbusDeviceServer:
                 if 0 <= address + i < 2:
                     current[address + i] = bool(v)
             dev.set_outputs(int(current[0]) | (int(current[1]) << 1), now)
-            self._arm_cnc()
+            self._cnc.arm()
         elif fc in (FC_WRITE_REG, FC_WRITE_REGS) and values is not None:
             if HR_FEED_OVERRIDE in range(address, address + len(values)):
                 override = int(values[HR_FEED_OVERRIDE - address])
@@ -274,21 +275,7 @@ class ModbusDeviceServer:
 
     def _watchdog_check(self) -> None:
         if self.device.check_watchdog(time.monotonic()):
-            self._arm_cnc()
-
-    def _arm_cnc(self) -> None:
-        """Version 2: apply the CNC's feed-held change when due, so the status log has its time."""
-        due = self.device.next_cnc_time()
-        if due is None or (self._cnc_timer is not None and self._cnc_timer.when() <= due):
-            return
-        if self._cnc_timer is not None:
-            self._cnc_timer.cancel()
-        self._cnc_timer = asyncio.get_running_loop().call_at(due, self._cnc_check)
-
-    def _cnc_check(self) -> None:
-        self._cnc_timer = None
-        self.device.update_cnc(time.monotonic())
-        self._arm_cnc()
+            self._cnc.arm()
 
     async def open(self) -> None:
         """Listen; returns once clients can connect."""

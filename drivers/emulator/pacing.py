@@ -36,3 +36,34 @@ class Pacer:
     def next_time(self) -> float:
         """Monotonic time when the next batch is due."""
         return self.t0 + (self.produced + self.batch) / self.rate
+
+
+class CncTimer:
+    """Protocol 2: wakes the server when the simulated CNC is due to report a feed-hold change.
+
+    One asyncio timer at a time, at the device's next pending change; `on_change(now)` is
+    called when a due change altered the context (the stream server sends a CONTEXT then;
+    the Modbus server's registers are read from the device anyway).
+    """
+
+    def __init__(self, device, on_change=None):
+        self.device = device
+        self.on_change = on_change
+        self._timer = None
+
+    def arm(self) -> None:
+        import asyncio
+
+        due = self.device.next_cnc_time()
+        if due is None or (self._timer is not None and self._timer.when() <= due):
+            return
+        if self._timer is not None:
+            self._timer.cancel()
+        self._timer = asyncio.get_running_loop().call_at(due, self._fire)
+
+    def _fire(self) -> None:
+        self._timer = None
+        now = time.monotonic()
+        if self.device.update_cnc(now) and self.on_change is not None:
+            self.on_change(now)
+        self.arm()

@@ -13,6 +13,7 @@ import contextlib
 import os
 import time
 
+from millsense.drivers.emulator.pacing import CncTimer
 from millsense.drivers.emulator.pty import Pty
 from millsense.drivers.protocol import CMD_SEND_DESCRIPTOR, Command, StreamDecoder
 
@@ -34,7 +35,7 @@ class StreamServer:
         self._tcp_server: asyncio.AbstractServer | None = None
         self.stop = asyncio.Event()
         self.client_dropped_bytes = 0
-        self._cnc_timer: asyncio.TimerHandle | None = None
+        self._cnc = CncTimer(device, lambda now: self._send(self.emitter.context(now)))  # a CONTEXT on each change
 
     # -- sinks ----------------------------------------------------------------
 
@@ -105,7 +106,7 @@ class StreamServer:
             self.device.apply_command(frame, now)
             self._send(self.emitter.status(now))  # a STATUS in reply to every command
             self._arm_watchdog()
-            self._arm_cnc()
+            self._cnc.arm()
 
     def _arm_watchdog(self) -> None:
         deadline = self.device.watchdog_deadline()
@@ -118,23 +119,7 @@ class StreamServer:
         now = time.monotonic()
         if self.device.check_watchdog(now):
             self._send(self.emitter.status(now))  # the output changed
-            self._arm_cnc()
-
-    def _arm_cnc(self) -> None:
-        """Version 2: wake up when the CNC is due to report a feed-hold change (one timer at a time)."""
-        due = self.device.next_cnc_time()
-        if due is None or (self._cnc_timer is not None and self._cnc_timer.when() <= due):
-            return
-        if self._cnc_timer is not None:
-            self._cnc_timer.cancel()
-        self._cnc_timer = asyncio.get_running_loop().call_at(due, self._cnc_check)
-
-    def _cnc_check(self) -> None:
-        self._cnc_timer = None
-        now = time.monotonic()
-        if self.device.update_cnc(now):
-            self._send(self.emitter.context(now))  # a CONTEXT whenever a field changes
-        self._arm_cnc()
+            self._cnc.arm()
 
     # -- main loop ------------------------------------------------------------
 
