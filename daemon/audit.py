@@ -19,6 +19,8 @@ from typing import Any
 
 import structlog
 
+from millsense.daemon.throttle import Throttle
+
 REFUSAL_EVERY_S = 10.0
 MAX_BYTES = 4 * 1024 * 1024  # audit.log is renamed to audit.log.1 past this (one generation kept)
 
@@ -34,9 +36,7 @@ class AuditLog:
         self.machine = machine
         self._clock, self._mono = clock, mono
         self._lock = threading.Lock()
-        self._refused_pending = 0
-        self._refused_last: dict[str, Any] | None = None
-        self._refused_mark = -1e18
+        self._refused = Throttle(REFUSAL_EVERY_S, mono)
         self.records = 0
         self.refusals = 0
 
@@ -52,22 +52,20 @@ class AuditLog:
         with self._lock:
             if not granted:
                 self.refusals += 1
-                self._refused_pending += 1
-                self._refused_last = entry
-                now = self._mono()
-                if now - self._refused_mark < REFUSAL_EVERY_S:
+                due = self._refused.note(entry)
+                if due is None:
                     return
-                self._refused_mark = now
-                entry = dict(entry, refused_since_last=self._refused_pending)
-                self._refused_pending = 0
+                count, entry = due
+                entry = dict(entry, refused_since_last=count)
             self._write(entry)
 
     def flush(self) -> None:
         """Write the refusals counted since the last written one (at stop)."""
         with self._lock:
-            if self._refused_pending and self._refused_last is not None:
-                self._write(dict(self._refused_last, refused_since_last=self._refused_pending))
-                self._refused_pending = 0
+            due = self._refused.pending()
+            if due is not None:
+                count, entry = due
+                self._write(dict(entry, refused_since_last=count))
 
     def _write(self, entry: dict[str, Any]) -> None:
         self.records += 1

@@ -82,8 +82,8 @@ class LatchStore:
                  on_ok: Callable[[], Any] | None = None):
         self.directory = Path(directory)
         self.path = self.directory / LATCH_FILE
-        self._on_error = on_error
-        self._on_ok = on_ok
+        self.on_error = on_error
+        self.on_ok = on_ok
         self._cond = threading.Condition()
         self._pending: dict[str, Any] | None = None
         self._has_pending = False
@@ -178,10 +178,10 @@ class LatchStore:
         except OSError as exc:  # read-only or full disk: a fault, never a crash
             self.write_errors += 1
             log.error("latch_store.write_failed", path=str(self.path), error=str(exc))
-            self._call(self._on_error, f"cannot persist the interlock latch to {self.path}: {exc}")
+            self._call(self.on_error, f"cannot persist the interlock latch to {self.path}: {exc}")
             return
         self.writes += 1
-        self._call(self._on_ok)
+        self._call(self.on_ok)
 
     def _replace(self, text: str) -> None:
         tmp = self.path.with_name(f".{LATCH_FILE}.{os.getpid()}.tmp")

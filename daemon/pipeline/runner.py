@@ -90,8 +90,9 @@ class Runner:
         self.latch_store = latch_store
         self.interlock = Interlock(driver, il_settings, on_change=latch_store.save if latch_store is not None else None)
         if latch_store is not None:
-            latch_store._on_error = lambda why: self.fault("latch_store", why)
-            latch_store._on_ok = lambda: self.recover("latch_store")
+            # a write that fails is the fault `latch_store` (the interlock goes on); one that works again recovers it
+            latch_store.on_error = lambda why: self.fault("latch_store", why)
+            latch_store.on_ok = lambda: self.recover("latch_store")
         self.on_blind = str(getattr(il_settings, "on_blind", "hold") or "hold")
         # Every command that changes the machine is recorded here (the sink's Zenoh commands too).
         self.audit = audit if audit is not None else AuditLog(None, self.machine)

@@ -30,6 +30,7 @@ import zenoh
 
 from millsense.daemon.publish.command_auth import Answer, CommandGate
 from millsense.daemon.publish.payload import JSON_ENCODING, MAX_QUERY_BYTES, dumps, loads_object
+from millsense.daemon.throttle import Throttle
 
 RING_CAPACITY = 8
 LOG_EVERY_S = 10.0
@@ -65,9 +66,7 @@ class QueryServer:
         self.too_large = 0
         self._busy_s = 0.0
         self._busy_max_s = 0.0
-        self._refused_pending = 0
-        self._refused_last: dict[str, Any] = {}
-        self._refused_mark = -1e18
+        self._refused = Throttle(LOG_EVERY_S)
 
         entries = [_Entry(f"{prefix}/status", self._serve_status), _Entry(f"{prefix}/config", self._serve_config)]
         for name in commands or {"reset": None}:
@@ -198,22 +197,15 @@ class QueryServer:
         """Counted always; logged at most once per LOG_EVERY_S, with the count since the last line."""
         with self._lock:
             self.errors += 1
-            self._refused_pending += 1
-            self._refused_last = {"key": key, "error": reason}
-            now = time.monotonic()
-            if now - self._refused_mark < LOG_EVERY_S:
-                return
-            self._refused_mark = now
-            self._flush_refusals()
+            self._log_refused(self._refused.note({"key": key, "error": reason}))
 
-    def _flush_refusals(self) -> None:
-        if self._refused_pending and self._log is not None:
+    def _log_refused(self, due: tuple[int, Any] | None) -> None:
+        if due is not None and self._log is not None:
+            count, last = due
             try:
-                self._log.warning("zenoh.queries_refused", count=self._refused_pending, last=self._refused_last,
-                                  every_s=LOG_EVERY_S)
+                self._log.warning("zenoh.queries_refused", count=count, last=last, every_s=LOG_EVERY_S)
             except Exception:  # noqa: BLE001 - logging must not break the queryables
                 pass
-        self._refused_pending = 0
 
     def close(self, timeout_s: float = 1.0) -> None:
         self._stop.set()
@@ -221,7 +213,8 @@ class QueryServer:
         deadline = time.monotonic() + timeout_s
         for t in self._threads:
             t.join(max(0.0, deadline - time.monotonic()))
-        self._flush_refusals()
+        with self._lock:
+            self._log_refused(self._refused.pending())
 
     def _undeclare(self) -> None:
         for e in self._entries:
