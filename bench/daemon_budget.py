@@ -3,16 +3,22 @@
 Prints four figures and the budget of each:
 
 1. per-revolution processing p99 — from the running daemon's own status
-   (`latency_ms`: block that closes a revolution handed over by the driver →
-   its estimate handed to the sink), budget ≤ 1 ms;
+   (`latency_ms`: the frame that closes a revolution taken by the estimator
+   thread → its estimate handed to the sink), budget ≤ 1 ms; beside it
+   `rev_delay_ms`, from the moment the reader decoded that frame (the wait for
+   the batching estimator thread's wake-up included);
 2. publication to a loopback subscriber p99 — a `ZenohSink` in this process
    publishing estimate payloads at 100 Hz to a subscriber in another process
    connected over loopback TCP (scouting off): `sink.estimate()` call →
    subscriber callback, budget ≤ 3 ms;
-3. the daemon's CPU at 1 kHz real time — `millsense run` against
-   `millsense sim --tcp --realtime`, user + system time from /proc over a
-   measurement window after warm-up, in % of one core, budget ≤ 5 %;
-4. the daemon's RSS (peak, VmHWM), budget ≤ 120 MB.
+3. the daemon's CPU at 1 kHz real time, 10-sample frames — `millsense run`
+   against `millsense sim --tcp --realtime`, user + system time from /proc over
+   a measurement window after warm-up, in % of one core, budget ≤ 3 % and
+   ≤ 3 × the baseline measured in the same window: a bare blocking `recv` loop
+   (another client of the same emulator, in its own process, reading the same
+   stream and doing nothing with it);
+4. the daemon's RSS (peak, VmHWM), budget ≤ 70 MB (issue 13; it needs the
+   process-history work too, printed as the budget all the same).
 
 Run: .venv/bin/python bench/daemon_budget.py [--seconds 20] [--scenario step]
 """
@@ -21,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
 import tempfile
 import time
@@ -32,6 +39,25 @@ sys.path.insert(0, str(REPO))
 from tests.conftest import free_tcp_port  # noqa: E402
 from tests.e2e.helpers import Procs, Subscriber, tcp, wait_for, write_config  # noqa: E402
 from tests.procstat import proc_cpu_s, proc_kb  # noqa: E402
+
+CPU_BUDGET_PCT = 3.0
+CPU_BUDGET_X_RECV = 3.0
+RSS_BUDGET_MB = 70.0
+LATENCY_BUDGET_MS = 1.0
+
+# The baseline: what merely receiving the stream costs (interpreter, socket, wake-ups).
+_BARE_RECV = r"""
+import socket, sys, time
+for _ in range(200):  # the emulator may still be starting
+    try:
+        s = socket.create_connection(("127.0.0.1", int(sys.argv[1])))
+        break
+    except OSError:
+        time.sleep(0.05)
+s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+while s.recv(65536):
+    pass
+"""
 
 
 def daemon_figures(seconds: float, scenario: str) -> dict:
@@ -48,26 +74,31 @@ def daemon_figures(seconds: float, scenario: str) -> dict:
         procs.start("sim", ["sim", "--scenario", scenario, "--loop", "--tcp", f"127.0.0.1:{daq_port}", "--realtime"])
         time.sleep(0.5)
         daemon = procs.start("daemon", ["run", "--config", str(cfg)])
+        bare = subprocess.Popen([sys.executable, "-c", _BARE_RECV, str(daq_port)])
         sub = Subscriber([tcp(z_port)], "bench")
         try:
             wait_for(lambda: len(sub.get("estimate")) >= 5, 30.0, "estimates from the daemon")
             time.sleep(2.0)  # warm-up: imports, first descriptor, caches
-            cpu0, t0 = proc_cpu_s(daemon.pid), time.monotonic()
+            cpu0, t0, bare0 = proc_cpu_s(daemon.pid), time.monotonic(), proc_cpu_s(bare.pid)
             rss_kb = []
             while time.monotonic() - t0 < seconds:
                 time.sleep(0.5)
                 rss_kb.append(proc_kb(daemon.pid, "VmRSS"))
-            cpu1, t1 = proc_cpu_s(daemon.pid), time.monotonic()
+            cpu1, t1, bare1 = proc_cpu_s(daemon.pid), time.monotonic(), proc_cpu_s(bare.pid)
             hwm_kb = proc_kb(daemon.pid, "VmHWM")
             status = sub.query("millsense/bench/status")[0]
             revs = [e["rev"] for e in sub.get("estimate")]
         finally:
             sub.close()
+            bare.kill()
+            bare.wait(5)
     return {
         "cpu_pct": 100.0 * (cpu1 - cpu0) / (t1 - t0),
+        "recv_pct": 100.0 * (bare1 - bare0) / (t1 - t0),
         "rss_mb": max(rss_kb) / 1024.0,
         "hwm_mb": hwm_kb / 1024.0,
         "latency": status.get("latency_ms", {}),
+        "delay": status.get("rev_delay_ms") or {},
         "revs": len(revs),
         "window_s": t1 - t0,
         "lost": status.get("lost_samples"),
@@ -152,10 +183,16 @@ def main() -> int:
     d = daemon_figures(args.seconds, args.scenario)
     lat = d["latency"]
     print(f"daemon budget (scenario {args.scenario}, 1 kHz real time, {d['window_s']:.0f} s window, {d['revs']} estimates received)")
-    print(f"  per-revolution processing  p50 {lat.get('p50')} ms  p99 {lat.get('p99')} ms  max {lat.get('max')} ms  (n={lat.get('n')})   budget p99 <= 1 ms")
+    print(f"  per-revolution processing  p50 {lat.get('p50')} ms  p99 {lat.get('p99')} ms  max {lat.get('max')} ms  (n={lat.get('n')})   budget p99 <= {LATENCY_BUDGET_MS:g} ms")
+    dl = d["delay"]
+    print(f"  frame decoded → estimate   p50 {dl.get('p50')} ms  p99 {dl.get('p99')} ms  max {dl.get('max')} ms  "
+          "(status rev_delay_ms: adds the wait for the estimator thread's wake-up)")
     print(f"  publication to subscriber  p50 {pub['p50']:.3f} ms  p99 {pub['p99']:.3f} ms  max {pub['max']:.3f} ms  ({pub['n']}/{pub['sent']} received)   budget p99 <= 3 ms")
-    print(f"  daemon CPU                 {d['cpu_pct']:.2f} % of one core   budget <= 5 %")
-    print(f"  daemon RSS                 {d['rss_mb']:.1f} MB (peak VmHWM {d['hwm_mb']:.1f} MB)   budget <= 120 MB")
+    ratio = d["cpu_pct"] / d["recv_pct"] if d["recv_pct"] > 0 else float("inf")
+    print(f"  daemon CPU                 {d['cpu_pct']:.2f} % of one core, {ratio:.1f} x the baseline "
+          f"(bare recv loop {d['recv_pct']:.2f} %, same window)   budget <= {CPU_BUDGET_PCT:g} % and <= {CPU_BUDGET_X_RECV:g} x")
+    print(f"  daemon RSS                 {d['rss_mb']:.1f} MB (peak VmHWM {d['hwm_mb']:.1f} MB)   budget <= {RSS_BUDGET_MB:g} MB")
+    print(f"  lost samples               {d['lost']}")
     return 0
 
 

@@ -1,10 +1,13 @@
-"""CPU of the emulator and of the reader at 1 kHz real time, per transport (~10 s each).
+"""CPU of the emulator and of the reader at 1 kHz real time, per transport (~10 s each per source).
 
-The emulator runs as a subprocess (`millsense sim --scenario ramp`); its CPU time
-comes from /proc/<pid>/stat (utime + stime).  The reader is the real driver in this
-process, its thread consuming the queue; its CPU time is this process's
-`resource.getrusage` delta.  Both are printed as % of one core.
-Run: python bench/emulator_cpu.py [seconds]
+The emulator runs as a subprocess driven by the plant simulator, as the tests and
+the demo run it (`millsense sim --scenario step`: the plant computes every sample);
+beside it, as a baseline, the same server fed the synthetic `ramp` (no plant: the
+cost of serving alone). The emulator's CPU time comes from /proc/<pid>/stat
+(utime + stime). The reader is the real driver in this process, its thread
+consuming the queue; its CPU time is this process's `resource.getrusage` delta.
+Both are printed as % of one core over the wall-clock time measured.
+Run: python bench/emulator_cpu.py [seconds] [scenario]
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ def self_cpu_s() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
-def measure(transport: str, seconds: float) -> None:
+def measure(transport: str, seconds: float, scenario: str) -> None:
     tmp = tempfile.mkdtemp()
     port = free_port()
     if transport == "pty":
@@ -44,7 +47,7 @@ def measure(transport: str, seconds: float) -> None:
     else:
         sim_args = ["--modbus-tcp", f"127.0.0.1:{port}"]
         make = lambda: create_driver("modbus-tcp", host="127.0.0.1", tcp_port=port, poll_ms=20)  # noqa: E731
-    cmd = [sys.executable, "-m", "millsense.daemon", "sim", "--scenario", "ramp", *sim_args]
+    cmd = [sys.executable, "-m", "millsense.daemon", "sim", "--scenario", scenario, "--loop", *sim_args]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
     driver = None
     try:
@@ -65,7 +68,7 @@ def measure(transport: str, seconds: float) -> None:
         e1, r1, w1 = proc_cpu_s(proc.pid), self_cpu_s(), time.monotonic()
         wall = w1 - w0
         print(
-            f"{transport:<10} emulator {100 * (e1 - e0) / wall:5.1f} %  reader {100 * (r1 - r0) / wall:5.1f} %  "
+            f"{transport:<10} {scenario:<8} emulator {100 * (e1 - e0) / wall:5.1f} %  reader {100 * (r1 - r0) / wall:5.1f} %  "
             f"of one core ({n / wall:.0f} samples/s over {wall:.1f} s)"
         )
     finally:
@@ -77,5 +80,7 @@ def measure(transport: str, seconds: float) -> None:
 
 if __name__ == "__main__":
     secs = float(sys.argv[1]) if len(sys.argv) > 1 else 10.0
+    plant = sys.argv[2] if len(sys.argv) > 2 else "step"
     for t in ("pty", "tcp", "modbus-tcp", "modbus-rtu"):
-        measure(t, secs)
+        for source in (plant, "ramp"):      # the plant-driven emulator, then the ramp as the baseline
+            measure(t, secs, source)

@@ -33,19 +33,43 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The whole parser; with `only`, just that subcommand's module is imported and given its
+    arguments (the others keep their one-line help): a run of `replay` does not pay for
+    importing `run`, `watch` and the rest (start-up counts in replay's × real time)."""
     parser = argparse.ArgumentParser(
         prog="millsense",
         description="Cutting torque, force and depth of cut from a CNC spindle motor's own power.",
     )
-    parser.add_argument("--version", action="version", version=f"millsense {_version()}")
+    parser.add_argument("--version", action=_VersionAction)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (module_name, help_text) in COMMANDS.items():
-        module = importlib.import_module(module_name)
         p = sub.add_parser(name, help=help_text, description=help_text)
-        module.add_arguments(p)
-        p.set_defaults(_module=module)
+        if only is None or name == only:
+            module = importlib.import_module(module_name)
+            module.add_arguments(p)
+            p.set_defaults(_module=module)
     return parser
+
+
+def _command_in(argv: list[str]) -> str | None:
+    """The subcommand argv names (the first word that is not an option), if it is one of ours."""
+    for word in argv:
+        if not word.startswith("-"):
+            return word if word in COMMANDS else None
+    return None
+
+
+class _VersionAction(argparse.Action):
+    """`--version`, looked up only when asked (importlib.metadata costs 70 ms of every start)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS,
+                         help="show program's version number and exit")
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"millsense {_version()}")  # on stdout, as argparse's own version action does
+        parser.exit()
 
 
 def _version() -> str:
@@ -58,7 +82,8 @@ def _version() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser(only=_command_in(argv))
     args = parser.parse_args(argv)
     from millsense.daemon.config import ConfigError
 
@@ -80,7 +105,9 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # noqa: BLE001 - the one place that turns a bug into an exit code
         if os.environ.get("MILLSENSE_DEBUG"):
             raise
-        print(f"millsense {args.command}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        from millsense.daemon.publish.cli_args import strip_rust  # Zenoh's errors carry Rust source paths
+
+        print(f"millsense {args.command}: error: {type(exc).__name__}: {strip_rust(str(exc))}", file=sys.stderr)
         print("(set MILLSENSE_DEBUG=1 to see the traceback)", file=sys.stderr)
         return EXIT_FAILURE
 

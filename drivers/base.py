@@ -5,6 +5,14 @@ A transport implements a narrow connect / read / write surface (``_connect``,
 thread, the doubling back-off, the one log event per link state change, the bounded
 queue that never blocks the reader, and the turning of 32-bit device indices into a
 monotonic 64-bit ``seq`` with counted gaps.
+
+Two ways to consume (issue 13): ``get()`` hands over one event at a time and wakes
+its caller for each; a batching consumer (the daemon's estimator thread) sets
+``sample_hook`` — called on the reader thread for every sample block before it is
+queued (the daemon's per-frame crash check), saying whether the consumer must
+wake now — waits on ``wake`` and takes everything queued with ``drain()``.
+Anything but a sample block sets ``wake``, except a STATUS in which only the
+echo of the last heartbeat changed.
 """
 
 from __future__ import annotations
@@ -12,7 +20,7 @@ from __future__ import annotations
 import collections
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import structlog
@@ -43,6 +51,8 @@ class SampleBlock:
     counts: np.ndarray  # (n, C) int16 raw counts, channel order of the current descriptor
     lost_before: int  # samples known lost right before this block
     discontinuity: bool  # device restart / index went backwards / descriptor changed
+    checked: bool = False  # the sample_hook looked at it on the reader thread (the crash check ran)
+    received_mono: float = 0.0  # time.monotonic() when the reader decoded it (0: not stamped)
 
 
 @dataclass(frozen=True)
@@ -126,6 +136,12 @@ class _BoundedQueue:
                 self._cond.wait(timeout)
             return self._items.popleft() if self._items else None
 
+    def drain(self) -> list:
+        with self._cond:
+            items = list(self._items)
+            self._items.clear()
+            return items
+
     def __len__(self) -> int:
         return len(self._items)
 
@@ -166,6 +182,9 @@ class Driver:
         self._pending_lost = 0
         self._link_state: bool | None = None
         self._stats = collections.Counter()
+        # set by a batching consumer: (seq, counts, lost_before, discontinuity) -> (checked, wake now)
+        self.sample_hook = None
+        self.wake = threading.Event()
 
     # -- public ---------------------------------------------------------------
 
@@ -196,6 +215,10 @@ class Driver:
 
     def get(self, timeout: float | None = None) -> Event | None:
         return self._queue.get(timeout)
+
+    def drain(self) -> list[Event]:
+        """Everything queued, oldest first, without waiting (a batching consumer waits on ``wake``)."""
+        return self._queue.drain()
 
     @property
     def queued(self) -> int:
@@ -345,46 +368,75 @@ class Driver:
             self._connected.set()
         if self._link_state is up:
             return
-        self._link_state = up
+        was, self._link_state = self._link_state, up
         self._stats["link_changes"] += 1
-        log.info(
+        # a lost or refused link is something to act on: warning, like the daemon's own "unreachable"
+        (log.info if up else log.warning)(
             "daq.link_up" if up else "daq.link_down",
             transport=self.transport,
             address=self.address,
             reason=reason,
         )
-        self._queue.offer(LinkEvent(up, reason), is_sample=False)
+        if up or was is not None:
+            # A link that was never up was not lost: a consumer started once it came up (`run` waits
+            # for the DAQ first) would otherwise see a stale "down", a fault and daq_lost/clear at once.
+            self._queue.offer(LinkEvent(up, reason), is_sample=False)
+        self.wake.set()
 
     def _handle(self, item) -> None:
         if isinstance(item, Samples):
+            received = time.monotonic()
             n = len(item.counts)
             seq, lost, disc = self._tracker.update(item.first_index, n)
             self._stats["samples"] += n
             self._stats["lost_samples"] += lost
-            block = SampleBlock(seq, item.first_index, item.counts, lost + self._pending_lost, disc)
+            checked, wake = self._hook(seq, item.counts, lost, disc)  # before the queue: a full one drops it
+            block = SampleBlock(seq, item.first_index, item.counts, lost + self._pending_lost, disc, checked, received)
             if self._queue.offer(block, is_sample=True):
                 self._pending_lost = 0
                 self._stats["blocks"] += 1
             else:
                 self._pending_lost += lost + n  # lost_before of the dropped block is carried too
                 self._stats["queue_dropped_samples"] += n
-        elif isinstance(item, Descriptor):
-            if item != self.descriptor:
-                if self.descriptor is not None:
-                    self._tracker.mark_discontinuity()
-                self.descriptor = item
-                self._queue.offer(item, is_sample=False)
+            if wake:
+                self.wake.set()
+            return
+        if isinstance(item, Descriptor):
+            if item == self.descriptor:
+                return
+            if self.descriptor is not None:
+                self._tracker.mark_discontinuity()
+            self.descriptor = item
         elif isinstance(item, Status):
-            changed = item != self.last_status
-            self.last_status = item
-            if changed:
+            prev, self.last_status = self.last_status, item
+            if item == prev:
+                return
+            if prev is not None and replace(item, last_heartbeat=prev.last_heartbeat) == prev:
+                # only the echo of our heartbeat moved (10 times a second): queued, no wake-up for it
                 self._queue.offer(item, is_sample=False)
+                return
         elif isinstance(item, Context):
             # the device repeats it once a second: only a change is an event
             changed = item != self.last_context
             self.last_context = item
-            if changed:
-                self._queue.offer(item, is_sample=False)
+            if not changed:
+                return
+        else:
+            return
+        self._queue.offer(item, is_sample=False)
+        self.wake.set()
+
+    def _hook(self, seq: int, counts, lost: int, disc: bool) -> tuple[bool, bool]:
+        """The consumer's per-frame look (see the module doc); without one every block wakes it."""
+        hook = self.sample_hook
+        if hook is None:
+            return False, True
+        try:
+            return hook(seq, counts, lost, disc)
+        except Exception as exc:  # noqa: BLE001 - the reader must go on; the consumer checks the block itself
+            self._stats["sample_hook_errors"] += 1
+            log.error("daq.sample_hook_failed", transport=self.transport, error=f"{type(exc).__name__}: {exc}")
+            return False, True
 
 
 def _reason(exc: BaseException) -> str:

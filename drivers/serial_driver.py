@@ -10,6 +10,7 @@ descriptor (pyserial's `loop://` and the like) falls back to reads with a
 
 from __future__ import annotations
 
+import os
 import select
 
 from millsense.drivers.base import LinkDown, StreamDriver
@@ -45,7 +46,7 @@ class SerialDriver(StreamDriver):
                 self.port, baudrate=self.baudrate, timeout=self.read_timeout_s, write_timeout=1.0
             )
         except (serial.SerialException, ValueError) as exc:
-            raise LinkDown(f"cannot open {self.port}: {exc}") from exc
+            raise LinkDown(f"cannot open {self.port}: {_why(exc)}") from exc
         # bytes that waited in the port while nobody read are stale: start fresh
         self._serial.reset_input_buffer()
         try:
@@ -86,3 +87,12 @@ class SerialDriver(StreamDriver):
         if ser is None:
             raise LinkDown("port closed")
         ser.write(data)
+
+
+def _why(exc: Exception) -> str:
+    """The cause without the port's name: pyserial says "could not open port P: [Errno 2] ...: 'P'",
+    which after our "cannot open P" names it three times."""
+    errno = getattr(exc, "errno", None)
+    if isinstance(errno, int):
+        return os.strerror(errno)
+    return str(exc)

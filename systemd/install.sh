@@ -9,7 +9,8 @@
 #   /etc/millsense/tls/          root:millsense 0750 (certificates and keys: put them there 0640)
 # then runs `millsense check-config` and, unless --no-start, enables and starts the unit.
 #
-# Usage (as root, after the unit and sysusers file are installed):
+# Usage (as root, after millsense itself, the unit and the sysusers file are installed;
+# docs/install.md, also for a box with no package index: systemd/install-offline.sh):
 #   systemd/install.sh MACHINE path/to/config.toml [--no-start]
 # ETC=/some/dir overrides /etc/millsense (for a trial run); MILLSENSE=... the CLI to use.
 set -eu
@@ -29,7 +30,19 @@ case $machine in
     *[!A-Za-z0-9._-]*|'') echo "$0: machine name '$machine': letters, digits, . _ - only" >&2; exit 2 ;;
 esac
 [ -f "$config" ] || { echo "$0: $config: no such file" >&2; exit 2; }
+command -v "$millsense" >/dev/null || {
+    echo "$0: $millsense: not found: install millsense first (docs/install.md; offline: systemd/install-offline.sh WHEELHOUSE)" >&2
+    exit 2
+}
 getent group millsense >/dev/null || systemd-sysusers /usr/lib/sysusers.d/millsense.conf
+
+# The unit's Documentation= (file:///usr/share/doc/millsense/README.md): the README and docs/
+# of the source tree or wheelhouse this script came from. DOC=/some/dir overrides the place.
+doc=${DOC:-/usr/share/doc/millsense}
+tree=$(dirname "$0")/..
+if [ -f "$tree/README.md" ]; then
+    (umask 022; install -d "$doc" && cp "$tree/README.md" "$doc/" && { [ ! -d "$tree/docs" ] || cp -R "$tree/docs" "$doc/"; })
+fi
 
 umask 077
 install -d -o root -g millsense -m 0750 "$etc" "$etc/tls"

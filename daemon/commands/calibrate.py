@@ -17,8 +17,14 @@ reading's rise over the revolution). It needs run-ups: captures in which the
 speed steps in air, in each gear fitted (`millsense sim --scenario aircut-low
 --capture F`; on a machine, S-word changes in air). Captures with no speed
 change say nothing of J: the friction is written without it, with a warning
-naming the capture that would fit it. A J that comes out negative, or poorly
-determined, says the captures are wrong: refused, exit 1, no file written.
+naming the capture that would fit it.
+
+A fit the captures cannot support is refused, exit 1, no file written: each
+refusal names the gear and the capture to record (`calibration.judge_*`):
+fewer than three distinct steady speeds in a gear, a negative T_f' or B',
+residuals large against the friction torque the line explains, cutting found
+in an air capture (not with --dynamometer, which sorts cuts out by force), a J
+that is negative or poorly determined. All of them are reported at once.
 
 With `--dynamometer` (captures with fx, fy channels), revolutions the
 dynamometer sees as cutting are kept out of the friction fit and used to fit
@@ -37,7 +43,8 @@ MIN_PLATEAU_S = 1.0     # shorter plateaus are transients
 END_DROP = 2            # revolutions dropped at a plateau's end
 OUTLIER_MADS = 5.0      # robust outlier limit within a plateau
 AIR_FORCE_N = 20.0      # dynamometer mean resultant below this: no cut
-J_REL_SIGMA_MAX = 0.1   # refuse a J whose standard error is more than 10 % of it
+SETTLE_S = 1.0          # the air check skips a plateau's first second: the speed loop's settling
+                        # (simulated MCH-10: torque 1 % high 0.9 s after a step) is not a cut
 RUN_UP_HINT = ("an air cut in which the spindle speed steps, in each gear (e.g. `millsense sim --scenario "
                "aircut-low --capture F` and aircut-high; on the machine, S-word changes of 100 rpm or more "
                "with nothing cut)")
@@ -45,17 +52,30 @@ RUN_UP_HINT = ("an air cut in which the spindle speed steps, in each gear (e.g. 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("captures", nargs="+", metavar="CAPTURE", help="capture files (air cuts; trial cuts with --dynamometer)")
-    parser.add_argument("--config", required=True, metavar="FILE", help="the daemon's configuration (channels, motor, gears, tool)")
+    parser.add_argument("--config", "-c", required=True, metavar="FILE", help="the daemon's configuration (channels, motor, gears, tool)")
     parser.add_argument("--out", required=True, metavar="FILE", help="calibration TOML file to write")
     parser.add_argument("--dynamometer", action="store_true",
                         help="captures carry fx, fy: exclude cutting revolutions from the friction fit and fit C_f")
 
 
+def plateaus(rpm: list[float], t_s: list[float]) -> list[tuple[int, int]]:
+    """Index ranges [start, stop) of constant-speed plateaus: runs of revolutions each within
+    PLATEAU_REL of the previous one, lasting at least MIN_PLATEAU_S."""
+    out = []
+    start = 0
+    for k in range(1, len(rpm) + 1):
+        if k < len(rpm) and abs(rpm[k] - rpm[k - 1]) <= PLATEAU_REL * abs(rpm[k - 1]):
+            continue
+        if t_s[k - 1] - t_s[start] >= MIN_PLATEAU_S:
+            out.append((start, k))
+        start = k
+    return out
+
+
 def steady_mask(rpm: list[float], t_s: list[float], load_nm: list[float]) -> list[bool]:
     """True for revolutions in the settled part of a constant-speed plateau.
 
-    A plateau is a run of revolutions each within PLATEAU_REL of the previous one,
-    lasting at least MIN_PLATEAU_S. Dropped from it:
+    Dropped from each plateau:
     - its first half: after a speed step the drive's speed loop settles for a
       second or more, and meanwhile `P_g/ω` carries inertia torque `J·dω/dt`
       although the speed already looks constant to 0.3 % (simulated MCH-10: 1 %
@@ -66,32 +86,38 @@ def steady_mask(rpm: list[float], t_s: list[float], load_nm: list[float]) -> lis
       the plateau's median (anything else that is not friction).
     """
     keep = [False] * len(rpm)
-    start = 0
-    for k in range(1, len(rpm) + 1):
-        if k < len(rpm) and abs(rpm[k] - rpm[k - 1]) <= PLATEAU_REL * abs(rpm[k - 1]):
-            continue
-        if t_s[k - 1] - t_s[start] >= MIN_PLATEAU_S:
-            half = 0.5 * (t_s[start] + t_s[k - 1])
-            idx = [j for j in range(start, k - END_DROP) if t_s[j] >= half]
-            if idx:
-                loads = sorted(load_nm[j] for j in idx)
-                med = loads[len(loads) // 2]
-                mad = sorted(abs(x - med) for x in loads)[len(loads) // 2]
-                for j in idx:
-                    keep[j] = abs(load_nm[j] - med) <= OUTLIER_MADS * 1.4826 * mad + 1e-9
-        start = k
+    for start, stop in plateaus(rpm, t_s):
+        half = 0.5 * (t_s[start] + t_s[stop - 1])
+        idx = [j for j in range(start, stop - END_DROP) if t_s[j] >= half]
+        if idx:
+            loads = sorted(load_nm[j] for j in idx)
+            med = loads[len(loads) // 2]
+            mad = sorted(abs(x - med) for x in loads)[len(loads) // 2]
+            for j in idx:
+                keep[j] = abs(load_nm[j] - med) <= OUTLIER_MADS * 1.4826 * mad + 1e-9
     return keep
+
+
+def settled_plateaus(rpm: list[float], t_s: list[float]) -> list[list[int]]:
+    """Per plateau, its revolutions after SETTLE_S and before the last END_DROP, outliers kept: what
+    the air check looks at (the first half, which the fit drops, is often where an approach in air is)."""
+    return [[j for j in range(start, stop - END_DROP) if t_s[j] - t_s[start] >= SETTLE_S]
+            for start, stop in plateaus(rpm, t_s)]
 
 
 def collect(captures, settings, dynamometer: bool):
     """Per gear: (omega_rad_s, P_g/ω) of steady air revolutions; (omega, P_g/ω, dω/dt) of every air
-    revolution (for J); cut revolutions for C_f."""
+    revolution (for J); cut revolutions for C_f; per gear, (rpm, P_g/ω of its revolutions) of each
+    settled plateau (for the air check; empty with a dynamometer)."""
+    import numpy as np
+
     from millsense.daemon.pipeline.capture_reader import CaptureError, iter_capture_blocks
     from millsense.daemon.pipeline.estimator import Estimator
 
     air: dict[str, tuple[list[float], list[float]]] = {}
     runs: dict[str, list[tuple[float, float, float]]] = {}
     cuts: list[tuple[str, float, float, float]] = []      # gear, omega, P_g/ω, mean |F|
+    settled: dict[str, list[tuple[float, list[float]]]] = {}
     for path in captures:
         est = None
         descriptor = None
@@ -110,8 +136,12 @@ def collect(captures, settings, dynamometer: bool):
             continue
         good = [r for r in revs if r["valid"] and r["torque_nm"] is not None]
         rate = float(descriptor.sample_rate_hz)
-        steady = steady_mask([r["spindle_rpm"] for r in good], [r["seq_end"] / rate for r in good],
-                             [r["torque_nm"] for r in good])
+        rpm, t_s = [r["spindle_rpm"] for r in good], [r["seq_end"] / rate for r in good]
+        steady = steady_mask(rpm, t_s, [r["torque_nm"] for r in good])
+        for idx in settled_plateaus(rpm, t_s) if not dynamometer else ():
+            if idx:
+                settled.setdefault(good[idx[0]]["gear"], []).append(
+                    (float(np.median([rpm[j] for j in idx])), [good[j]["torque_nm"] for j in idx]))
         for r, ok in zip(good, steady):
             omega = 2 * math.pi * r["spindle_rpm"] / 60.0
             force = r.get("force_measured_n")
@@ -126,71 +156,115 @@ def collect(captures, settings, dynamometer: bool):
             w, t = air.setdefault(r["gear"], ([], []))
             w.append(omega)
             t.append(r["torque_nm"])
-    return air, runs, cuts
+    return air, runs, cuts, settled
+
+
+def gear_ranges_rpm(gears) -> dict[str, tuple[float, float]]:
+    """Spindle speeds each gear covers, for the advice: from the gear below's top speed (the lowest
+    gear: a third of its own, where friction is still measurable) to its max_spindle_rpm."""
+    out, lo = {}, None
+    for g in sorted(gears, key=lambda g: g.max_spindle_rpm):
+        hi = float(g.max_spindle_rpm)
+        out[g.name] = (hi / 3.0 if lo is None else lo, hi)
+        lo = hi
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from millsense.daemon.config import load_config
-    from millsense.daemon.physics.calibration import fit_cf, fit_friction, fit_inertia
+    from millsense.daemon.physics.calibration import (
+        fit_cf,
+        fit_friction,
+        judge_air,
+        judge_friction,
+        judge_speeds,
+        speed_levels_rpm,
+    )
     from millsense.daemon.pipeline.capture_reader import CaptureError
 
+    out_problem = _out_problem(Path(args.out))
+    if out_problem:  # before the fitting: a typo in --out should not cost the whole run
+        print(f"millsense calibrate: error: {out_problem}", file=sys.stderr)
+        return 2
     settings = load_config(args.config)
     for path in args.captures:
         if not Path(path).is_file():
             print(f"millsense calibrate: {path}: no such capture file", file=sys.stderr)
             return 1
     try:
-        air, runs, cuts = collect(args.captures, settings, args.dynamometer)
+        air, runs, cuts, settled = collect(args.captures, settings, args.dynamometer)
     except CaptureError as exc:
         print(f"millsense calibrate: {exc}", file=sys.stderr)
         return 1
 
     radius_mm = float(settings.tool.diameter_mm) / 2.0
-    fits = {}
+    ranges = gear_ranges_rpm(settings.gears)
+    fits, refusals = {}, []
     print("friction per gear, P_g/w = T_f' + B' w  ([P] eq. 13 with T_c = 0):")
     for gear in settings.gears:
-        if gear.name not in air or len(air[gear.name][0]) < 3:
-            n = len(air.get(gear.name, ([],))[0])
-            print(f"  {gear.name}: {n} steady air revolutions - not enough, left as configured")
+        refusals += judge_air(gear.name, settled.get(gear.name, []), ranges[gear.name])
+        if gear.name not in air:
+            print(f"  {gear.name}: no steady air revolutions in the captures - left as configured")
             continue
         omega, load = (np.asarray(x) for x in air[gear.name])
-        try:
-            fit = fit_friction(omega, load)
-        except ValueError as exc:
-            print(f"  {gear.name}: cannot fit ({exc}); left as configured")
+        rpm = omega * 60.0 / (2 * math.pi)
+        found = judge_speeds(gear.name, rpm, ranges[gear.name])
+        if found:   # a line through fewer speeds is noise, whatever least squares returns
+            refusals += found
             continue
-        fits[gear.name] = fit
+        fit = fit_friction(omega, load)
         res = np.asarray(fit.residuals_nm)
-        speeds = sorted({round(w * 60 / (2 * math.pi), -1) for w in omega})
         print(f"  {gear.name}: T_f' = {fit.friction_torque_nm:.4f} N.m  B' = {fit.viscous_nms:.5f} N.m.s/rad"
               f"  R2 = {fit.r2:.4f}  samples = {fit.samples}")
         print(f"      residuals: rms {np.sqrt(np.mean(res**2)):.4f} N.m, max {np.max(np.abs(res)):.4f} N.m;"
-              f" speeds ~{', '.join(f'{s:.0f}' for s in speeds[:12])} rpm")
-    if not fits:
-        print("millsense calibrate: no gear had enough steady air-cut revolutions to fit", file=sys.stderr)
+              f" speeds ~{', '.join(f'{s:.0f}' for s, _ in speed_levels_rpm(rpm)[:12])} rpm")
+        found = judge_friction(gear.name, omega, fit, ranges[gear.name])
+        refusals += found
+        if not found:
+            fits[gear.name] = fit
+    if not refusals and not fits:
+        print("millsense calibrate: no gear had steady air-cut revolutions to fit; record "
+              "an air cut at 3 or more speeds in each gear", file=sys.stderr)
         return 1
 
-    inertia = _fit_inertia(runs, settings, fits, fit_inertia)
-    if inertia is None:
+    inertia = _fit_inertia(runs, settings, fits, refusals)
+    if refusals:
+        _refuse(refusals)
         return 1
 
     cf_value = None
     if args.dynamometer:
         cf_value = _fit_cf(cuts, settings, fits, radius_mm, fit_cf)
 
-    _write_toml(Path(args.out), fits, inertia, cf_value)
+    try:
+        _write_toml(Path(args.out), fits, inertia, cf_value)
+    except OSError as exc:
+        print(f"millsense calibrate: error: cannot write {args.out}: {exc.strerror or exc}; nothing written",
+              file=sys.stderr)
+        return 1
     print(f"wrote {args.out}")
     return 0
 
 
-def _fit_inertia(runs, settings, fits, fit_inertia) -> dict | None:
-    """J per gear fitted (friction just fitted), or None after saying why a fit was refused."""
+def _refuse(refusals) -> None:
+    """Every refusal, one line each, and what was (not) done."""
+    for r in refusals:
+        print(f"millsense calibrate: refused: {r}", file=sys.stderr)
+    print("millsense calibrate: nothing written (on the simulator: `millsense sim --scenario aircut-low "
+          "--capture F`, and aircut-high, record such captures)", file=sys.stderr)
+
+
+def _fit_inertia(runs, settings, fits, refusals: list) -> dict:
+    """J per gear fitted (friction just fitted); a J the captures do not determine goes to `refusals`."""
     import numpy as np
 
+    from millsense.daemon.physics.calibration import fit_inertia, judge_inertia
+
     out = {}
-    print("inertia per gear, P_g/w - T_f' - B' w = J dw/dt  (eq. 13 with inertia, air revolutions):")
+    if fits:
+        print("inertia per gear, P_g/w - T_f' - B' w = J dw/dt  (eq. 13 with inertia, air revolutions):")
     for gear in settings.gears:
         if gear.name not in fits:
             continue   # nothing fitted for this gear: leave it all as configured
@@ -207,12 +281,10 @@ def _fit_inertia(runs, settings, fits, fit_inertia) -> dict | None:
             continue
         print(f"  {gear.name}: J = {j.inertia_kgm2:.4f} kg.m2 (+/- {j.sigma_kgm2:.4f})  R2 = {j.r2:.4f}"
               f"  revolutions = {j.samples}, {j.changing} changing speed")
-        if not j.inertia_kgm2 > 0.0 or j.sigma_kgm2 > J_REL_SIGMA_MAX * abs(j.inertia_kgm2):
-            print(f"millsense calibrate: gear {gear.name}: inertia fit refused (J = {j.inertia_kgm2:.4f} "
-                  f"+/- {j.sigma_kgm2:.4f} kg.m2: negative or not determined to {J_REL_SIGMA_MAX:.0%}); "
-                  f"needs {RUN_UP_HINT}; nothing written", file=sys.stderr)
-            return None
-        out[gear.name] = j
+        found = judge_inertia(gear.name, j, RUN_UP_HINT)
+        refusals += found
+        if not found:
+            out[gear.name] = j
     return out
 
 
@@ -253,5 +325,19 @@ def _write_toml(path: Path, fits: dict, inertia: dict, cf: float | None) -> None
     if cf is not None:
         lines += ["[tool]", f"cf = {cf:.6f}", ""]
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text("\n".join(lines))
-    tmp.replace(path)
+    try:
+        tmp.write_text("\n".join(lines))
+        tmp.replace(path)
+    except OSError:
+        tmp.unlink(missing_ok=True)  # no half-written .tmp left beside the target
+        raise
+
+
+def _out_problem(path: Path) -> str | None:
+    """Why `--out` cannot be written as a file, or None."""
+    if path.is_dir():
+        return f"--out {path} is a directory: give a file name, e.g. {path / 'calibration.toml'}"
+    parent = path.parent
+    if not parent.is_dir():
+        return f"--out {path}: the folder {parent} does not exist"
+    return None

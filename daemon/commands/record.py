@@ -6,24 +6,50 @@ any DAQ replays through the same decoder.  A full disk (or a file-size limit)
 is a clear error, exit 1: the file is cut back to the last whole frame that was
 written, so it replays to its end, and the counts printed are those of the
 file.  The file is written unbuffered, so that what is known written is on disk.
+
+The capture is written to a hidden file beside `--out` and renamed to it at the
+end: a DAQ that never answers, or a stop before it does, leaves nothing (and an
+older capture of that name as it was). A device or pipe (`/dev/stdout`) is
+written directly.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import signal
+import stat
 import sys
 import time
+from pathlib import Path
+
+PROG = "millsense record"
+CONNECT_WINDOW_S = 10.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", required=True, metavar="FILE", help="daemon configuration (its [daq] section)")
+    parser.add_argument("--config", "-c", required=True, metavar="FILE", help="daemon configuration (its [daq] section)")
     parser.add_argument("--out", required=True, metavar="CAPTURE", help="capture file to write")
     parser.add_argument(
-        "--seconds", type=float, default=None, help="stop after this many seconds (default: until Ctrl-C)"
+        "--seconds", type=float, default=None, metavar="N", help="stop after N seconds (default: until Ctrl-C)"
     )
-    parser.add_argument("--connect-timeout-s", type=float, default=10.0, help="give up if the DAQ is not reachable")
+    parser.add_argument("--connect-timeout", type=float, default=CONNECT_WINDOW_S, metavar="S",
+                        help=f"give up (exit 69) if the DAQ has not connected within S seconds (default {CONNECT_WINDOW_S:g})")
+    # the spelling before `run` and `record` agreed: old scripts keep working
+    parser.add_argument("--connect-timeout-s", type=float, dest="connect_timeout", default=argparse.SUPPRESS,
+                        help=argparse.SUPPRESS)
+
+
+def _fail(message: str, code: int) -> int:
+    print(f"{PROG}: error: {message}", file=sys.stderr)
+    return code
+
+
+def _positive(value: float | None, option: str) -> str | None:
+    if value is not None and not (value > 0 and math.isfinite(value)):
+        return f"{option} must be positive, got {value:g}"
+    return None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -33,31 +59,41 @@ def run(args: argparse.Namespace) -> int:
     from millsense.drivers.base import LinkEvent, SampleBlock
     from millsense.drivers.protocol import INDEX_MOD, Descriptor, encode_descriptor, encode_samples
 
+    problem = _positive(args.seconds, "--seconds") or _positive(args.connect_timeout, "--connect-timeout")
+    if problem:
+        return _fail(problem, 2)
+    if Path(args.out).is_dir():
+        return _fail(f"--out {args.out} is a directory: give a file name for the capture", 2)
     settings = load_config(args.config)
     daq = settings.daq
     try:
         driver = create_driver(daq.transport, **driver_options(daq))
     except DriverError as exc:
-        print(f"millsense record: error: {exc}", file=sys.stderr)
-        return 78
+        return _fail(str(exc), 78)
     stop = {"now": False}
 
     def _stop(*_a) -> None:
         stop["now"] = True
 
-    old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
     counts = {"samples": 0, "blocks": 0, "lost_samples": 0, "descriptors": 0, "bytes": 0}
     code = 0
     try:
-        fh = open(args.out, "wb", buffering=0)  # noqa: SIM115 - closed in finally
+        out = _Output(args.out)
     except OSError as exc:
-        print(f"millsense record: error: cannot write {args.out}: {exc.strerror or exc}", file=sys.stderr)
-        return 1
+        return _fail(f"cannot write {args.out}: {exc.strerror or exc}", 1)
+    fh = out.fh
+    old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
     driver.start()
     try:
-        if not driver.wait_connected(args.connect_timeout_s):
-            print(f"millsense record: error: DAQ ({daq.transport}) unreachable", file=sys.stderr)
-            return 69
+        connect_by = time.monotonic() + args.connect_timeout
+        while not driver.wait_connected(0.1):
+            if stop["now"] or time.monotonic() >= connect_by:
+                out.discard()
+                if stop["now"]:
+                    return _fail(f"stopped before the DAQ connected; nothing written to {args.out}", 1)
+                where = getattr(driver, "address", "?")
+                return _fail(f"DAQ unreachable: no connection to {daq.transport} {where} within "
+                             f"{args.connect_timeout:g} s; nothing written to {args.out}", 69)
         deadline = None if args.seconds is None else time.monotonic() + args.seconds
         written_descriptor = None
         while not stop["now"] and (deadline is None or time.monotonic() < deadline):
@@ -91,27 +127,86 @@ def run(args: argparse.Namespace) -> int:
                 counts["blocks"] += 1
                 counts["lost_samples"] += lost
             if error is not None:
-                print(f"millsense record: error: writing {args.out}: {error.strerror or error}; the capture ends "
+                print(f"{PROG}: error: writing {args.out}: {error.strerror or error}; the capture ends "
                       "with the last whole frame written", file=sys.stderr)
                 code = 1
                 break
+    except BaseException:
+        out.discard()  # a bug or Ctrl-C twice: no half-named file left behind
+        raise
     finally:
         driver.close()
-        try:
-            fh.close()
-        except OSError as exc:
-            if code == 0:
-                print(f"millsense record: error: closing {args.out}: {exc.strerror or exc}", file=sys.stderr)
-            code = 1
         for s, h in old.items():
             signal.signal(s, h)
-        print(
-            f"millsense record: {counts['samples']} samples in {counts['blocks']} blocks, "
-            f"{counts['lost_samples']} lost, {counts['descriptors']} descriptors, "
-            f"{counts['bytes']} bytes -> {args.out}",
-            file=sys.stderr,
-        )
+    # A full disk mid-way keeps what was recorded (cut to whole frames): samples that cannot be taken again.
+    # No sample at all is a failure, not an empty capture.
+    try:
+        out.finish(keep=counts["samples"] > 0)
+    except OSError as exc:
+        _fail(f"closing {args.out}: {exc.strerror or exc}", 1)
+        code = 1
+    if not out.kept:
+        if code == 0:
+            why = "stopped" if stop["now"] else f"within {args.seconds:g} s"
+            _fail(f"the DAQ sent no samples ({why}); nothing written to {args.out}", 1)
+        return 1
+    print(
+        f"{PROG}: {counts['samples']} samples in {counts['blocks']} blocks, "
+        f"{counts['lost_samples']} lost, {counts['descriptors']} descriptors, "
+        f"{counts['bytes']} bytes -> {args.out}",
+        file=sys.stderr,
+    )
     return code
+
+
+class _Output:
+    """The capture file: a hidden file beside the target, renamed onto it by `finish`.
+
+    A target that exists and is not a regular file (a device, a pipe) is
+    written directly: there is nothing to rename onto it.
+    """
+
+    def __init__(self, target: str) -> None:
+        self.target = Path(target)
+        self.kept = False
+        try:
+            direct = not stat.S_ISREG(self.target.stat().st_mode)
+        except FileNotFoundError:
+            direct = False
+        self.path = self.target if direct else self.target.with_name(f".{self.target.name}.{os.getpid()}.tmp")
+        flags = os.O_WRONLY | os.O_CREAT | (0 if direct else os.O_EXCL | os.O_TRUNC)
+        fd = os.open(self.path, flags, 0o666)
+        self.fh = open(fd, "wb", buffering=0)  # noqa: SIM115 - closed in finish/discard
+
+    def finish(self, keep: bool) -> None:
+        """Close; then rename onto the target (keep) or remove. Raises the close's OSError after.
+
+        A device or pipe is always kept: what went to it cannot be taken back.
+        """
+        keep = keep or self.path == self.target
+        error = None
+        try:
+            self.fh.close()
+        except OSError as exc:
+            error = exc
+        if not keep:
+            self.discard()
+        elif self.path != self.target:
+            os.replace(self.path, self.target)
+        self.kept = keep
+        if error is not None:
+            raise error
+
+    def discard(self) -> None:
+        try:
+            self.fh.close()
+        except OSError:
+            pass
+        if self.path != self.target:
+            try:
+                os.unlink(self.path)
+            except FileNotFoundError:
+                pass
 
 
 FRAME_SAMPLES = 10

@@ -16,9 +16,10 @@ or the daemon's user): it works with `reset = "off"`, with the network down, and
 while network commands are paused after failed proofs.
 
 `--config FILE` (the daemon's TOML) gives the machine id and where to connect
-(its `[zenoh]` mode, endpoints, scouting, config_file); the token comes from
-`--token-file`, `--token`, the environment variable `MILLSENSE_RESET_TOKEN`, or
-the config's `reset_token_file` when this user may read it.
+(its `[zenoh]` mode, endpoints and scouting, and the same from the JSON5 file
+it names), never the daemon's TLS identity nor its token (publish/cli_args.py).
+The token comes from `--token-file`, `--token` or the environment variable
+`MILLSENSE_RESET_TOKEN`.
 """
 
 from __future__ import annotations
@@ -29,24 +30,33 @@ import os
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
-from millsense.daemon.publish.cli_args import add_zenoh_arguments, check_machine, zenoh_settings_from_args
+from millsense.daemon.publish.cli_args import (
+    EXIT_CONFIG,
+    EXIT_USAGE,
+    CliUsageError,
+    DaemonConfig,
+    DaemonConfigError,
+    add_config_argument,
+    add_zenoh_arguments,
+    check_machine,
+    hint,
+    read_daemon_config,
+    session_settings,
+    strip_rust,
+)
 
 PROG = "millsense reset"
 TOKEN_ENV = "MILLSENSE_RESET_TOKEN"
-NO_DAEMON_HINT = ("try: is the daemon running (systemctl status millsense)? Does --connect name its endpoint or "
-                  "router (or give --config with its config file)? A longer --timeout? At the machine: "
-                  "millsense reset --local")
+HINT_MORE = ("a longer --timeout", "at the machine: millsense reset --local")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--machine", "-m", metavar="ID", default=None, help="the machine id of the daemon (default: the only one alive)")
     parser.add_argument("--local", action="store_true",
                         help="ask through the daemon's control socket at the machine (root or the daemon's user)")
-    parser.add_argument("--config", "-c", metavar="FILE", default=None,
-                        help="the daemon's config: its machine id, where to connect, and its token file if readable")
+    add_config_argument(parser, "its machine id and where to connect")
     add_zenoh_arguments(parser, listen=False)
     tok = parser.add_mutually_exclusive_group()
     tok.add_argument("--token", default=None,
@@ -67,30 +77,28 @@ def _seconds(s: float) -> str:
 
 def run(args: argparse.Namespace) -> int:
     if check_machine(args.machine, PROG):
-        return 2
+        return EXIT_USAGE
     if not (0 < args.timeout < 3600):
-        return _fail("error: --timeout must be between 0 and 3600 seconds", 2)
-    daemon_cfg: dict[str, Any] = {}
-    if args.config:
-        try:
-            daemon_cfg = _read_daemon_config(Path(args.config))
-        except ValueError as exc:
-            return _fail(f"error: {exc}", 2)
-    machine = args.machine or daemon_cfg.get("machine")
+        return _fail("error: --timeout must be between 0 and 3600 seconds", EXIT_USAGE)
+    try:
+        daemon = read_daemon_config(args.config) if args.config else None
+    except DaemonConfigError as exc:
+        return _fail(f"error: {exc}", EXIT_CONFIG)
+    machine = args.machine or (daemon.machine if daemon else None)
     if machine is not None and check_machine(machine, PROG):
-        return 2
+        return EXIT_USAGE
     if args.local:
         if machine is None:
-            return _fail("error: --local needs --machine or --config (to find the daemon's state directory)", 2)
+            return _fail("error: --local needs --machine or --config (to find the daemon's state directory)", EXIT_USAGE)
         return _local(machine, args.timeout)
     try:
-        token = _token(args, daemon_cfg)
+        token = _token(args)
     except ValueError as exc:
         return _fail(f"error: {exc}")
-    return _over_zenoh(args, machine, token, daemon_cfg)
+    return _over_zenoh(args, machine, token, daemon)
 
 
-def _token(args: argparse.Namespace, daemon_cfg: dict[str, Any]) -> str | None:
+def _token(args: argparse.Namespace) -> str | None:
     if args.token_file:
         try:
             lines = Path(args.token_file).read_text(encoding="utf-8").splitlines()
@@ -101,51 +109,7 @@ def _token(args: argparse.Namespace, daemon_cfg: dict[str, Any]) -> str | None:
         return args.token
     if os.environ.get(TOKEN_ENV):
         return os.environ[TOKEN_ENV].strip()
-    return daemon_cfg.get("token")
-
-
-def _read_daemon_config(path: Path) -> dict[str, Any]:
-    """From the daemon's TOML only the machine id, where to connect, and the token if readable.
-
-    Not the whole validated config: this user may not read everything it names,
-    and nothing of the daemon's own identity is taken (its listen endpoints are
-    where to connect to, not where to listen).
-    """
-    import tomllib
-
-    try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ValueError(f"--config {path}: cannot be read: {exc.strerror or exc}") from None
-    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise ValueError(f"--config {path}: not a TOML file: {exc}") from None
-    out: dict[str, Any] = {}
-    if isinstance(raw.get("machine"), str):
-        out["machine"] = raw["machine"]
-    z = raw.get("zenoh") if isinstance(raw.get("zenoh"), dict) else {}
-    connect = [str(e) for e in z.get("connect") or []]
-    connect += [_loopback(str(e)) for e in z.get("listen") or []]  # the daemon listens there: we are on its host
-    out["zenoh"] = SimpleNamespace(
-        mode="client" if z.get("mode") == "client" else "peer",
-        connect=connect, listen=[],
-        multicast_scouting=bool(z.get("multicast_scouting", True)),
-        config_file=str(z.get("config_file") or ""),
-    )
-    il = raw.get("interlock") if isinstance(raw.get("interlock"), dict) else {}
-    if isinstance(il.get("reset_token"), str):
-        out["token"] = il["reset_token"].strip()
-    elif isinstance(il.get("reset_token_file"), str):
-        try:
-            out["token"] = Path(il["reset_token_file"]).read_text(encoding="utf-8").strip() or None
-        except (OSError, UnicodeDecodeError):
-            pass  # not ours to read: --token-file or the environment then
-    return out
-
-
-def _loopback(endpoint: str) -> str:
-    for any_addr, loop in (("0.0.0.0", "127.0.0.1"), ("[::]", "[::1]")):
-        endpoint = endpoint.replace(f"/{any_addr}:", f"/{loop}:")
-    return endpoint
+    return None
 
 
 def _local(machine: str, timeout_s: float) -> int:
@@ -162,27 +126,26 @@ def _local(machine: str, timeout_s: float) -> int:
     return 0
 
 
-def _over_zenoh(args: argparse.Namespace, machine: str | None, token: str | None, daemon_cfg: dict[str, Any]) -> int:
+def _over_zenoh(args: argparse.Namespace, machine: str | None, token: str | None, daemon: DaemonConfig | None) -> int:
     from millsense.daemon.publish.command_auth import CommandError, exchange
     from millsense.daemon.publish.session import ZenohConfigError, ZenohUnavailable, open_session
 
-    settings = zenoh_settings_from_args(args)
-    given = settings.model_fields_set
-    if "zenoh" in daemon_cfg and not (args.connect or args.zenoh_config):
-        settings = daemon_cfg["zenoh"]  # the command line wins; else where the daemon is
-        if "mode" in given:
-            settings.mode = args.mode
-        if "multicast_scouting" in given:
-            settings.multicast_scouting = False
+    try:
+        settings = session_settings(args, daemon)
+    except CliUsageError as exc:
+        return _fail(f"error: {exc}", EXIT_USAGE)
+    no_daemon_hint = hint(settings, daemon, *HINT_MORE)
     started = time.monotonic()
     try:
         session = open_session(settings, retry_for_s=args.timeout)
-    except (ZenohUnavailable, ZenohConfigError) as exc:
-        return _fail(f"error: {exc}")
+    except ZenohConfigError as exc:
+        return _fail(f"error: {strip_rust(str(exc))}")
+    except ZenohUnavailable as exc:
+        return _fail(f"error: {strip_rust(str(exc))}\n{no_daemon_hint}")
     try:
         deadline = started + args.timeout
         if machine is None:
-            machine, code = _only_machine_alive(session, deadline, args.timeout)
+            machine, code = _only_machine_alive(session, deadline, args.timeout, no_daemon_hint)
             if machine is None:
                 return code
         left = max(0.2, deadline - time.monotonic())
@@ -195,7 +158,10 @@ def _over_zenoh(args: argparse.Namespace, machine: str | None, token: str | None
                 message = str(exc)
                 if message.startswith("no daemon answered"):  # the user's timeout, not what was left of it
                     message = f"no daemon answered on millsense/{machine}/cmd/reset within {_seconds(args.timeout)}"
-                return _fail(f"{message}\n{NO_DAEMON_HINT}")
+                return _fail(f"{message}\n{no_daemon_hint}")
+            if token is None and daemon is not None and daemon.token_file and "none was given" in str(exc):
+                return _fail(f"{exc}\ntry: --token-file {daemon.token_file} (the token file its config names, "
+                             "if you may read it)")
             return _fail(str(exc))
         print(json.dumps(outcome.result))
         if not outcome.verified:
@@ -208,7 +174,7 @@ def _over_zenoh(args: argparse.Namespace, machine: str | None, token: str | None
         session.close()
 
 
-def _only_machine_alive(session: Any, deadline: float, timeout_s: float) -> tuple[str | None, int]:
+def _only_machine_alive(session: Any, deadline: float, timeout_s: float, no_daemon_hint: str) -> tuple[str | None, int]:
     machines: set[str] = set()
     while True:
         left = deadline - time.monotonic()
@@ -221,7 +187,7 @@ def _only_machine_alive(session: Any, deadline: float, timeout_s: float) -> tupl
             break
         time.sleep(0.05)  # the session may still be learning its peers' tokens
     if not machines:
-        return None, _fail(f"no daemon alive on millsense/*/alive within {_seconds(timeout_s)}\n{NO_DAEMON_HINT}")
+        return None, _fail(f"no daemon alive on millsense/*/alive within {_seconds(timeout_s)}\n{no_daemon_hint}")
     if len(machines) > 1:
         names = ", ".join(sorted(machines))
         return None, _fail(f"several daemons are alive ({names}); choose one with --machine")

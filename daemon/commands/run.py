@@ -3,8 +3,7 @@
 Start-up, in this order, each step with one clear failure:
 
 1. configuration (`--config`, or the built-in demo: simulated DAQ playing the
-   step-cut scenario in a loop, Zenoh peer on loopback, a live summary line per
-   second on stdout) — a bad file exits 78;
+   step-cut scenario in a loop, Zenoh peer on loopback) — a bad file exits 78;
 2. Zenoh (a client retries its router for 30 s, then exits 69);
 3. the DAQ: the driver reconnects with a doubling back-off; if it has not
    connected within the **start window** (`--connect-timeout`, default
@@ -17,6 +16,12 @@ Start-up, in this order, each step with one clear failure:
    persisted by an earlier run is asserted again at start, the audit log and
    the local control socket (`control.sock`, for root and the daemon's user)
    live there. The demo persists nothing and opens no socket.
+
+On a terminal every run shows the **live line** (state, rpm, torque, force,
+depths, alarm, interlock), refreshed in place each second below the log lines
+(`logging_setup.NonBlockingWriter.show_live`); under systemd or into a pipe
+there is none, and the logs are JSON. The demo off a terminal prints it as one
+line per second on stdout instead.
 
 SIGTERM / SIGINT stop it within about a second: threads joined, liveliness
 token dropped, Zenoh closed, the DAQ link closed — and the feed hold output
@@ -59,7 +64,7 @@ def _fail(message: str, code: int) -> int:
 def run(args: argparse.Namespace) -> int:
     from millsense.daemon.config import ConfigError, check_against_descriptor, demo_config, load_config
 
-    if args.seconds is not None and args.seconds <= 0:
+    if args.seconds is not None and not 0 < args.seconds < float("inf"):  # nan and inf too
         return _fail("--seconds must be positive", 2)
     demo = args.config is None
     settings = demo_config() if demo else load_config(args.config)
@@ -158,7 +163,7 @@ class _Daemon:
         from millsense.daemon.pipeline.latch_store import LatchStore, state_dir
 
         self.log = structlog.get_logger("millsense.run")
-        self.summary = _Summary(sys.stdout) if demo else None
+        self.summary = _live_line(demo)
         self.demo = demo
         self.transport = settings.daq.transport
         # The demo persists nothing: no latch, no audit file, no control socket.
@@ -244,26 +249,51 @@ def _install_signal_handlers(stop: threading.Event) -> None:
             pass
 
 
-class _Summary:
-    """The demo's live line: refreshed in place on a TTY, one line per second otherwise."""
+def _live_line(demo: bool) -> Any:
+    """Where the live line goes: the log writer when the logs go to a terminal (so the two never share
+    a line); for the demo, whose logs go to stderr, stdout when that is a terminal, else one line per
+    second on stdout; nowhere for a daemon off a terminal (systemd, a pipe)."""
+    from millsense.daemon.logging_setup import NonBlockingWriter, live_writer, under_systemd
 
-    def __init__(self, stream: Any):
-        self.stream = stream
-        self.tty = bool(getattr(stream, "isatty", lambda: False)())
-        self.wrote = False
+    writer = live_writer()
+    if writer is not None:
+        return _LiveLine(writer, owned=False)
+    if not demo:
+        return None
+    if not under_systemd() and bool(getattr(sys.stdout, "isatty", lambda: False)()):
+        return _LiveLine(NonBlockingWriter(sys.stdout, terminal=True), owned=True)
+    return _SummaryLines(sys.stdout)
+
+
+class _LiveLine:
+    """The live line, refreshed in place by a terminal writer (which never blocks the status thread)."""
+
+    def __init__(self, writer: Any, owned: bool):
+        self.writer = writer
+        self.owned = owned
 
     def __call__(self, status: dict, estimate: dict | None, alarm_state: str) -> None:
         from millsense.daemon.pipeline.status import summary_line
 
-        line = summary_line(estimate, alarm_state, status)
-        if self.tty:
-            self.stream.write("\r" + line + "\x1b[K")
-        else:
-            self.stream.write(line + "\n")
-        self.stream.flush()
-        self.wrote = True
+        self.writer.show_live(summary_line(estimate, alarm_state, status))
 
     def end(self) -> None:
-        if self.tty and self.wrote:
-            self.stream.write("\n")
-            self.stream.flush()
+        self.writer.end_live()  # the last state stays on screen; what is logged next goes below it
+        if self.owned:
+            self.writer.close()
+
+
+class _SummaryLines:
+    """The demo off a terminal: the live line as one line per second on stdout."""
+
+    def __init__(self, stream: Any):
+        self.stream = stream
+
+    def __call__(self, status: dict, estimate: dict | None, alarm_state: str) -> None:
+        from millsense.daemon.pipeline.status import summary_line
+
+        self.stream.write(summary_line(estimate, alarm_state, status) + "\n")
+        self.stream.flush()
+
+    def end(self) -> None:
+        pass

@@ -25,7 +25,20 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from millsense.daemon.publish.cli_args import add_zenoh_arguments, check_machine, zenoh_settings_from_args
+from millsense.daemon.publish.cli_args import (
+    EXIT_CONFIG,
+    EXIT_USAGE,
+    CliUsageError,
+    DaemonConfig,
+    DaemonConfigError,
+    add_config_argument,
+    add_zenoh_arguments,
+    check_machine,
+    hint,
+    read_daemon_config,
+    session_settings,
+    strip_rust,
+)
 
 PROG = "millsense test-trip"
 TOKEN_ENV = "MILLSENSE_RESET_TOKEN"
@@ -36,8 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--machine", "-m", metavar="ID", default=None, help="the machine id of the daemon")
     parser.add_argument("--local", action="store_true",
                         help="ask through the daemon's control socket at the machine (root or the daemon's user)")
-    parser.add_argument("--config", "-c", metavar="FILE", default=None,
-                        help="the daemon's configuration (gives the machine id for --local)")
+    add_config_argument(parser, "its machine id and where to connect")
     parser.add_argument("--token-file", metavar="FILE", default=None,
                         help=f"reset token for Zenoh (first line of FILE; or the environment variable {TOKEN_ENV})")
     parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="S",
@@ -52,21 +64,23 @@ def _fail(message: str, code: int = 1) -> int:
 
 def run(args: argparse.Namespace) -> int:
     if check_machine(args.machine, PROG):
-        return 2
+        return EXIT_USAGE
     if not (0 < args.timeout < 3600):
-        return _fail("error: --timeout must be between 0 and 3600 seconds", 2)
-    machine = args.machine
-    if args.config:
-        from millsense.daemon.config import load_config
-
-        machine = machine or load_config(args.config).machine  # ConfigError -> 78 in cli.main
+        return _fail("error: --timeout must be between 0 and 3600 seconds", EXIT_USAGE)
+    try:
+        daemon = read_daemon_config(args.config) if args.config else None
+    except DaemonConfigError as exc:
+        return _fail(f"error: {exc}", EXIT_CONFIG)
+    machine = args.machine or (daemon.machine if daemon else None)
+    if machine is not None and check_machine(machine, PROG):
+        return EXIT_USAGE
     if args.local:
         if machine is None:
-            return _fail("error: --local needs --machine or --config (to find the daemon's state directory)", 2)
+            return _fail("error: --local needs --machine or --config (to find the daemon's state directory)", EXIT_USAGE)
         return _local(machine, args.timeout)
     if machine is None:
-        return _fail("error: give --machine (a proof test is not sent to a guessed machine)", 2)
-    return _zenoh(args, machine)
+        return _fail("error: give --machine or --config (a proof test is not sent to a guessed machine)", EXIT_USAGE)
+    return _zenoh(args, machine, daemon)
 
 
 def _local(machine: str, timeout_s: float) -> int:
@@ -87,7 +101,7 @@ def _local(machine: str, timeout_s: float) -> int:
     return _report_reset(machine, reset)
 
 
-def _zenoh(args: argparse.Namespace, machine: str) -> int:
+def _zenoh(args: argparse.Namespace, machine: str, daemon: DaemonConfig | None) -> int:
     try:
         from millsense.daemon.publish.command_auth import CommandError, send_command
     except ImportError:
@@ -104,14 +118,21 @@ def _zenoh(args: argparse.Namespace, machine: str) -> int:
     elif os.environ.get(TOKEN_ENV):
         token = os.environ[TOKEN_ENV].strip()
     try:
-        session = open_session(zenoh_settings_from_args(args), retry_for_s=args.timeout)
-    except (ZenohUnavailable, ZenohConfigError) as exc:
-        return _fail(f"error: {exc}")
+        settings = session_settings(args, daemon)
+    except CliUsageError as exc:
+        return _fail(f"error: {exc}", EXIT_USAGE)
+    try:
+        session = open_session(settings, retry_for_s=args.timeout)
+    except ZenohConfigError as exc:
+        return _fail(f"error: {strip_rust(str(exc))}")
+    except ZenohUnavailable as exc:
+        return _fail(f"error: {strip_rust(str(exc))}\n{hint(settings, daemon, 'at the machine: --local')}")
     try:
         try:
             trip = send_command(session, machine, "test-trip", token, timeout_s=args.timeout)
         except CommandError as exc:
-            return _fail(f"error: {machine}: test-trip: {exc}")
+            more = f"\n{hint(settings, daemon, 'at the machine: --local')}" if str(exc).startswith("no daemon answered") else ""
+            return _fail(f"error: {machine}: test-trip: {exc}{more}")
         if not _report_trip(machine, trip):
             return 1
         try:

@@ -20,13 +20,29 @@ import threading
 import time
 from typing import Any
 
-from millsense.daemon.publish.cli_args import add_zenoh_arguments, check_machine, zenoh_settings_from_args
+from millsense.daemon.publish.cli_args import (
+    EXIT_CONFIG,
+    EXIT_USAGE,
+    CliUsageError,
+    DaemonConfigError,
+    add_config_argument,
+    add_zenoh_arguments,
+    check_machine,
+    hint,
+    read_daemon_config,
+    session_settings,
+    strip_rust,
+)
 
 KINDS = ("estimate", "alarm", "status")
+PROG = "millsense watch"
+# With nothing seen this long (or by the end of --seconds, if sooner), say once on stderr what to try.
+HINT_AFTER_S = 5.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--machine", "-m", metavar="ID", default=None, help="only this machine (default: all)")
+    add_config_argument(parser, "where to connect")
     add_zenoh_arguments(parser)
     parser.add_argument("--json", action="store_true", help="JSON lines even on a terminal")
     parser.add_argument("--seconds", type=float, default=None, metavar="N", help="stop after N seconds")
@@ -35,26 +51,39 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from millsense.daemon.publish.session import ZenohConfigError, ZenohUnavailable, open_session
 
-    if check_machine(args.machine, "millsense watch"):
-        return 2
+    if check_machine(args.machine, PROG):
+        return EXIT_USAGE
     if args.seconds is not None and not (args.seconds > 0 and math.isfinite(args.seconds)):
-        print("millsense watch: error: --seconds must be a positive number", file=sys.stderr)
-        return 2
+        print(f"{PROG}: error: --seconds must be a positive number", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        daemon = read_daemon_config(args.config) if args.config else None
+    except DaemonConfigError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
+    try:
+        settings = session_settings(args, daemon)
+    except CliUsageError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
 
     stop = threading.Event()
     _install_signal_handlers(stop)
     try:
         session = open_session(
-            zenoh_settings_from_args(args),
+            settings,
             retry_for_s=None if args.seconds is None else args.seconds,
             stop=stop,
             on_waiting=lambda event, f: print(
-                f"millsense watch: waiting for a Zenoh router at {', '.join(f['connect']) or '(scouting)'} ({f['error']})",
+                f"{PROG}: waiting for a Zenoh router at {', '.join(f['connect']) or '(scouting)'} ({f['error']})",
                 file=sys.stderr,
             ),
         )
-    except (ZenohUnavailable, ZenohConfigError) as exc:
-        print(f"millsense watch: error: {exc}", file=sys.stderr)
+    except ZenohConfigError as exc:
+        print(f"{PROG}: error: {strip_rust(str(exc))}", file=sys.stderr)
+        return 1
+    except ZenohUnavailable as exc:
+        print(f"{PROG}: error: {strip_rust(str(exc))}\n{hint(settings, daemon)}", file=sys.stderr)
         return 1
 
     inbox: queue.SimpleQueue[tuple[str, str, Any]] = queue.SimpleQueue()
@@ -68,17 +97,27 @@ def run(args: argparse.Namespace) -> int:
             session.liveliness().declare_subscriber(f"millsense/{machine}/alive", _on_alive(inbox), history=True)
         )
         view = _JsonView() if as_json else _TtyView()
-        deadline = None if args.seconds is None else time.monotonic() + args.seconds
+        started = time.monotonic()
+        deadline = None if args.seconds is None else started + args.seconds
+        hint_at = started + (HINT_AFTER_S if args.seconds is None else min(HINT_AFTER_S, args.seconds))
+        heard = hinted = False
         try:
             while not stop.is_set():
-                wait = 0.2 if deadline is None else min(0.2, deadline - time.monotonic())
+                now = time.monotonic()
+                if not (heard or hinted) and now >= hint_at:
+                    hinted = True
+                    where = f"millsense/{machine}/**"
+                    print(f"{PROG}: nothing seen on {where} within {hint_at - started:g} s\n{hint(settings, daemon)}",
+                          file=sys.stderr)
+                wait = 0.2 if deadline is None else min(0.2, deadline - now)
                 if wait <= 0:
                     break
                 try:
-                    key, kind, payload = inbox.get(timeout=wait)
+                    key, kind, payload = inbox.get(timeout=wait if heard or hinted else max(0.01, min(wait, hint_at - now)))
                 except queue.Empty:
                     view.tick()
                     continue
+                heard = True
                 view.show(key, kind, payload)
         except KeyboardInterrupt:
             pass

@@ -15,6 +15,12 @@ masses' share, ``P_g/ω_sp − T_f' − B'·ω_sp = J·dω_sp/dt``, per revoluti
 ``J·Δω/Δt`` — a line through the origin in the revolution's acceleration, fitted
 by least squares. Only revolutions that speed up or slow down tell anything
 about J; a capture without them cannot fit it.
+
+Judging a fit (``judge_*``): least squares always returns numbers, even from a
+capture that cannot determine them (a cut at one speed gave T_f' = 3994 N·m,
+B' = −63). Each judge returns `Refusal`s — the gear, what is wrong in numbers,
+and the capture that would fix it — and the caller writes nothing while any
+stands. One mechanism for friction, inertia and the air check alike.
 """
 
 from __future__ import annotations
@@ -41,6 +47,111 @@ class InertiaFit(NamedTuple):
     residuals_nm: np.ndarray
     samples: int  # revolutions in the fit
     changing: int  # of which with |α| at or over the minimum
+
+
+class Refusal(NamedTuple):
+    gear: str
+    problem: str  # what is wrong, with the numbers that show it
+    record: str  # the capture that would fix it
+
+    def __str__(self) -> str:
+        return f"gear {self.gear}: {self.problem}; record {self.record}"
+
+
+# Friction: a line needs speeds far enough apart to separate T_f' from B'·ω. Speeds closer than
+# DISTINCT_SPEED_REL are one speed (a held speed wanders < 0.1 %; the aircut scenarios step 12–50 %).
+MIN_SPEEDS = 3
+DISTINCT_SPEED_REL = 0.05
+MIN_REVS_PER_SPEED = 3
+# Residual RMS against the mean friction torque the line explains, not R²: in the high gear B'·ω
+# spans ~0.3 N·m of a 2 N·m friction, so scatter that R² calls "R² ≈ 0" is still a fine fit. The
+# simulated air cuts leave 0.1–0.3 %; a real spindle's friction drifts a few % as it warms within a
+# capture. Over 5 %, the captures hold something other than friction (a cut, a crash, a bad gear).
+RESIDUAL_REL_MAX = 0.05
+# Inertia: J's standard error over 10 % of J says the run-ups do not determine it.
+J_REL_SIGMA_MAX = 0.1
+# Air check: cutting only ever adds torque, so in a settled air plateau every revolution sits on the
+# plateau's floor (its 10th percentile: robust to a few low transients, and an air capture spends more
+# than a tenth of each plateau in air). Simulated air plateaus stay within 0.6 % of their floor; a
+# 1 mm slot adds 40 %. A revolution more than CUT_REL (at least CUT_FLOOR_NM, ~5 per-revolution noise
+# sd) above the floor is load; CUT_MIN_REVS of them in a plateau are a cut, not a glitch.
+AIR_FLOOR_PCT = 10.0
+CUT_REL = 0.10
+CUT_FLOOR_NM = 0.05
+CUT_MIN_REVS = 3
+
+
+def speed_levels_rpm(rpm) -> list[tuple[float, int]]:
+    """Distinct held speeds: (median rpm, revolutions), speeds within DISTINCT_SPEED_REL joined."""
+    speeds = np.sort(np.asarray(rpm, dtype=float).ravel())
+    levels: list[list[float]] = []
+    for s in speeds:
+        if levels and s - levels[-1][-1] <= DISTINCT_SPEED_REL * levels[-1][-1]:
+            levels[-1].append(s)
+        else:
+            levels.append([s])
+    return [(float(np.median(lv)), len(lv)) for lv in levels]
+
+
+def air_cut_advice(range_rpm: tuple[float, float]) -> str:
+    lo, hi = range_rpm
+    return (f"an air cut (nothing in contact) at >= {MIN_SPEEDS} speeds across {lo:.0f}-{hi:.0f} rpm, "
+            f"each held 2 s or more")
+
+
+def judge_speeds(gear: str, steady_rpm, range_rpm: tuple[float, float]) -> list[Refusal]:
+    """Refused unless MIN_SPEEDS distinct speeds each have MIN_REVS_PER_SPEED steady revolutions."""
+    held = [(s, n) for s, n in speed_levels_rpm(steady_rpm) if n >= MIN_REVS_PER_SPEED]
+    if len(held) >= MIN_SPEEDS:
+        return []
+    listed = ", ".join(f"{s:.0f}" for s, _ in held) or "none held"
+    return [Refusal(gear, f"only {len(held)} steady speed{'' if len(held) == 1 else 's'} ({listed} rpm), "
+                          f"{MIN_SPEEDS} needed to fit T_f' + B'·w", air_cut_advice(range_rpm))]
+
+
+def judge_friction(gear: str, spindle_omega_rad_s, fit: FrictionFit, range_rpm: tuple[float, float]) -> list[Refusal]:
+    """Negative terms (no physical friction), or residuals large against the friction they explain."""
+    out = []
+    if fit.friction_torque_nm < 0.0 or fit.viscous_nms < 0.0:
+        out.append(Refusal(gear, f"negative friction (T_f' = {fit.friction_torque_nm:.4g} N·m, "
+                                 f"B' = {fit.viscous_nms:.4g} N·m·s/rad): physically impossible",
+                           air_cut_advice(range_rpm)))
+        return out   # the residual ratio means nothing against a negative line
+    omega = np.asarray(spindle_omega_rad_s, dtype=float)
+    mean_friction_nm = float(np.mean(fit.friction_torque_nm + fit.viscous_nms * omega))
+    rms_nm = float(np.sqrt(np.mean(np.asarray(fit.residuals_nm) ** 2)))
+    if not mean_friction_nm > 0.0 or rms_nm > RESIDUAL_REL_MAX * mean_friction_nm:
+        out.append(Refusal(gear, f"residuals rms {rms_nm:.3g} N·m against a mean friction torque of "
+                                 f"{mean_friction_nm:.3g} N·m (limit {RESIDUAL_REL_MAX:.0%}): not a friction line",
+                           air_cut_advice(range_rpm) + ", with the spindle warmed up"))
+    return out
+
+
+def judge_inertia(gear: str, fit: InertiaFit, run_up: str) -> list[Refusal]:
+    """A J that is not positive, or not determined to J_REL_SIGMA_MAX, says the run-ups are wrong."""
+    if fit.inertia_kgm2 > 0.0 and fit.sigma_kgm2 <= J_REL_SIGMA_MAX * abs(fit.inertia_kgm2):
+        return []
+    return [Refusal(gear, f"inertia J = {fit.inertia_kgm2:.4g} +/- {fit.sigma_kgm2:.2g} kg·m²: negative or not "
+                          f"determined to {J_REL_SIGMA_MAX:.0%}", run_up)]
+
+
+def judge_air(gear: str, plateaus, range_rpm: tuple[float, float]) -> list[Refusal]:
+    """Cutting in an air capture. `plateaus`: (rpm, load torques) of each settled constant-speed stretch."""
+    found = []
+    for rpm, load in plateaus:
+        load = np.asarray(load, dtype=float)
+        if load.size < CUT_MIN_REVS:
+            continue
+        floor_nm = float(np.percentile(load, AIR_FLOOR_PCT))
+        above = load - floor_nm > max(CUT_REL * abs(floor_nm), CUT_FLOOR_NM)
+        if int(np.count_nonzero(above)) >= CUT_MIN_REVS:
+            found.append(f"{int(np.count_nonzero(above))} of {load.size} revolutions at {rpm:.0f} rpm up to "
+                         f"{float(np.max(load)) - floor_nm:.3g} N·m above the air level {floor_nm:.3g} N·m")
+    if not found:
+        return []
+    return [Refusal(gear, "cutting found in an air capture (" + "; ".join(found) + ")",
+                    air_cut_advice(range_rpm) + ", with the tool clear of the part (or trial cuts with "
+                    "force channels and --dynamometer)")]
 
 
 class CfFit(NamedTuple):

@@ -1,8 +1,8 @@
 """Depth of cut from average forces by exact root finding ([D] §3, eqs. 10, 12, 13).
 
 [D] fits a polynomial to invert eq. (10) (its Table 3, see ``table3.py``). Here
-the 1-D equation ``g(R_r) = measured ratio`` is solved exactly with
-``scipy.optimize.brentq`` on brackets that are known to hold one root:
+the 1-D equation ``g(R_r) = measured ratio`` is solved exactly with Brent's
+method (``bracketed_root`` below) on brackets that are known to hold one root:
 
 1. The model curve ``g`` over the model's domain ``[MIN_RADIAL_RATIO, 2]`` is cut
    into monotone branches at its extrema (found on a grid, then refined).
@@ -12,7 +12,7 @@ the 1-D equation ``g(R_r) = measured ratio`` is solved exactly with
 
 The branch structure depends only on (function, t_c, material, mode, tool), so
 it is cached: in steady cutting the feed per tooth repeats and a solve is one
-``brentq`` call.
+``bracketed_root`` call.
 
 Down milling: ``f_xt`` is strictly increasing; ``f_x`` turns over at R_r ≈
 0.012–0.02, so the small-immersion end of ``f_x`` is ``unresolvable``. Up
@@ -30,8 +30,6 @@ from functools import lru_cache
 from typing import Callable, NamedTuple
 
 import numpy as np
-from scipy.optimize import brentq
-
 from millsense.daemon.physics.milling import (
     NP,
     SCALAR,
@@ -87,6 +85,68 @@ class _Branch(NamedTuple):
     g_hi: float
 
 
+# --- the root finder ----------------------------------------------------------------------
+
+
+def bracketed_root(f: Callable[[float], float], a: float, b: float, *, xtol: float = 2e-12,
+                   rtol: float = 4 * np.finfo(float).eps, maxiter: int = 100) -> float:
+    """A root of ``f`` in [a, b], where f(a) and f(b) differ in sign: Brent's method.
+
+    Written here so that the daemon does not import ``scipy.optimize`` (45 MB of
+    RSS and 0.4 s of start-up for this one call). The method (R. P. Brent,
+    *Algorithms for Minimization without Derivatives*, 1973, ch. 4): keep a
+    bracket [x, x_blk] with a sign change, x the end with the smaller |f|; try an
+    inverse quadratic interpolation through the last three points (a secant step
+    when only two are distinct); take the step only if it lands well inside the
+    bracket and shrinks faster than the step before last, else bisect. So it
+    never does worse than bisection and converges superlinearly on smooth f.
+    Stops when the bracket's half-width is below (xtol + rtol·|x|)/2, the same
+    tolerance as ``scipy.optimize.brentq`` (tests compare the two).
+
+    Scalar on purpose: each revolution solves one root on plain floats (the
+    ``SCALAR`` kernels); numpy on one-element arrays costs several times more per
+    evaluation than the whole math-module evaluation.
+    """
+    x_prev, x = float(a), float(b)
+    f_prev, fx = f(x_prev), f(x)
+    if f_prev == 0.0:
+        return x_prev
+    if fx == 0.0:
+        return x
+    if f_prev * fx > 0.0:
+        raise ValueError(f"no sign change of f over [{a}, {b}]")
+    x_blk, f_blk = x_prev, f_prev
+    step = step_before = 0.0
+    for _ in range(maxiter):
+        if f_prev * fx < 0.0:          # the sign change lies between x_prev and x: a new bracket end
+            x_blk, f_blk = x_prev, f_prev
+            step = step_before = x - x_prev
+        if abs(f_blk) < abs(fx):       # keep x the better end; x_prev follows it
+            x_prev, x, x_blk = x, x_blk, x
+            f_prev, fx, f_blk = fx, f_blk, fx
+        tol = (xtol + rtol * abs(x)) / 2.0
+        half = (x_blk - x) / 2.0       # the bisection step
+        if fx == 0.0 or abs(half) < tol:
+            return x
+        if abs(step_before) > tol and abs(fx) < abs(f_prev):
+            if x_prev == x_blk:        # two distinct points: secant
+                trial = -fx * (x - x_prev) / (fx - f_prev)
+            else:                      # three: inverse quadratic interpolation
+                s_prev = (f_prev - fx) / (x_prev - x)
+                s_blk = (f_blk - fx) / (x_blk - x)
+                trial = -fx * (f_blk * s_blk - f_prev * s_prev) / (s_blk * s_prev * (f_blk - f_prev))
+            if 2.0 * abs(trial) < min(abs(step_before), 3.0 * abs(half) - tol):
+                step_before, step = step, trial   # interpolation accepted
+            else:
+                step_before = step = half
+        else:
+            step_before = step = half
+        x_prev, f_prev = x, fx
+        x += step if abs(step) > tol else (tol if half > 0.0 else -tol)
+        fx = f(x)
+    raise RuntimeError(f"bracketed_root: no convergence in {maxiter} iterations on [{a}, {b}]")
+
+
 # --- the model curves, as functions of R_r (xp = numpy or math) ---------------------------
 
 
@@ -109,7 +169,7 @@ def _refine_extremum(g: Callable[[float], float], r_a: float, r_b: float) -> flo
     slope = lambda r: g(min(r + h, MAX_RADIAL_RATIO)) - g(r - h)  # noqa: E731 - sign of g'(r)
     s_a, s_b = slope(r_a), slope(r_b)
     if s_a * s_b < 0.0:
-        return brentq(slope, r_a, r_b, xtol=1e-12)
+        return bracketed_root(slope, r_a, r_b, xtol=1e-12)
     return r_a if abs(s_a) < abs(s_b) else r_b
 
 
@@ -145,7 +205,7 @@ def _solve(kind: str, target: float, t_c: float, material: Material, mode: str, 
             elif abs(target - br.g_hi) <= tol:
                 root = br.r_hi
             else:
-                root = brentq(lambda r: curve(SCALAR, r) - target, br.r_lo, br.r_hi, xtol=1e-14, rtol=4 * np.finfo(float).eps)
+                root = bracketed_root(lambda r: curve(SCALAR, r) - target, br.r_lo, br.r_hi, xtol=1e-14)
             if not roots or abs(root - roots[-1]) > 1e-9:  # a root at a shared branch end counts once
                 roots.append(root)
     if not roots:

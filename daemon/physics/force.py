@@ -26,6 +26,22 @@ def resultant_force_n(torque_nm, tool_radius_mm, cf):
     return np.asarray(cf, dtype=float) * tangential_force_n(torque_nm, tool_radius_mm)
 
 
+def resultant_force_magnitude_n(torque_nm: float, tool_radius_mm: float, cf: float, noise_nm: float) -> float | None:
+    """One revolution's |F_res| of eq. (18), N: never negative; None when eq. (18) does not apply.
+
+    Eq. (18) turns a cutting torque, which is never below zero, into a force. An
+    estimate below zero is either noise around an air cut (within ``noise_nm``:
+    the force is 0 within it, clamped) or a revolution in which the drive takes
+    energy back from the spindle — after a crash the speed overshoots and the
+    drive brakes it, or a speed drop whose J·dω/dt is not compensated. Then
+    ``P_g/ω`` says nothing about a cutting force, and a number (negative, or a
+    clamped 0 that reads "no force") would mislead: None.
+    """
+    if torque_nm < -noise_nm:
+        return None
+    return float(resultant_force_n(max(torque_nm, 0.0), tool_radius_mm, cf))
+
+
 def cf_model(average_chip_thickness_mm, r1, r1_exp):
     """C_f = √(1 + r₁²) with r₁ = k₁·t_a^p₁ ([P] eq. 17 with [D] eq. 9)."""
     r1_t = r1 * np.asarray(average_chip_thickness_mm, dtype=float) ** r1_exp

@@ -290,13 +290,19 @@ class Estimator:
         batch = self.splitter.push(seq0, angle_rev, x, moving, block.lost_before, block.discontinuity)
 
         estimates = []
-        for k in range(len(batch)):
-            # judged before any physics: a revolution built on implausible samples gets none
-            problems, saturated = self.signals.revolution(float(batch.start_pos[k]), int(batch.seq_end[k]))
-            invalid = "lost_samples" if batch.damaged[k] else "signals" if problems or saturated else None
-            est = self._estimate(batch, k, invalid)
-            est["saturated"] = saturated
-            estimates.append(est)
+        if len(batch):
+            # the batch's columns as plain Python numbers, converted once: per revolution the work is
+            # scalar, and indexing numpy arrays element by element costs more than the arithmetic
+            revs = zip(batch.start_pos.tolist(), batch.end_pos.tolist(), batch.seq_end.tolist(),
+                       batch.samples.tolist(), batch.lost.tolist(), batch.damaged.tolist(),
+                       batch.integrals.tolist())
+            for rev in revs:
+                # judged before any physics: a revolution built on implausible samples gets none
+                problems, saturated = self.signals.revolution(rev[0], rev[2])
+                invalid = "lost_samples" if rev[5] else "signals" if problems or saturated else None
+                est = self._estimate(rev, invalid)
+                est["saturated"] = saturated
+                estimates.append(est)
 
         # sample-level air-gap power and line current for the crash trip, at the latest filter gain
         both = np.empty((2, n))
@@ -333,12 +339,14 @@ class Estimator:
                 break
         return abs(total / span)
 
-    def _estimate(self, batch, k: int, invalid: str | None) -> dict:
-        """One revolution's estimate; `invalid` (why, or None) publishes it `valid: false` with no quantity."""
+    def _estimate(self, rev: tuple, invalid: str | None) -> dict:
+        """One revolution's estimate; `invalid` (why, or None) publishes it `valid: false` with no quantity.
+
+        `rev`: (start position, end position, seq_end, samples, lost, damaged, integrals) as plain numbers.
+        """
         self.rev += 1
-        samples = int(batch.samples[k])
-        base = {"rev": self.rev, "seq_end": int(batch.seq_end[k]), "samples": samples,
-                "lost_samples": int(batch.lost[k])}
+        start_pos, end_pos, seq_end, samples, lost, _, integ = rev
+        base = {"rev": self.rev, "seq_end": seq_end, "samples": samples, "lost_samples": lost}
         if invalid is not None:
             # what the physics carries to the next revolution must not come from these samples
             self._fe_recent.clear()
@@ -349,32 +357,31 @@ class Estimator:
                 out["force_measured_n"] = None
             return out
         c = self._cols
-        integ = batch.integrals[k]
-        duration = float(batch.end_pos[k] - batch.start_pos[k])
-        mean = integ / duration
+        duration = end_pos - start_pos
+        mean = [v / duration for v in integ]
         spindle_rpm = 60.0 * self.sample_rate_hz / duration
         prev = self._prev_rev   # the revolution just before, if it ended where this one starts (no stop, none dropped)
-        prev_rpm = prev[1] if prev is not None and abs(prev[0] - float(batch.start_pos[k])) < 1e-6 else None
-        self._prev_rev = (float(batch.end_pos[k]), spindle_rpm)
-        accelerating = self._accelerating(spindle_rpm, float(integ[c["rpm_rise"]]), prev_rpm)
-        f_e = self._f_e_hz(float(integ[c["f_e"]]), duration, float(mean[c["v_sq"]]))
+        prev_rpm = prev[1] if prev is not None and abs(prev[0] - start_pos) < 1e-6 else None
+        self._prev_rev = (end_pos, spindle_rpm)
+        accelerating = self._accelerating(spindle_rpm, integ[c["rpm_rise"]], prev_rpm)
+        f_e = self._f_e_hz(integ[c["f_e"]], duration, mean[c["v_sq"]])
         means = RevolutionMeans(
             spindle_rpm=spindle_rpm,
-            speed_rise_rpm=float(integ[c["rpm_rise"]]),   # end − start speed: the inertia term's Δω
+            speed_rise_rpm=integ[c["rpm_rise"]],   # end − start speed: the inertia term's Δω
             prev_spindle_rpm=prev_rpm,
-            p_in_meas_w=float(mean[c["p_in"]]),
-            p_cu_meas_w=float(mean[c["p_cu"]]),
-            p_gap_sq_meas_w2=float(mean[c["p_gap_sq"]]),
+            p_in_meas_w=mean[c["p_in"]],
+            p_cu_meas_w=mean[c["p_cu"]],
+            p_gap_sq_meas_w2=mean[c["p_gap_sq"]],
             samples=samples,
             f_e_hz=f_e,
-            motor_rpm=float(mean[c["motor_rpm"]]) if "motor_rpm" in c else None,
-            feed_rate_mm_min=float(mean[c["feed_rate"]]) if "feed_rate" in c else None,
-            feed_current_a=float(mean[c["feed_current"]]) if "feed_current" in c else None,
-            force_x_n=float(mean[c["fx"]]) if "fx" in c else None,
-            force_y_n=float(mean[c["fy"]]) if "fx" in c else None,
+            motor_rpm=mean[c["motor_rpm"]] if "motor_rpm" in c else None,
+            feed_rate_mm_min=mean[c["feed_rate"]] if "feed_rate" in c else None,
+            feed_current_a=mean[c["feed_current"]] if "feed_current" in c else None,
+            force_x_n=mean[c["fx"]] if "fx" in c else None,
+            force_y_n=mean[c["fy"]] if "fx" in c else None,
         )
         out = self.physics.estimate(means)
         out.update(base, valid=True, invalid=None, accelerating=accelerating)
         if "f_mag" in c:
-            out["force_measured_n"] = float(mean[c["f_mag"]])
+            out["force_measured_n"] = mean[c["f_mag"]]
         return out

@@ -3,8 +3,12 @@
 Why it is built this way:
 
 - **At once, from the detecting thread.** `trip()` writes the output from the
-  thread that found the overload / crash / breakage (the estimator thread); no
-  queue or other thread sits between the decision and the DAQ.
+  thread that found the condition: the driver's reader thread for a
+  sample-level crash (the frame check), the estimator thread for an overload,
+  breakage, stall or blindness; no queue or other thread sits between the
+  decision and the DAQ. Both may call it: one lock keeps the latch, its
+  persistence and the counters consistent (the first trip latches, a later
+  one finds it latched).
 - **Latching.** Once asserted, feed hold stays until `reset()` (the
   `cmd/reset` queryable, or the local control socket). The latch outlives a
   restart: the runner persists it (`latch_store.py`) and `restore()` asserts

@@ -16,7 +16,7 @@ import math
 from dataclasses import dataclass
 
 from millsense.daemon.physics import depth as depth_mod
-from millsense.daemon.physics.force import cf_model, resultant_force_n
+from millsense.daemon.physics.force import cf_model, resultant_force_magnitude_n
 from millsense.daemon.physics.milling import Material, average_chip_thickness_mm, engagement_angles_rad
 from millsense.daemon.physics.power import air_gap_power_w, butterworth_power_gain
 from millsense.daemon.physics.torque import (
@@ -28,6 +28,61 @@ from millsense.daemon.physics.torque import (
 )
 
 TWO_PI = 2.0 * math.pi
+
+# The configured feed against a feed-rate channel (docs/config.md, [cut] feed_mm_min). The feed per
+# tooth enters the depths through K_s·t^p and r_1(t) ([D] eqs. 8-10): a feed 5 % off moves a depth by
+# up to ~4 % (docs/accuracy.md: 10 % gives up to 8 %), about the accuracy the depths claim; a wrong
+# example config was 100 % off (250 against fig6's 500 mm/min). The simulated feed-rate channel reads
+# within 0.1 % over a revolution, so 5 % is never noise.
+FEED_MISMATCH_REL = 0.05
+FEED_STEADY_REL = 0.01      # judged only while the measured feed holds within 1 % of the revolution before
+FEED_AGREE_REVS = 20        # re-armed after this many agreeing steady cutting revolutions in a row
+
+
+class FeedCheck:
+    """Does the configured feed match the measured one? Judged on steady cutting revolutions.
+
+    The measured feed is used for the physics whenever the channel exists; this only
+    tells the operator that the configuration is wrong for the cut. State changes only,
+    returned by `take()` for the runner to log (nothing logs on the block path):
+    `feed.mismatch` once, again only after FEED_AGREE_REVS agreeing revolutions.
+    """
+
+    def __init__(self, configured_mm_min: float | None):
+        self.configured_mm_min = configured_mm_min
+        self.warned = False
+        self._agreeing = 0
+        self._last_mm_min: float | None = None
+        self._events: list[tuple[str, dict]] = []
+
+    def update(self, measured_mm_min: float | None, steady_cutting: bool) -> None:
+        last, self._last_mm_min = self._last_mm_min, measured_mm_min
+        configured = self.configured_mm_min
+        if configured is None or measured_mm_min is None or last is None or not steady_cutting:
+            return
+        if abs(measured_mm_min - last) > FEED_STEADY_REL * max(abs(last), 1e-9):
+            return   # a feed change inside the revolution: its mean is neither feed
+        if abs(measured_mm_min - configured) > FEED_MISMATCH_REL * configured:
+            self._agreeing = 0
+            if not self.warned:
+                self.warned = True
+                if len(self._events) < 16:   # nobody drains them in calibrate: bounded
+                    self._events.append(("feed.mismatch", {
+                        "configured_mm_min": configured,
+                        "measured_mm_min": round(measured_mm_min, 1),
+                        "off_pct": round(100.0 * (measured_mm_min / configured - 1.0), 1),
+                        "detail": "using the measured feed for feed per tooth and depths; "
+                                  "set [cut] feed_mm_min to the cut's feed",
+                    }))
+        elif self.warned:
+            self._agreeing += 1
+            if self._agreeing >= FEED_AGREE_REVS:
+                self.warned, self._agreeing = False, 0
+
+    def take(self) -> list[tuple[str, dict]]:
+        """State changes since the last call: (event, fields)."""
+        out, self._events = self._events, []
+        return out
 
 
 @dataclass(frozen=True)
@@ -88,6 +143,7 @@ class RevolutionPhysics:
         cut = settings.cut
         self.mode = str(cut.mode)
         self.feed_mm_min = None if cut.feed_mm_min is None else float(cut.feed_mm_min)
+        self.feed_check = FeedCheck(self.feed_mm_min)
         self.known_axial_mm = None if getattr(cut, "axial_depth_mm", None) is None else float(cut.axial_depth_mm)
         self.known_radial_mm = None if getattr(cut, "radial_depth_mm", None) is None else float(cut.radial_depth_mm)
         self.min_torque_nm = float(settings.depth.min_torque_nm)
@@ -159,8 +215,9 @@ class RevolutionPhysics:
         tangential_n = torque_nm / (self.tool_radius_mm * 1e-3)
 
         cutting = torque_nm >= self.min_torque_nm
+        self.feed_check.update(r.feed_rate_mm_min, cutting and self.steady(r))
         depth = self._depth(torque_nm, tangential_n, force_feed_n, feed_per_tooth_mm, r, cutting)
-        force_n = self._force(torque_nm, feed_per_tooth_mm, depth)
+        force_n = self._force(torque_nm, feed_per_tooth_mm, depth, self.force_noise_nm(sigma_nm))
         return {
             "spindle_rpm": r.spindle_rpm,
             "gear": gear.name,
@@ -252,10 +309,22 @@ class RevolutionPhysics:
             return depth_mod.DepthResult(None, None, depth_mod.OUT_OF_RANGE)
         return depth_mod.DepthResult(None, None, depth_mod.NO_SECOND_FORCE)
 
-    def _force(self, torque_nm: float, t_c: float | None, depth) -> float | None:
-        """Resultant in-plane force, [P] eq. (18); C_f constant or from r_1(t_a) ([D] eqs. 8-9)."""
+    # How far below zero a torque estimate still counts as zero for the force magnitude: the
+    # configured no-cut floor (a torque as far below zero as air is below the cutting threshold) plus
+    # three standard errors of the revolution's own mean (eq. 20), which grow in a transient. Steady
+    # air scatters by ±0.01 N·m (0 N). After the simulated crash the drive brakes an overspeed: with
+    # no J the revolutions read -1.4 to -37 N·m, with J the slow end of the ramp that the STEADY_*
+    # rule below leaves uncompensated reads -0.6 N·m: null either way, eq. (18) has no cut to size.
+    FORCE_NOISE_SIGMAS = 3.0
+
+    def force_noise_nm(self, sigma_nm: float) -> float:
+        return self.min_torque_nm + self.FORCE_NOISE_SIGMAS * (sigma_nm if math.isfinite(sigma_nm) else 0.0)
+
+    def _force(self, torque_nm: float, t_c: float | None, depth, noise_nm: float) -> float | None:
+        """Resultant in-plane force magnitude, [P] eq. (18), >= 0 or None (force.resultant_force_magnitude_n);
+        C_f constant or from r_1(t_a) ([D] eqs. 8-9)."""
         if not self.cf_model:
-            return float(resultant_force_n(torque_nm, self.tool_radius_mm, self.cf))
+            return resultant_force_magnitude_n(torque_nm, self.tool_radius_mm, self.cf, noise_nm)
         radial_mm = depth.radial_depth_mm if depth.radial_depth_mm is not None else self.known_radial_mm
         if self.mode == "slot":
             radial_mm = 2.0 * self.tool_radius_mm
@@ -266,4 +335,4 @@ class RevolutionPhysics:
         if not (math.isfinite(t_a) and t_a > 0):
             return None
         cf = float(cf_model(t_a, self.material.r1, self.material.r1_exp))
-        return float(resultant_force_n(torque_nm, self.tool_radius_mm, cf))
+        return resultant_force_magnitude_n(torque_nm, self.tool_radius_mm, cf, noise_nm)

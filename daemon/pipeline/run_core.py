@@ -10,6 +10,12 @@ air-gap power or line current, a stall — `safety_check.py` — then overloads,
 breakage) so that the caller acts on them before it publishes anything.
 `Step.items` is in time order: each closed revolution followed by the alarms it caused, a crash after the revolutions that ended
 before its sample.
+
+Live, the crash power and current were decided frame by frame in the reader
+thread (`safety_check.FrameCheck`), which already held the feed: such a block
+comes with `checked` set and the crashes found in it (`frame_events`); they are
+latched in the alarm engine and published here like any other (once: the
+engine's latch), but not listed in `Step.trips` again.
 """
 
 from __future__ import annotations
@@ -119,20 +125,31 @@ class PipelineCore:
     def _rev_at(self, seq: int, estimates: list[dict]) -> int | None:
         return _rev_at_seq(seq, self.last_rev, estimates)
 
-    def process(self, block: Any) -> Step:
-        """Run one SampleBlock through estimator and alarms."""
+    def process(self, block: Any, frame_events: list[AlarmEvent] = ()) -> Step:
+        """Run one SampleBlock through estimator and alarms.
+
+        `frame_events`: crashes the per-frame check found in this block's samples (and held the
+        feed for); with `block.checked` the sample-level power and current are not decided again.
+        """
         step = Step()
         result = self.estimator.process(block)
         crashes: list[AlarmEvent] = []
         if self.safety is None:
             self.safety = SafetyCheck(getattr(self.settings, "alarms", None),
                                       float(getattr(self.estimator, "sample_rate_hz", 1000.0)))
+        checked = bool(getattr(block, "checked", False))
+        # tripped already, on the reader thread: latched (first, they are the earliest) and published,
+        # not tripped again
+        held = [_with_rev(e, self._rev_at(e.seq, result.estimates))
+                for ev in frame_events for e in self.alarms.latch_crash(ev)]
         p_gap = getattr(result, "p_gap_w", None)
         if p_gap is not None and p_gap.size:  # smoothed per-sample power and current from `seq` on
-            safe = self.safety.on_block(result, self.alarms)
+            safe = self.safety.on_block(result, self.alarms, sample_level=not checked)
             crashes = [_with_rev(ev, self._rev_at(ev.seq, result.estimates)) for ev in safe.events]
             step.peaks, step.stalled = safe.peaks, safe.stalled
         step.trips.extend(crashes)  # the caller trips on these before it publishes anything
+        if held:
+            crashes = sorted(crashes + held, key=lambda ev: ev.seq if ev.seq is not None else 0)
         fault = getattr(result, "signal_fault", None)
         if fault:
             step.faults["signals"] = fault

@@ -26,18 +26,30 @@ Also per block, for the reset's "condition gone" test: the block's peak
 smoothed power and current (`inf` for the current when a current clipped while
 high: it was beyond what the sensor measures) and whether the stall condition
 holds.
+
+Where it runs (issue 13). Live, the crash power and current are decided by
+`FrameCheck` on every frame in the driver's reader thread, the moment the frame
+is decoded, so the feed hold never waits for the estimator thread, which wakes
+only every ~50 ms or when a revolution closes; `SafetyCheck` then keeps the
+stall (it needs the revolutions) and the peaks (`sample_level=False`). Replay,
+and a block the reader did not check, run all three here as before.
 """
 
 from __future__ import annotations
 
+import collections
 import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from millsense.daemon.physics.power import copper_loss_w, input_power_symmetric_w, input_power_two_wattmeter_w
 from millsense.daemon.pipeline.alarms import AlarmEvent
 from millsense.daemon.pipeline.revolutions import STOP_RPM
+from millsense.daemon.pipeline.signal_check import HIGH_FRAC, HIGH_WINDOW_S
+
+SMOOTH_SAMPLES = 5  # the estimator's P_GAP_SMOOTH_SAMPLES: the same short mean live and in replay
 
 
 @dataclass
@@ -67,20 +79,26 @@ class SafetyCheck:
         self._period: float | None = None       # its length in samples
         self._high_since: int | None = None     # first sample of the current's run above stall_current_a
 
-    def on_block(self, result: Any, engine: Any) -> SafetyResult:
-        """`result`: the estimator's BlockResult; `engine`: the AlarmEngine holding the crash latch."""
+    def on_block(self, result: Any, engine: Any, sample_level: bool = True) -> SafetyResult:
+        """`result`: the estimator's BlockResult; `engine`: the AlarmEngine holding the crash latch.
+
+        `sample_level=False`: the crash power and current were decided frame by frame already
+        (`FrameCheck`, live): only the stall and the peaks here.
+        """
         out = SafetyResult()
         p = result.p_gap_w
         cur = getattr(result, "current_a", None)
         seq0 = int(result.seq)
         n = len(p)
         if n:
-            out.events += engine.on_power(p, seq0)
+            if sample_level:
+                out.events += engine.on_power(p, seq0)
             out.peaks["p_gap_w"] = float(np.max(p))
         clip_seq = getattr(result, "clip_seq", None)
         if cur is not None and len(cur):
             out.peaks["current_a"] = math.inf if clip_seq is not None else float(np.max(cur))
-            out.events += self._current(cur, seq0, clip_seq, engine)
+            if sample_level:
+                out.events += self._current(cur, seq0, clip_seq, engine)
             if self.stall_current_a is not None:
                 out.events += self._stall(result, cur, seq0, engine, out)
         out.events.sort(key=lambda ev: ev.seq if ev.seq is not None else 0)
@@ -124,3 +142,224 @@ class SafetyCheck:
         out.stalled = True
         at = min(last, since + int(math.ceil(allowed)))
         return engine.latch_crash(AlarmEvent("crash", "stall", float(cur[max(0, at - seq0)]), limit, None, at))
+
+
+class FrameCheck:
+    """The crash power and current of one frame, where it lands (the driver's reader thread).
+
+    What the estimator computes for the same samples (`BlockResult.p_gap_w`,
+    `current_a`): the instantaneous air-gap power ([P] eq. 11: p_in − p_cu, over
+    the anti-alias filter's gain |H(f_e)|² the estimator found last) and the
+    largest |line current|, each as a causal mean over `SMOOTH_SAMPLES`; then the
+    limits. A current sample at its ADC limit while that current swung
+    `HIGH_FRAC` of its range within `HIGH_WINDOW_S` counts as over
+    `crash_current_a` (a crash saturates the sensors). One crash per latch, like
+    the alarm engine's: after it the check is quiet until `rearm()` (the
+    operator's reset).
+
+    Why matrices: this runs 100 times a second on the thread that reads the DAQ,
+    where each numpy call costs microseconds, so a frame takes about a dozen.
+    p_in − p_cu is a quadratic form in the counts (p_in is bilinear in v and i,
+    the copper loss quadratic in i): `Σ_k (c·A)_k c_k`, A read off the physics
+    module's own functions at start (polarisation: A_jj = f(e_j),
+    A_jk = (f(e_j + e_k) − f(e_j) − f(e_k))/2), so the formula lives in one place.
+    The line currents are linear in the counts (`c·M`), and the mean over
+    `SMOOTH_SAMPLES` is one product with a banded matrix.
+
+    Not thread-safe: one caller at a time (the runner holds its frame lock).
+    Raises `ConfigError` when the configuration does not fit the descriptor.
+    """
+
+    def __init__(self, settings: Any, descriptor: Any):
+        from millsense.daemon.pipeline.scaling import Scaler
+
+        roles = Scaler(settings, descriptor).roles
+        channels = dict(settings.channels)
+        column = {ch.name: k for k, ch in enumerate(descriptor.channels)}
+        c = len(descriptor.channels)
+        v_keys = tuple(k for k in ("uv", "vw", "wu") if k in roles.voltages)
+        i_keys = tuple(k for k in ("u", "v", "w") if k in roles.currents)
+        names = [roles.voltages[k] for k in v_keys] + [roles.currents[k] for k in i_keys]
+        cols = np.array([column[n] for n in names], dtype=np.intp)
+        scales = np.array([float(channels[n].scale) for n in names])
+        self._offsets = np.zeros(c)
+        self._offsets[cols] = [float(channels[n].offset) for n in names]
+        self._offset = bool(self._offsets.any())
+        nv = len(v_keys)
+        winding = str(settings.motor.winding)
+        r_s = float(settings.motor.stator_resistance_ohm)
+        symmetric = nv == 3 and len(i_keys) == 3
+
+        def p_meas_w(x: np.ndarray) -> float:
+            v = _three(dict(zip(v_keys, x[:nv])), ("uv", "vw", "wu"))
+            i = _three(dict(zip(i_keys, x[nv:])), ("u", "v", "w"))
+            p_in = input_power_symmetric_w(*v, *i) if symmetric else input_power_two_wattmeter_w(v[0], v[1], i[0], i[1])
+            return float(p_in - copper_loss_w(*i, winding, r_s))
+
+        q = _quadratic_form(p_meas_w, len(names)) * np.outer(scales, scales)  # in counts
+        self._a = np.zeros((c, c))
+        self._a[np.ix_(cols, cols)] = q
+        # W = [A / gain | M]: one product gives the power's first factor and the three line currents
+        self._w = np.zeros((c, c + 3))
+        for k, key in enumerate(i_keys):
+            line = [1.0 if key == other else -1.0 if other not in i_keys else 0.0 for other in ("u", "v", "w")]
+            self._w[cols[nv + k], c:] = np.array(line) * scales[nv + k]
+        self._gain: float | None = None
+        self._c = c
+        # raw limits per column; columns that are not currents get limits no int16 reaches
+        self._lo = np.full(c, -40000)
+        self._hi = np.full(c, 40000)
+        for k in i_keys:
+            name = roles.currents[k]
+            self._lo[column[name]], self._hi[column[name]] = int(channels[name].raw_min), int(channels[name].raw_max)
+        self._i_cols = cols[nv:]
+        self._high_swing = HIGH_FRAC * (self._hi[self._i_cols] - self._lo[self._i_cols])
+        self._high_window = max(2, int(round(HIGH_WINDOW_S * float(descriptor.sample_rate_hz))))
+        self._recent: collections.deque[np.ndarray] = collections.deque()  # raw frames of the last window
+        self._recent_n = 0
+        alarms = getattr(settings, "alarms", None)
+        self.crash_power_w = _limit(alarms, "crash_power_w")
+        self.crash_current_a = _limit(alarms, "crash_current_a")
+        self.stall_current_a = _limit(alarms, "stall_current_a")
+        inf = math.inf
+        self._limits = np.array([inf if self.crash_power_w is None else self.crash_power_w,
+                                 inf if self.crash_current_a is None else self.crash_current_a])
+        self._p_limit, self._i_limit = float(self._limits[0]), float(self._limits[1])
+        self._stall = inf if self.stall_current_a is None else self.stall_current_a
+        # a current sample at its sensor's limit reads at least this much: below it none can be clipped
+        self._i_gate = min(self._i_limit, min((min(abs(self._lo[k] - self._offsets[k]), abs(self._hi[k] - self._offsets[k]))
+                                               * abs(self._w[k, c:]).max() for k in self._i_cols), default=inf))
+        self.latched = False
+        self._next_seq: int | None = None
+        self._tail = np.zeros((SMOOTH_SAMPLES - 1, 4))  # the last samples (power, |currents|), for the next mean
+        self._prev_peak_w = self._prev_peak_a = -inf
+        self._frame: tuple[np.ndarray, ...] | None = None
+        self._smooth: np.ndarray | None = None
+        self._mean: dict[int, np.ndarray] = {}           # frame length -> its banded averaging matrix
+
+    def rearm(self) -> None:
+        """The operator's reset: the next crash trips again."""
+        self.latched = False
+
+    def check(self, seq0: int, counts: np.ndarray, lost_before: int = 0,
+              discontinuity: bool = False, gain: float = 1.0) -> tuple[AlarmEvent | None, bool]:
+        """One frame, raw counts (n, C): (the crash it holds, or None; the current may be over
+        `stall_current_a` in it: its raw peak is, an upper bound of the smoothed one)."""
+        n = counts.shape[0]
+        if n == 0:
+            return None, False
+        contiguous = self._next_seq == seq0 and not lost_before and not discontinuity
+        self._next_seq = seq0 + n
+        if gain != self._gain:  # a new filter gain: once per revolution at most
+            self._gain = gain
+            self._w[:, : self._c] = self._a / gain
+        x = counts - self._offsets if self._offset else counts
+        y = x @ self._w
+        z = np.empty((n, 4))                               # per sample: air-gap power, |line currents|
+        np.einsum("ij,ij->i", y[:, : self._c], x, out=z[:, 0])
+        np.abs(y[:, self._c :], out=z[:, 1:])
+        if contiguous:
+            tail = self._tail
+        else:  # after a gap the mean starts afresh, from the first sample
+            tail = np.repeat(z[:1], SMOOTH_SAMPLES - 1, axis=0)
+        w = SMOOTH_SAMPLES - 1
+        self._tail = z[-w:] if n >= w else np.concatenate((tail, z))[-w:]
+        self._frame = (z, tail)
+        self._smooth = None
+        self._remember(counts, contiguous)
+        # A mean is never above the largest of its samples (this frame's and the tail's, from the frame
+        # before): below every limit there, nothing more to do: the common case. NaN is never over a limit.
+        peaks = z.max(axis=0).tolist()
+        peak_w, peak_a = peaks[0], max(peaks[1:])
+        bound_w, bound_a = (max(peak_w, self._prev_peak_w), max(peak_a, self._prev_peak_a)) if contiguous else (peak_w, peak_a)
+        self._prev_peak_w, self._prev_peak_a = peak_w, peak_a
+        high = bound_a > self._stall
+        if self.latched or not (bound_w > self._p_limit or bound_a >= self._i_gate):
+            return None, high
+        event = self._crash(seq0, counts)
+        self.latched = event is not None
+        return event, high
+
+    @property
+    def p_gap_w(self) -> np.ndarray:
+        """The last frame's smoothed air-gap power, W (the estimator's `p_gap_w` for these samples)."""
+        return self._smoothed()[:, 0]
+
+    @property
+    def current_a(self) -> np.ndarray:
+        """The last frame's smoothed largest line current, A (the estimator's `current_a`)."""
+        return self._smoothed()[:, 1]
+
+    def _smoothed(self) -> np.ndarray:
+        if self._smooth is None:
+            if self._frame is None:
+                return np.empty((0, 2))
+            z, tail = self._frame
+            both = np.concatenate((tail, z))
+            ext = np.empty((len(both), 2))
+            ext[:, 0] = both[:, 0]
+            ext[:, 1] = both[:, 1:].max(axis=1)
+            self._smooth = self._averaging(len(z)) @ ext
+        return self._smooth
+
+    def _averaging(self, n: int) -> np.ndarray:
+        """(n, n + SMOOTH_SAMPLES − 1): row j is the mean of rows j .. j + SMOOTH_SAMPLES − 1."""
+        t = self._mean.get(n)
+        if t is None:
+            t = np.zeros((n, n + SMOOTH_SAMPLES - 1))
+            for j in range(n):
+                t[j, j : j + SMOOTH_SAMPLES] = 1.0 / SMOOTH_SAMPLES
+            if len(self._mean) < 64:
+                self._mean[n] = t
+        return t
+
+    def _remember(self, counts: np.ndarray, contiguous: bool) -> None:
+        """Keep the raw frames of the last HIGH_WINDOW_S (did a clipped current swing high?); no copy."""
+        if not contiguous:
+            self._recent.clear()
+            self._recent_n = 0
+        self._recent.append(counts)
+        self._recent_n += counts.shape[0]
+        while self._recent_n - self._recent[0].shape[0] >= self._high_window:
+            self._recent_n -= self._recent.popleft().shape[0]
+
+    def _crash(self, seq0: int, counts: np.ndarray) -> AlarmEvent | None:
+        """The earliest crash sample of the frame; power first at the same sample (as the engine decides)."""
+        smooth = self._smoothed()
+        over = smooth > self._limits                      # NaN compares False
+        clipped = self.crash_current_a is not None and bool(((counts <= self._lo) | (counts >= self._hi)).any())
+        if clipped:
+            cols = self._i_cols
+            raw = counts[:, cols]
+            hit = (raw <= self._lo[cols]) | (raw >= self._hi[cols])
+            recent = np.concatenate(self._recent)[-self._high_window :, cols]
+            swing = recent.max(axis=0).astype(np.int32) - recent.min(axis=0)
+            over[:, 1] |= (hit & (swing >= self._high_swing)).any(axis=1)
+        rows = over.any(axis=1)
+        if not rows.any():
+            return None
+        k = int(np.argmax(rows))
+        if over[k, 0]:
+            return AlarmEvent("crash", "p_gap_w", float(smooth[k, 0]), self.crash_power_w, None, seq0 + k)
+        return AlarmEvent("crash", "current_a", float(smooth[k, 1]), self.crash_current_a, None, seq0 + k)
+
+
+def _quadratic_form(f: Any, k: int) -> np.ndarray:
+    """The symmetric Q with f(x) = xᵀQx, read off a quadratic function by polarisation."""
+    eye = np.eye(k)
+    q = np.empty((k, k))
+    diag = [f(eye[j]) for j in range(k)]
+    for j in range(k):
+        q[j, j] = diag[j]
+        for m in range(j + 1, k):
+            q[j, m] = q[m, j] = 0.5 * (f(eye[j] + eye[m]) - diag[j] - diag[m])
+    return q
+
+
+def _three(got: dict[str, Any], keys: tuple[str, str, str]) -> tuple[Any, ...]:
+    """The three line quantities; a missing one from the other two (they sum to zero)."""
+    for k in keys:
+        if k not in got:
+            a, b = (got[o] for o in keys if o != k)
+            got[k] = -(a + b)
+    return tuple(got[k] for k in keys)

@@ -116,15 +116,19 @@ def _fmt(value: Any, spec: str) -> str:
 
 
 def summary_line(estimate: dict[str, Any] | None, alarm_state: str, status: dict[str, Any]) -> str:
-    """The demo's one-line live summary: rpm, torque, force, depths, alarm state."""
+    """The live line: state, interlock and alarm first, then rpm, torque, force, depths.
+
+    Fixed widths, so that a line refreshed in place does not jitter; what matters for
+    safety comes first, because a terminal narrower than the line cuts its end.
+    """
     e = estimate or {}
     return (
-        f"{status.get('state', '?'):<8} rev {e.get('rev', '–')!s:>6}  "
-        f"{_fmt(e.get('spindle_rpm'), '6.0f')} rpm  "
+        f"{status.get('state', '?'):<8} interlock {status.get('interlock', '?'):<9}  alarm {alarm_state:<8}  "
+        f"rev {e.get('rev', '–')!s:>6}  "
+        f"{_fmt(e.get('spindle_rpm'), '5.0f')} rpm  "
         f"T {_fmt(e.get('torque_nm'), '6.2f')} N·m  "
-        f"F {_fmt(e.get('force_n'), '7.1f')} N  "
-        f"ae {_fmt(e.get('radial_depth_mm'), '5.2f')} ap {_fmt(e.get('axial_depth_mm'), '5.2f')} mm  "
-        f"alarm {alarm_state}  interlock {status.get('interlock', '?')}"
+        f"F {_fmt(e.get('force_n'), '6.0f')} N  "
+        f"ae {_fmt(e.get('radial_depth_mm'), '5.2f')} ap {_fmt(e.get('axial_depth_mm'), '5.2f')} mm"
         + ("  (speeding up)" if e.get("accelerating") else "")
     )
 

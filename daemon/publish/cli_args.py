@@ -1,39 +1,87 @@
-"""Zenoh options shared by `millsense watch` and `millsense reset`.
+"""Zenoh options shared by `millsense watch`, `reset` and `test-trip`.
 
-Both are short-lived tools, not the daemon: they take the session settings from
-the command line (or a Zenoh JSON5 file for TLS) instead of the TOML config.
+They are short-lived tools, not the daemon: they take the session settings from
+the command line (or the operator's own Zenoh JSON5 file for TLS) and, given
+`--config FILE` (the daemon's TOML), where to find the daemon. From that file
+they take only where to connect: the machine id, `[zenoh]` mode, endpoints and
+scouting, and the same from the JSON5 `config_file` it points at. Never the
+daemon's TLS identity (its certificate and private key stay in its file, which
+is not handed to Zenoh) and never its reset token: a secret is given on purpose
+(`--token-file`, the environment), not picked up because a file was readable.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import sys
+from dataclasses import dataclass, field
+from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 from millsense.daemon.publish.session import endpoints_arg
 
 MACHINE_RE = re.compile(r"^[A-Za-z0-9_-]+$")
+EXIT_USAGE = 2
+EXIT_CONFIG = 78
+
+class CliUsageError(ValueError):
+    """A bad option value; the message is one line, the exit code 2."""
+
+
+class DaemonConfigError(ValueError):
+    """The `--config` file cannot be read for where the daemon is; the message names the key; exit 78."""
 
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser, *, listen: bool = True) -> None:
     g = parser.add_argument_group("Zenoh")
     g.add_argument(
         "--connect", "-e", action="append", metavar="ENDPOINT", default=[],
-        help="endpoint to connect to, e.g. tcp/10.0.0.5:7447 (repeatable, or comma-separated)",
+        help="endpoint to connect to, e.g. tcp/10.0.0.5:7447 (repeatable, or comma-separated); wins over --config",
     )
     if listen:
         g.add_argument("--listen", "-l", action="append", metavar="ENDPOINT", default=[], help="endpoint to listen on (repeatable)")
     g.add_argument("--mode", choices=("peer", "client"), default=None, help="Zenoh mode (default: peer)")
     g.add_argument("--no-scouting", action="store_true", help="turn multicast scouting off (then give --connect)")
-    g.add_argument("--zenoh-config", metavar="FILE", default="", help="a Zenoh JSON5 file (TLS, auth); the options above override it")
+    g.add_argument("--zenoh-config", metavar="FILE", default="",
+                   help="your own Zenoh JSON5 file (TLS identity, auth); the options above override it")
+
+
+def add_config_argument(parser: argparse.ArgumentParser, what: str) -> None:
+    parser.add_argument("--config", "-c", metavar="FILE", default=None,
+                        help=f"the daemon's configuration: {what} (never its keys or token)")
+
+
+def endpoint_problem(endpoint: str) -> str | None:
+    """Why `endpoint` cannot be a Zenoh endpoint, or None: the config's own rule (`[zenoh] connect`).
+
+    Zenoh itself takes `tcp/garbage` and fails later, quietly for a peer, and
+    what it says about `garbage` carries a Rust source path: so check first.
+    """
+    from millsense.daemon.config_models import endpoint_problem as problem
+
+    return problem(endpoint)
+
+
+def checked_endpoints(values: list[str] | None, option: str) -> list[str]:
+    endpoints = endpoints_arg(values)
+    for e in endpoints:
+        problem = endpoint_problem(e)
+        if problem:
+            raise CliUsageError(f"{option}: {problem}")
+    return endpoints
 
 
 def zenoh_settings_from_args(args: argparse.Namespace) -> SimpleNamespace:
-    """A settings object for `open_session`, with only what the user gave marked explicit."""
+    """A settings object for `open_session`, with only what the user gave marked explicit.
+
+    Raises CliUsageError for an endpoint that is not one.
+    """
     zs = SimpleNamespace(
-        connect=endpoints_arg(args.connect),
-        listen=endpoints_arg(getattr(args, "listen", [])),
+        connect=checked_endpoints(args.connect, "--connect"),
+        listen=checked_endpoints(getattr(args, "listen", []), "--listen"),
         config_file=args.zenoh_config or "",
     )
     fields_set = {"connect", "listen", "config_file"}
@@ -45,6 +93,145 @@ def zenoh_settings_from_args(args: argparse.Namespace) -> SimpleNamespace:
         fields_set.add("multicast_scouting")
     zs.model_fields_set = fields_set  # read by session._explicit: defaults never override the JSON5 file
     return zs
+
+
+@dataclass
+class DaemonConfig:
+    """What a CLI tool takes from the daemon's TOML: who it is and where to find it."""
+
+    path: Path
+    machine: str | None = None
+    mode: str = "peer"
+    connect: list[str] = field(default_factory=list)
+    multicast_scouting: bool = True
+    tls: bool = False  # the daemon's links are TLS/QUIC: connecting needs the operator's own JSON5
+    token_file: str | None = None  # named in hints, never read
+
+
+def read_daemon_config(path_text: str) -> DaemonConfig:
+    """Where the daemon of `path_text` can be reached. Raises DaemonConfigError.
+
+    Not the whole validated config: this user may not read everything it names.
+    The daemon's listen endpoints become endpoints to connect to (on its host: a
+    wildcard address becomes loopback); its own connect endpoints (a router, a
+    peer) are where it is reachable too.
+    """
+    import tomllib
+
+    path = Path(path_text)
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise DaemonConfigError(f"--config {path}: cannot be read: {exc.strerror or exc}") from None
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise DaemonConfigError(f"--config {path}: not a TOML file: {exc}") from None
+    out = DaemonConfig(path=path)
+    if isinstance(raw.get("machine"), str):
+        out.machine = raw["machine"]
+    z = raw.get("zenoh") if isinstance(raw.get("zenoh"), dict) else {}
+    json5 = _json5_connection(path, z.get("config_file"))
+    mode = z.get("mode", json5.get("mode"))
+    out.mode = "client" if mode == "client" else "peer"
+    connect = z.get("connect") if "connect" in z else json5.get("connect", [])
+    listen = z.get("listen") if "listen" in z else json5.get("listen", [])
+    endpoints = [str(e) for e in connect or []] + [_loopback(str(e)) for e in listen or []]
+    out.connect = [e for e in dict.fromkeys(endpoints) if endpoint_problem(e) is None]
+    scouting = z.get("multicast_scouting", json5.get("multicast_scouting", True))
+    out.multicast_scouting = scouting is not False
+    out.tls = any(e.split("/", 1)[0] in ("tls", "quic") for e in out.connect)
+    il = raw.get("interlock") if isinstance(raw.get("interlock"), dict) else {}
+    if isinstance(il.get("reset_token_file"), str):
+        out.token_file = str(_relative_to(path, il["reset_token_file"]))
+    return out
+
+
+def _relative_to(config_path: Path, name: str) -> Path:
+    p = Path(name)
+    return p if p.is_absolute() else config_path.resolve().parent / p
+
+
+def _json5_connection(config_path: Path, config_file: Any) -> dict[str, Any]:
+    """Mode, endpoints and scouting from the daemon's Zenoh JSON5 file, nothing else of it."""
+    if not config_file:
+        return {}
+    import zenoh
+
+    path = _relative_to(config_path, str(config_file))
+    try:
+        conf = zenoh.Config.from_file(str(path))
+    except Exception as exc:  # noqa: BLE001 - zenoh's error carries a Rust source path
+        reason = "does not exist" if not path.is_file() else f"is not a Zenoh config ({strip_rust(str(exc))})"
+        raise DaemonConfigError(f"--config {config_path}: zenoh.config_file: {path} {reason}") from None
+    default = zenoh.Config()
+    out: dict[str, Any] = {}
+    mode = json.loads(conf.get_json("mode"))
+    if mode in ("peer", "client"):
+        out["mode"] = mode
+    for name in ("connect", "listen"):
+        key = f"{name}/endpoints"
+        value = json.loads(conf.get_json(key))
+        if value == json.loads(default.get_json(key)):
+            continue  # Zenoh's default (listen on port 0): not where the daemon is
+        if isinstance(value, dict):  # per-mode endpoints
+            value = value.get(mode or "peer", [])
+        out[name] = value if isinstance(value, list) else []
+    scouting = json.loads(conf.get_json("scouting/multicast/enabled"))
+    if isinstance(scouting, bool):
+        out["multicast_scouting"] = scouting
+    return out
+
+
+def _loopback(endpoint: str) -> str:
+    for any_addr, loop in (("0.0.0.0", "127.0.0.1"), ("[::]", "[::1]")):
+        endpoint = endpoint.replace(f"/{any_addr}:", f"/{loop}:")
+    return endpoint
+
+
+def session_settings(args: argparse.Namespace, daemon: DaemonConfig | None) -> SimpleNamespace:
+    """The command line over the daemon's config: `--connect` or `--zenoh-config` replace its endpoints.
+
+    Raises CliUsageError.
+    """
+    zs = zenoh_settings_from_args(args)
+    if daemon is None or args.connect or args.zenoh_config:
+        return zs
+    zs.connect = list(daemon.connect)
+    if not args.mode:
+        zs.mode = daemon.mode
+    if not args.no_scouting:
+        zs.multicast_scouting = daemon.multicast_scouting
+    zs.model_fields_set = zs.model_fields_set | {"mode", "multicast_scouting"}
+    return zs
+
+
+def hint(settings: Any, daemon: DaemonConfig | None, *extra: str) -> str:
+    """One `try:` line for "found nothing": what to give next, with the endpoints tried."""
+    tried = ", ".join(getattr(settings, "connect", []) or []) or None
+    scouting = getattr(settings, "multicast_scouting", True)
+    parts: list[str] = []
+    if daemon is not None:
+        where = tried or "no endpoint (its [zenoh] names none)"
+        parts.append(f"is the daemon of {daemon.path} running (systemctl status millsense)? "
+                     f"Tried {where} (from --config)")
+        if daemon.tls:
+            parts.append("its links are TLS: add --zenoh-config with your own TLS file "
+                         "(config/zenoh-operator.json5)")
+        parts.append("or give --connect ENDPOINT (its host's address, e.g. tcp/10.0.0.5:7447)")
+    elif tried:
+        parts.append(f"is the daemon running, and is {tried} (your --connect) where it listens? Or give --config "
+                     "with its config file (-c /etc/millsense/MACHINE.toml)")
+    else:
+        parts.append("give --config with the daemon's config file (-c /etc/millsense/MACHINE.toml), or "
+                     "--connect ENDPOINT (e.g. tcp/10.0.0.5:7447)")
+        if scouting:
+            parts.append("the shipped configs turn multicast scouting off, so scouting alone finds no daemon")
+    parts.extend(extra)
+    return f"try: {'; '.join(parts)}"
+
+
+def strip_rust(message: str) -> str:
+    """Zenoh's errors end with ` at /root/.cargo/...rs:86.`: not for a user's eyes."""
+    return re.sub(r" at /\S+\.rs:\d+\.?", "", message).strip()
 
 
 def check_machine(machine: str | None, prog: str) -> str | None:

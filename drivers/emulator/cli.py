@@ -1,4 +1,8 @@
-"""`millsense sim`: the DAQ emulator on a pty, a TCP port, Modbus TCP, or into a capture file."""
+"""`millsense sim`: the DAQ emulator on a pty, a TCP port, Modbus TCP, or into a capture file.
+
+Serving, the scenario repeats until stopped (`--once`: one pass); a capture is one pass
+(`--loop --duration-s N` for a longer one).
+"""
 
 from __future__ import annotations
 
@@ -76,7 +80,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--truth", metavar="FILE", help="write the per-revolution truth (JSON lines) to FILE")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--loop", action="store_true", help="repeat the scenario forever")
+    passes = parser.add_mutually_exclusive_group()
+    passes.add_argument("--once", dest="loop", action="store_false", default=None,
+                        help="serve the scenario once, then stop (servers loop by default)")
+    # the default for servers now; kept so that command lines written before still work
+    passes.add_argument("--loop", dest="loop", action="store_true", help="repeat the scenario forever (the default "
+                        "for --pty, --tcp, --modbus-tcp, --modbus-rtu)")
     parser.add_argument(
         "--duration-s", type=_non_negative, default=None, help="stop after this many seconds of samples"
     )
@@ -124,6 +133,10 @@ def run(args: argparse.Namespace) -> int:
         print("millsense sim: error: choose one of --pty, --tcp, --modbus-tcp, --modbus-rtu or --capture",
               file=sys.stderr)
         return 2
+    if args.loop is None:
+        # A server waits for a daemon that may start later, and one that reconnects after a restart:
+        # it plays on. A capture is a file of one pass.
+        args.loop = not args.capture
     try:
         return serve(args)
     except EmulatorError as exc:

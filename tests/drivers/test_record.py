@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from millsense.drivers.protocol import Descriptor, Samples, StreamDecoder
 from tests.drivers.emulator_proc import Emulator, ramp
@@ -57,3 +58,39 @@ def test_record_to_a_full_disk_fails_clearly(tmp_path, port):
     assert "No space left on device" in res.stderr
     assert "samples in" in res.stderr  # the counts are still printed
     assert "Traceback" not in res.stderr
+
+
+@pytest.mark.parametrize("seconds", ["-1", "0", "nan", "inf"])
+def test_record_refuses_a_bad_duration_and_writes_nothing(tmp_path, port, seconds):
+    """Issue 12, item 5: refused as `run` refuses it (exit 2, one clear line), before anything is opened."""
+    out = tmp_path / "cap.bin"
+    res = _record(tmp_path, "tcp", port, out, seconds=seconds)
+    assert res.returncode == 2, res.stderr
+    assert res.stderr.startswith("millsense record: error: --seconds must be positive, got ")
+    assert "Traceback" not in res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["daq.toml"]
+
+
+@pytest.mark.parametrize("timeout_flag", ["--connect-timeout", "--connect-timeout-s"])
+def test_record_with_an_unreachable_daq_leaves_no_file_and_keeps_an_older_one(tmp_path, port, timeout_flag):
+    """Issue 12, items 5 and 9: nothing written when the DAQ never answers; an older capture stays
+    as it was; `--connect-timeout` as `run` spells it, the old `--connect-timeout-s` still works."""
+    older = tmp_path / "older.cap"
+    older.write_bytes(b"an older capture")
+    cfg = tmp_path / "daq.toml"
+    cfg.write_text(CONFIG.format(transport="tcp", port=port))  # nothing listens on `port`
+    for out in (tmp_path / "new.cap", older):
+        res = subprocess.run([*RECORD, "-c", str(cfg), "--out", str(out), "--seconds", "5", timeout_flag, "0.5"],
+                             capture_output=True, text=True, timeout=60)
+        assert res.returncode == 69, res.stderr
+        assert (f"millsense record: error: DAQ unreachable: no connection to tcp 127.0.0.1:{port} within 0.5 s; "
+                f"nothing written to {out}") in res.stderr
+        assert "Traceback" not in res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["daq.toml", "older.cap"]  # no new file, no .tmp
+    assert older.read_bytes() == b"an older capture"
+
+
+def test_record_to_a_directory_is_a_usage_error(tmp_path, port):
+    res = _record(tmp_path, "tcp", port, tmp_path)
+    assert res.returncode == 2 and f"--out {tmp_path} is a directory" in res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["daq.toml"]

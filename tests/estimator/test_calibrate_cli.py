@@ -57,23 +57,37 @@ def test_calibration_recovers_table2_friction(tmp_path, aircuts, millsense_cmd):
         name: fitted[name]["inertia_kgm2"] for name in TABLE2}
 
 
-def test_no_speed_change_friction_written_without_inertia(tmp_path, millsense_cmd):
-    """Two steady air cuts (300 and 600 rpm, no run-up between): friction can be fitted, J cannot.
-
-    The friction is written and J left out (the config's own value stays), with a warning that says
-    which capture would fit it: refusing the whole file would throw away a good friction fit.
-    """
+def _steady_air(tmp_path, rpms):
+    """Air cuts each at one held speed (no run-up between): `aircut-low` cut into separate captures."""
     import dataclasses
 
     from millsense.drivers.sim import write_capture
     from millsense.drivers.sim.scenarios import get_scenario
 
     caps = []
-    for rpm in (300.0, 600.0):
+    for rpm in rpms:
         steady = dataclasses.replace(get_scenario("aircut-low"), name=f"air-{rpm:.0f}", duration_s=4.0,
                                      spindle_schedule=((0.0, rpm),))
         caps.append(tmp_path / f"air-{rpm:.0f}.bin")
-        write_capture(steady, str(caps[-1]), seed=7)
+        if not caps[-1].exists():
+            write_capture(steady, str(caps[-1]), seed=7)
+    return caps
+
+
+def _refused_and_nothing_written(code, out, err, out_file):
+    assert code == 1, out + err
+    assert "refused: gear " in err and "nothing written" in err and "Traceback" not in err
+    assert not out_file.exists()
+    assert not list(out_file.parent.glob("*.tmp")), "a refusal leaves no temporary file either"
+
+
+def test_no_speed_change_friction_written_without_inertia(tmp_path, millsense_cmd):
+    """Three steady air cuts (300, 600, 900 rpm, no run-up between): friction can be fitted, J cannot.
+
+    The friction is written and J left out (the config's own value stays), with a warning that says
+    which capture would fit it: refusing the whole file would throw away a good friction fit.
+    """
+    caps = _steady_air(tmp_path, (300.0, 600.0, 900.0))
     cfg = tmp_path / "mill.toml"
     cfg.write_text(configs.toml_text())
     out_file = tmp_path / "cal.toml"
@@ -87,6 +101,45 @@ def test_no_speed_change_friction_written_without_inertia(tmp_path, millsense_cm
     from millsense.daemon.config import load_config
 
     assert load_config(cfg).gears  # the file loads
+
+
+def test_two_speeds_are_refused(tmp_path, millsense_cmd):
+    """A line through two speeds has no check on it: issue 12 item 4 wants three per gear."""
+    caps = _steady_air(tmp_path, (300.0, 600.0))
+    cfg = tmp_path / "mill.toml"
+    cfg.write_text(configs.toml_text())
+    out_file = tmp_path / "cal.toml"
+    code, out, err = _run([*millsense_cmd, "calibrate", *map(str, caps), "--config", str(cfg), "--out", str(out_file)])
+    _refused_and_nothing_written(code, out, err, out_file)
+    assert "gear low-speed: only 2 steady speeds (300, 600 rpm)" in err
+    assert ">= 3 speeds across 300-900 rpm" in err
+
+
+def test_cutting_capture_at_one_speed_is_refused(tmp_path, millsense_cmd):
+    """Issue 12 item 4: a cut at one speed fitted T_f' = 3994 N.m, B' = -63, wrote it and exited 0."""
+    cut, _ = simcase.capture(tmp_path, "step", seed=7)
+    cfg = tmp_path / "mill.toml"
+    cfg.write_text(configs.toml_text())
+    out_file = tmp_path / "cal.toml"
+    code, out, err = _run([*millsense_cmd, "calibrate", str(cut), "--config", str(cfg), "--out", str(out_file)])
+    _refused_and_nothing_written(code, out, err, out_file)
+    assert "gear low-speed: only 1 steady speed (600 rpm)" in err
+    assert "gear low-speed: cutting found in an air capture" in err and "600 rpm" in err
+    assert ">= 3 speeds across 300-900 rpm" in err
+
+
+def test_air_captures_with_a_cut_among_them_are_refused(tmp_path, aircuts, millsense_cmd):
+    """Good air cuts of both gears plus a constant slot at 1500 rpm given as air: the high gear has
+    enough speeds, but the slot's revolutions sit far above the air revolutions of its approach."""
+    cut, _ = simcase.capture(tmp_path, "speed-1500", seed=7)
+    cfg = tmp_path / "mill.toml"
+    cfg.write_text(configs.toml_text())
+    out_file = tmp_path / "cal.toml"
+    code, out, err = _run([*millsense_cmd, "calibrate", *map(str, aircuts), str(cut), "--config", str(cfg),
+                           "--out", str(out_file)])
+    _refused_and_nothing_written(code, out, err, out_file)
+    assert "gear high-speed: cutting found in an air capture" in err and "1500 rpm" in err
+    assert "gear low-speed" not in err   # the low gear's air cut is fine: only the gear at fault is named
 
 
 def test_calibration_without_filter_correction_is_biased(tmp_path, aircuts, millsense_cmd):

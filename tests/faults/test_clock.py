@@ -24,6 +24,17 @@ from tests.faults.helpers import assert_clean_exit, assert_no_damaged_estimate_l
 
 SHIM = Path(__file__).resolve().parent / "clockshim"
 STEPS = ((1.5, 2.0), (4.0, -3600.0), (6.5, 3600.0))  # (seconds after the estimates start, step)
+# What a clock bug would do, and so what is checked (no speed budget: CI is a loaded 2-core box):
+# pacing on the wall clock bursts 2000 samples at the +2 s step or stalls an hour at -1 h, so the
+# samples received may differ from 1 kHz of monotonic time by less than half the burst; a
+# heartbeat on the wall clock stops for an hour, so beats stay inside a watchdog that load cannot
+# trip (1.5 s); `t` off the wall clock is off by a whole step (>= 2 s) long after it.
+WATCHDOG_MS = 1500
+MAX_SAMPLE_DRIFT = 1000
+# An estimate's revolution ended at most this long before the subscriber got it: a failure-detection
+# bound, shorter than the 2.5 s between steps so that at most one step falls in the window.
+DELIVERY_S = 1.0
+T_TOLERANCE_S = 0.02   # the revolution's last sample, timed from its block's arrival (SeqClock)
 
 
 def test_seq_clock_follows_a_small_forward_step_at_once():
@@ -46,15 +57,15 @@ def test_wall_clock_steps_do_not_touch_pacing_or_revolutions(tmp_path):
         daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}',
         zenoh_listen=[tcp(z_port)],
         alarms="breakage_drop_pct = 0",
-        interlock='enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 300\nreset = "open"',
+        interlock=f'enabled = true\nheartbeat_ms = 50\nwatchdog_ms = {WATCHDOG_MS}\nreset = "open"',
     )
     steps_file = tmp_path / "clock-steps"
     env = {"PYTHONPATH": str(SHIM), "MILLSENSE_TEST_CLOCK_STEPS_FILE": str(steps_file)}
     with Procs(tmp_path) as procs:
         procs.start("sim", ["sim", "--scenario", "step", "--loop", "--tcp", f"127.0.0.1:{daq_port}", "--realtime",
-                            "--watchdog-ms", "300", "--status-log", str(sim_log)], env_extra=env)
+                            "--watchdog-ms", str(WATCHDOG_MS), "--status-log", str(sim_log)], env_extra=env)
         wait_for(lambda: "serving" in procs.text("sim"), 30.0, "emulator serving")
-        daemon = procs.start("daemon", ["run", "--config", str(cfg)], env_extra=env)
+        daemon = procs.start("daemon", ["run", "--config", str(cfg), "--connect-timeout", "120"], env_extra=env)
         sub = Subscriber([tcp(z_port)], machine)
         received: list[tuple[float, float, dict]] = []  # (monotonic, real wall, estimate) at receipt
         sub.session.declare_subscriber(
@@ -75,7 +86,7 @@ def test_wall_clock_steps_do_not_touch_pacing_or_revolutions(tmp_path):
             s1, m1 = st["samples_received"], time.monotonic()
             t_term = time.monotonic()  # from here the DAQ's watchdog holds the feed: the daemon is gone
             daemon.send_signal(signal.SIGTERM)
-            assert daemon.wait(10) == 0
+            assert daemon.wait(60) == 0
         finally:
             sub.close()
 
@@ -91,25 +102,33 @@ def test_wall_clock_steps_do_not_touch_pacing_or_revolutions(tmp_path):
     # 2000 samples, -1 h a stall of an hour)
     rate = (s1 - s0) / (m1 - m0)
     print(f"{s1 - s0} samples in {m1 - m0:.2f} s across the steps: {rate:.1f} Hz")
-    assert abs(rate - 1000.0) < 10.0, rate
+    assert abs((s1 - s0) - 1000.0 * (m1 - m0)) < MAX_SAMPLE_DRIFT, (s1 - s0, m1 - m0)
     # revolution timing: whole, valid revolutions at the scenario's 600 rpm, none lost
     estimates = [e for _, _, e in received]
     assert_revs_contiguous(estimates)
     assert assert_no_damaged_estimate_looks_valid(estimates) == 0 and st["lost_samples"] == 0
     across = [e for m, _, e in received if steps[0][0] - 1 <= m <= steps[-1][0] + 2]
-    span_s = min(steps[-1][0] + 2, received[-1][0]) - (steps[0][0] - 1)
-    assert len(across) >= 0.9 * span_s * 600 / 60 and all(599.0 < e["spindle_rpm"] < 601.0 for e in across), [e["spindle_rpm"] for e in across]
+    assert across and all(599.0 < e["spindle_rpm"] < 601.0 for e in across), [e["spindle_rpm"] for e in across]
     # heartbeats and the DAQ watchdog: monotonic; no trip while the daemon ran
     assert not [e for e in outputs(log) if e["mono"] < t_term], outputs(log)
     beats = [e["mono"] for e in log if e.get("event") == "heartbeat" and e["mono"] < t_term]
-    assert max(b - a for a, b in zip(beats, beats[1:])) < 0.3
+    assert max(b - a for a, b in zip(beats, beats[1:])) < WATCHDOG_MS / 1000
     # live t: the daemon's wall clock at the revolution's end, so it moves with each step at once
-    late = []
+    # The revolution ended at some instant m in [receipt - DELIVERY_S, receipt]; its t must be the stepped
+    # wall clock at such an instant: wall(m) + offset(m), with wall(m) = wall_receipt - (receipt - m).
+    def stepped_range(mono: float, wall: float) -> list[tuple[float, float]]:
+        cuts = [mono - DELIVERY_S] + [at for at, _ in steps if mono - DELIVERY_S < at < mono] + [mono]
+        return [(wall - (mono - lo) + offset(lo), wall - (mono - hi) + offset(lo)) for lo, hi in zip(cuts, cuts[1:])]
+
+    bad = []
     for mono, wall, e in received:
-        if any(at - 0.05 <= mono <= at + 0.3 for at, _ in steps):
-            continue  # the revolution that straddles a step
-        late.append((e["t"] - (wall + offset(mono)), mono))
-    worst = max(late, key=lambda x: abs(x[0]))
-    print(f"estimate t vs the stepped wall clock at receipt: worst {worst[0] * 1e3:.1f} ms")
-    assert all(-0.25 < d < 0.0 for d, _ in late), [(round(d, 3), round(m - m0, 2)) for d, m in late if not -0.25 < d < 0][:10]
+        spans = stepped_range(mono, wall)
+        if not any(lo - T_TOLERANCE_S <= e["t"] <= hi + T_TOLERANCE_S for lo, hi in spans):
+            bad.append((round(e["t"] - (wall + offset(mono)), 3), round(mono - m0, 2)))
+    lags = [wall + offset(mono) - e["t"] for mono, wall, e in received]
+    print(f"estimate t behind the stepped wall clock at receipt: median {1e3 * sorted(lags)[len(lags) // 2]:.1f} ms")
+    assert not bad, bad[:10]
+    # the check bites: between steps (a whole DELIVERY_S after one), one clock only is allowed
+    strict = [m for m, _, _ in received if all(not (m - DELIVERY_S < at < m) for at, _ in steps) and m > steps[0][0]]
+    assert len(strict) >= 10, len(strict)
     assert_clean_exit(procs, "daemon")

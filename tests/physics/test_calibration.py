@@ -73,3 +73,79 @@ def test_inertia_fit_recovers_j_and_refuses_a_capture_without_speed_change():
     assert fit.changing == 12 and fit.samples == accel.size
     with pytest.raises(ValueError, match="no speed change"):
         fit_inertia(rng.normal(0.0, 0.6, 50), rng.normal(0.0, 0.4, 50))
+
+
+# --- judging a fit (issue 12 item 4): refused fits name the gear and the capture to record ---------
+
+LOW = (300.0, 900.0)
+HIGH = (900.0, 4500.0)
+
+
+def _rad_s(rpm):
+    return np.asarray(rpm, dtype=float) * 2 * np.pi / 60
+
+
+def test_speeds_closer_than_the_distinct_step_count_once():
+    from millsense.daemon.physics.calibration import judge_speeds, speed_levels_rpm
+
+    rng = np.random.default_rng(1)
+    one_speed = 600.0 * (1 + rng.normal(0.0, 0.002, 80))          # a held speed wanders ~0.1 %
+    assert [n for _, n in speed_levels_rpm(one_speed)] == [80]
+    (refusal,) = judge_speeds("low-speed", one_speed, LOW)
+    assert refusal.gear == "low-speed" and "only 1 steady speed (600 rpm)" in refusal.problem
+    assert ">= 3 speeds across 300-900 rpm" in str(refusal)
+    # a third speed with only two revolutions is a transient, not a held speed
+    two_and_a_blip = np.concatenate([np.full(20, 300.0), np.full(20, 600.0), [900.0, 900.0]])
+    (refusal,) = judge_speeds("low-speed", two_and_a_blip, LOW)
+    assert "only 2 steady speeds (300, 600 rpm)" in refusal.problem
+    assert judge_speeds("low-speed", np.repeat([300.0, 600.0, 900.0], 5), LOW) == []
+
+
+def test_negative_friction_terms_are_refused():
+    from millsense.daemon.physics.calibration import judge_friction
+
+    omega = _rad_s(np.repeat([300.0, 600.0, 900.0], 10))
+    for load in (5.0 - 0.01 * omega, -0.5 + 0.05 * omega):    # B' < 0, then T_f' < 0: a clean line each
+        (refusal,) = judge_friction("low-speed", omega, fit_friction(omega, load), LOW)
+        assert "negative friction" in refusal.problem and "300-900 rpm" in refusal.record
+
+
+def test_residuals_judged_against_the_friction_they_explain_not_r2():
+    """The high gear's B'·w spans little of its friction: a good fit there can have R² near 0."""
+    from millsense.daemon.physics.calibration import judge_friction
+
+    rng = np.random.default_rng(12)
+    omega = _rad_s(np.repeat([1000.0, 1750.0, 2500.0], 100))
+    good = 1.6160 + 0.0005 * omega + rng.normal(0.0, 0.06, omega.size)   # rms 3.6 % of the friction
+    fit = fit_friction(omega, good)
+    assert fit.r2 < 0.5 and fit.viscous_nms > 0.0
+    assert judge_friction("high-speed", omega, fit, HIGH) == []
+    # one speed's plateau 0.5 N·m off the line (a cut held through it): rms ~13 % of ~1.9 N·m
+    bad = good + np.where(omega == omega[-1], 0.5, 0.0) * (np.arange(omega.size) % 2)
+    (refusal,) = judge_friction("high-speed", omega, fit_friction(omega, bad), HIGH)
+    assert "residuals rms" in refusal.problem and "limit 5%" in refusal.problem
+
+
+def test_cutting_in_an_air_plateau_is_found_and_air_noise_is_not():
+    from millsense.daemon.physics.calibration import judge_air
+
+    rng = np.random.default_rng(3)
+    air = 5.18 + rng.normal(0.0, 0.01, 60)
+    assert judge_air("low-speed", [(600.0, air)], LOW) == []
+    glitches = air.copy()
+    glitches[[5, 40]] += 3.0                                  # two odd revolutions are not a cut
+    assert judge_air("low-speed", [(600.0, glitches)], LOW) == []
+    cut = np.concatenate([air[:20], air[20:] + 2.0])          # approach in air, then a 1 mm slot
+    (refusal,) = judge_air("low-speed", [(450.0, air), (600.0, cut)], LOW)
+    assert "cutting found" in refusal.problem and "40 of 60 revolutions at 600 rpm" in refusal.problem
+    assert "450 rpm" not in refusal.problem
+
+
+def test_inertia_judged_by_the_same_rule_set():
+    from millsense.daemon.physics.calibration import InertiaFit, judge_inertia
+
+    ok = InertiaFit(1.47, 0.01, 0.99, np.zeros(3), 40, 12)
+    assert judge_inertia("low-speed", ok, "run-ups") == []
+    for bad in (ok._replace(inertia_kgm2=-0.3), ok._replace(sigma_kgm2=0.3)):
+        (refusal,) = judge_inertia("low-speed", bad, "run-ups")
+        assert refusal.gear == "low-speed" and refusal.record == "run-ups" and "inertia J" in refusal.problem

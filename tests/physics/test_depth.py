@@ -200,3 +200,82 @@ def test_solve_is_fast_enough_for_every_revolution():
     for f, t in zip(targets, t_c):
         assert radial_ratio_from_fx(f, t, M, "down")[1] == "ok"
     assert (time.perf_counter() - start) / 100 < 5e-3
+
+
+# --- the root finder that replaced scipy.optimize.brentq in the daemon ---------------------
+
+
+@settings(max_examples=200, deadline=None)
+@given(r_r=st.floats(MIN_RADIAL_RATIO, 2.0), t_c=feeds, kind=st.sampled_from(["fx", "fxt"]))
+def test_bracketed_root_agrees_with_scipy_brentq(r_r, t_c, kind):
+    """Every branch solve of the depth model, ours against scipy's, to 1e-9 relative."""
+    from scipy.optimize import brentq  # the reference; tests may import scipy, the daemon does not
+
+    curve = depth._curve(kind, t_c, M, "down", 1.0, 1.0)
+    target = float(curve(SCALAR, r_r))
+    for br in depth._branches(kind, t_c, M, "down"):
+        g = lambda r: curve(SCALAR, r) - target  # noqa: E731
+        if g(br.r_lo) * g(br.r_hi) >= 0.0:
+            continue
+        ours = depth.bracketed_root(g, br.r_lo, br.r_hi, xtol=1e-14)
+        ref = brentq(g, br.r_lo, br.r_hi, xtol=1e-14, rtol=4 * np.finfo(float).eps)
+        assert ours == pytest.approx(ref, rel=1e-9, abs=1e-14)
+
+
+@pytest.mark.parametrize(
+    "f, a, b",
+    [
+        (lambda x: x**3 - 2.0 * x - 5.0, 2.0, 3.0),          # a smooth simple root
+        (lambda x: np.cbrt(x - 0.3), -1.0, 2.0),             # infinite slope at the root: bisection must carry it
+        (lambda x: 1.0 if x > 0.7 else -1.0, 0.0, 1.0),      # a step: only bisection converges
+        (lambda x: np.exp(x) - 1e6, 0.0, 50.0),              # very uneven curvature
+    ],
+)
+def test_bracketed_root_hard_cases_match_brentq(f, a, b):
+    from scipy.optimize import brentq
+
+    ours = depth.bracketed_root(f, a, b)
+    ref = brentq(f, a, b)
+    assert ours == pytest.approx(ref, rel=1e-9, abs=4e-12)
+
+
+def test_bracketed_root_gives_up_where_brentq_does():
+    """A triple root: f is flat to below the tolerance's reach, both stop at the iteration limit."""
+    from scipy.optimize import brentq
+
+    f = lambda x: (x - 0.2) ** 3  # noqa: E731
+    with pytest.raises(RuntimeError):
+        brentq(f, -1.0, 1.0)
+    with pytest.raises(RuntimeError, match="no convergence"):
+        depth.bracketed_root(f, -1.0, 1.0)
+
+
+def test_bracketed_root_refuses_a_bracket_without_a_sign_change():
+    with pytest.raises(ValueError, match="no sign change"):
+        depth.bracketed_root(lambda x: x * x + 1.0, -1.0, 1.0)
+    assert depth.bracketed_root(lambda x: x - 2.0, 2.0, 5.0) == 2.0   # a root at an end is that end
+
+
+def test_the_live_daemon_does_not_import_scipy_optimize():
+    """A fresh interpreter that builds the live pipeline must not load scipy.optimize (45 MB, 0.4 s)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "import numpy as np\n"
+        "import millsense.daemon.commands.run\n"
+        "from millsense.daemon.config import demo_config\n"
+        "from millsense.daemon.pipeline.run_core import PipelineCore\n"
+        "from millsense.drivers.base import SampleBlock\n"
+        "from millsense.drivers.protocol import Channel, ChannelKind as K, Descriptor\n"
+        "kinds = [K.VOLTAGE] * 3 + [K.CURRENT] * 3 + [K.SPEED, K.ENCODER]\n"
+        "names = ['v_uv', 'v_vw', 'v_wu', 'i_u', 'i_v', 'i_w', 'sp_rpm', 'sp_enc']\n"
+        "core = PipelineCore(demo_config())\n"
+        "core.on_descriptor(Descriptor(1000, tuple(map(Channel, kinds, names))))\n"
+        "core.process(SampleBlock(0, 0, np.ones((500, 8), np.int16), 0, False))\n"
+        "print(sorted(m for m in sys.modules if m.startswith('scipy.optimize')))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"

@@ -265,8 +265,13 @@ def test_reset_with_no_daemon_says_so_and_what_to_try(millsense_cmd, port, daemo
     assert time.monotonic() - started < 20
 
 
-def test_reset_with_config_connects_where_the_daemon_listens_and_reads_its_token_file(millsense_cmd, port,
+def _no_token_env():
+    return {k: v for k, v in os.environ.items() if k != "MILLSENSE_RESET_TOKEN"}
+
+
+def test_reset_with_config_connects_where_the_daemon_listens_but_never_takes_its_token(millsense_cmd, port,
                                                                                       daemon_session, tmp_path):
+    """Issue 12, item 2: from the daemon's config only where to connect; its token is given on purpose."""
     controls = FakeInterlock(token=TOKEN)
     sink = ZenohSink(daemon_session, "cfg-01", controls)
     token_file = tmp_path / "token"
@@ -274,14 +279,93 @@ def test_reset_with_config_connects_where_the_daemon_listens_and_reads_its_token
     cfg = tmp_path / "d.toml"
     cfg.write_text(f'machine = "cfg-01"\n[interlock]\nreset = "token"\nreset_token_file = "{token_file}"\n'
                    f'[zenoh]\nlisten = ["tcp/0.0.0.0:{port}"]\nmulticast_scouting = false\n')
-    env = {k: v for k, v in os.environ.items() if k != "MILLSENSE_RESET_TOKEN"}
     try:
         proc = subprocess.run([*millsense_cmd, "reset", "--config", str(cfg)], capture_output=True, text=True,
-                              timeout=30, env=env)
+                              timeout=30, env=_no_token_env())
+        assert proc.returncode == 1, proc.stderr
+        assert "cfg-01 requires a reset token for reset and none was given" in proc.stderr
+        assert f"try: --token-file {token_file}" in proc.stderr  # named, not read
+        assert controls.latched and not controls.requesters
+        proc = subprocess.run([*millsense_cmd, "reset", "-c", str(cfg), "--token-file", str(token_file)],
+                              capture_output=True, text=True, timeout=30, env=_no_token_env())
         assert proc.returncode == 0, proc.stderr
         assert json.loads(proc.stdout) == {"ok": True, "interlock": "clear"} and not controls.latched
     finally:
         sink.close()
+
+
+def _daemon_files(tmp_path, port, machine="cfg-02"):
+    """A daemon config whose Zenoh part lives in a JSON5 file, as with TLS: the endpoint and scouting are
+    there, next to the daemon's own identity and an ACL that denies everything. A tool that handed this
+    file to Zenoh would fail on the key or be denied; one that takes only where to connect finds it."""
+    json5 = tmp_path / "zenoh-daemon.json5"
+    json5.write_text(
+        "{\n"
+        f'  listen: {{ endpoints: ["tcp/0.0.0.0:{port}"] }},\n'
+        "  scouting: { multicast: { enabled: false } },\n"
+        "  transport: { link: { tls: { connect_private_key: \"/nonexistent/daemon.key\",\n"
+        "                              connect_certificate: \"/nonexistent/daemon.pem\" } } },\n"
+        '  access_control: { enabled: true, default_permission: "deny" },\n'
+        "}\n"
+    )
+    cfg = tmp_path / "d.toml"
+    cfg.write_text(f'machine = "{machine}"\n[zenoh]\nconfig_file = "{json5.name}"\n')  # relative: beside the TOML
+    return cfg
+
+
+def test_watch_with_config_finds_the_daemon_from_its_zenoh_file_with_scouting_off(millsense_cmd, port,
+                                                                                  daemon_session, tmp_path):
+    cfg = _daemon_files(tmp_path, port)
+    sink = ZenohSink(daemon_session, "cfg-02", None)
+    proc = subprocess.Popen([*millsense_cmd, "watch", "-c", str(cfg), "--json", "--seconds", "30"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        out = LineReader(proc)
+        alive = out.wait_json(lambda o: o["kind"] == "alive", 15.0, "alive, found through --config")
+        assert alive["key"] == "millsense/cfg-02/alive"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
+        err = proc.stderr.read()
+        assert "Traceback" not in err and "nothing seen" not in err, err
+    finally:
+        sink.close()
+        kill(proc)
+
+
+def test_watch_finding_nothing_says_what_to_try(millsense_cmd, port, tmp_path):
+    """Issue 12, item 2: nothing within the wait is said once, with a `try:` naming --config / --connect."""
+    cfg = _daemon_files(tmp_path, port)  # nobody listens on `port`
+    proc = subprocess.run([*millsense_cmd, "watch", "-c", str(cfg), "--seconds", "1"],
+                          capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 0, proc.stderr
+    first, hint = proc.stderr.strip().split("\n")
+    assert first == "millsense watch: nothing seen on millsense/*/** within 1 s"
+    assert hint.startswith("try: ") and f"tcp/127.0.0.1:{port} (from --config)" in hint and "--connect" in hint
+    bare = subprocess.run([*millsense_cmd, "watch", "--seconds", "1"], capture_output=True, text=True, timeout=30)
+    hint = bare.stderr.strip().split("\n")[-1]
+    assert hint.startswith("try: ") and "--config" in hint and "--connect" in hint and "scouting" in hint
+
+
+def test_reset_with_config_and_no_daemon_names_the_endpoint_it_tried(millsense_cmd, port, tmp_path):
+    cfg = _daemon_files(tmp_path, port)
+    proc = subprocess.run([*millsense_cmd, "reset", "-c", str(cfg), "--timeout", "1"], capture_output=True,
+                          text=True, timeout=30, env=_no_token_env())
+    assert proc.returncode == 1
+    first, hint = proc.stderr.strip().split("\n")
+    assert first == "millsense reset: no daemon answered on millsense/cfg-02/cmd/reset within 1 s"
+    assert f"tcp/127.0.0.1:{port} (from --config)" in hint and "--connect" in hint and "reset --local" in hint
+
+
+@pytest.mark.parametrize("command", ["watch", "reset", "test-trip"])
+@pytest.mark.parametrize("endpoint", ["garbage", "tcp/garbage", "tcp/127.0.0.1:99999", "foo/127.0.0.1:7447", "tcp/"])
+def test_a_bad_endpoint_is_a_one_line_usage_error(millsense_cmd, command, endpoint):
+    """Issue 12, item 9: exit 2, one line, no Rust source path (Zenoh's own error names one)."""
+    proc = subprocess.run([*millsense_cmd, command, "--machine", "m1", "--no-scouting", "--connect", endpoint],
+                          capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1 and proc.stderr.startswith(f"millsense {command}: error: --connect: ")
+    assert json.dumps(endpoint) in proc.stderr
+    assert ".rs" not in proc.stderr and "cargo" not in proc.stderr and "Traceback" not in proc.stderr
 
 
 def test_reset_local_without_a_machine_is_a_usage_error(millsense_cmd):
