@@ -17,6 +17,7 @@ Prints four figures and the budget of each:
    ≤ 3 × the baseline measured in the same window: a bare blocking `recv` loop
    (another client of the same emulator, in its own process, reading the same
    stream and doing nothing with it);
+   with the CPU of each of its threads (by OS thread name) and their wake-ups a second;
 4. the daemon's RSS (peak, VmHWM), budget ≤ 70 MB (issue 13; it needs the
    process-history work too, printed as the budget all the same).
 
@@ -60,6 +61,22 @@ while s.recv(65536):
 """
 
 
+def thread_cpu(pid: int) -> dict[str, tuple[float, int]]:
+    """Per OS thread name (the daemon names its own: `ms-daq-tcp`, `ms-estimator`, ...): CPU seconds
+    used so far and times it was run (wake-ups), from /proc/<pid>/task/*/schedstat; threads of one
+    name summed."""
+    out: dict[str, tuple[float, int]] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip()
+            run_ns, _wait_ns, runs = (int(x) for x in (task / "schedstat").read_text().split()[:3])
+        except (OSError, ValueError):
+            continue  # the thread ended meanwhile
+        cpu, n = out.get(name, (0.0, 0))
+        out[name] = (cpu + run_ns / 1e9, n + runs)
+    return out
+
+
 def daemon_figures(seconds: float, scenario: str) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="millsense-bench-"))
     daq_port, z_port = free_tcp_port(), free_tcp_port()
@@ -79,12 +96,14 @@ def daemon_figures(seconds: float, scenario: str) -> dict:
         try:
             wait_for(lambda: len(sub.get("estimate")) >= 5, 30.0, "estimates from the daemon")
             time.sleep(2.0)  # warm-up: imports, first descriptor, caches
+            threads0 = thread_cpu(daemon.pid)
             cpu0, t0, bare0 = proc_cpu_s(daemon.pid), time.monotonic(), proc_cpu_s(bare.pid)
             rss_kb = []
             while time.monotonic() - t0 < seconds:
                 time.sleep(0.5)
                 rss_kb.append(proc_kb(daemon.pid, "VmRSS"))
             cpu1, t1, bare1 = proc_cpu_s(daemon.pid), time.monotonic(), proc_cpu_s(bare.pid)
+            threads1 = thread_cpu(daemon.pid)
             hwm_kb = proc_kb(daemon.pid, "VmHWM")
             status = sub.query("millsense/bench/status")[0]
             revs = [e["rev"] for e in sub.get("estimate")]
@@ -102,6 +121,9 @@ def daemon_figures(seconds: float, scenario: str) -> dict:
         "revs": len(revs),
         "window_s": t1 - t0,
         "lost": status.get("lost_samples"),
+        "threads": {name: (100.0 * (cpu - threads0.get(name, (0.0, 0))[0]) / (t1 - t0),
+                           (runs - threads0.get(name, (0.0, 0))[1]) / (t1 - t0))
+                    for name, (cpu, runs) in threads1.items()},
     }
 
 
@@ -191,6 +213,8 @@ def main() -> int:
     ratio = d["cpu_pct"] / d["recv_pct"] if d["recv_pct"] > 0 else float("inf")
     print(f"  daemon CPU                 {d['cpu_pct']:.2f} % of one core, {ratio:.1f} x the baseline "
           f"(bare recv loop {d['recv_pct']:.2f} %, same window)   budget <= {CPU_BUDGET_PCT:g} % and <= {CPU_BUDGET_X_RECV:g} x")
+    busy = sorted(((pct, runs, name) for name, (pct, runs) in d["threads"].items() if pct >= 0.05), reverse=True)
+    print("  per thread                 " + ", ".join(f"{name} {pct:.2f} % ({runs:.0f} wake-ups/s)" for pct, runs, name in busy))
     print(f"  daemon RSS                 {d['rss_mb']:.1f} MB (peak VmHWM {d['hwm_mb']:.1f} MB)   budget <= {RSS_BUDGET_MB:g} MB")
     print(f"  lost samples               {d['lost']}")
     return 0

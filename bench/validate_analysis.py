@@ -185,7 +185,8 @@ def breakage_numbers(run: Run) -> dict:
             track = BreakageTrack(pct, 1.0)
             first = None
             for e in run.results[k].estimates:
-                if e["valid"] and e["torque_nm"] is not None and track.update(e["torque_nm"], e["cutting"], e["rev"], None):
+                if e["valid"] and e["torque_nm"] is not None and track.update(e["torque_nm"], e["cutting"], e["rev"], None,
+                                                                       e.get("spindle_rpm"), e.get("feed_per_tooth_mm")):
                     first = e["t"]
                     break
             if first is None:

@@ -185,9 +185,9 @@ def claims_section(run: Run, t3: dict, brk: dict, sens: list[dict]) -> str:
     default = next((a for a in run.results[vc.paper_key("breakage")].alarms if a["level"] == "tool_breakage"), None)
     rows.append(["[P] §4.4: a tool breakage in a diagonal step cut shows in the estimate", "qualitative",
                  f"torque {brk['est_before']:.2f} → {brk['est_after']:.2f} N·m ({drop_est:.1f} % drop; truth "
-                 f"{drop_true:.1f} %) when flute 1 breaks at {brk['t_s']:.2f} s. The daemon's default breakage alarm "
-                 f"(50 % drop): " + (f"raised at {default['t']:.2f} s" if default else "not raised")
-                 + " — see [tool breakage](#tool-breakage-detection)"])
+                 f"{drop_true:.1f} %) when flute 1 breaks at {brk['t_s']:.2f} s. With `breakage_drop_pct` unset (the "
+                 "default) the daemon raises no breakage alarm" + (f" (yet one was raised at {default['t']:.2f} s)" if default else "")
+                 + "; at the thresholds of [tool breakage](#tool-breakage-detection) it is caught as listed there"])
     # [P] eq. 20
     low, high = exponent(sens, "low-speed", "std_5"), exponent(sens, "high-speed", "std_5")
     rows.append(["[P] eq. 20: ΔP_g/ΔT_c = ω: torque noise ∝ 1/ω", "∝ ω^-1",
@@ -243,11 +243,11 @@ def explanations_section(run: Run, brk: dict) -> str:
             + "\nDepths across transitions have a second cause: while a wall of a step, or the part's edge, crosses "
             "the engaged arc, the arc sees two depths, and [D] eq. 7 assumes one; the force ratios, and the depths "
             "from them, bump until the wall has passed (fig6 shows it at each axial step, for the dynamometer too).\n"
-            "\nA fix would need the spindle-side inertia in the configuration and the encoder's speed change per "
-            "revolution (`T_c += J·Δω/Δt`); the config has no inertia key today, so it is left as a finding. "
-            "(The large case of the same effect, a spindle speeding up to a new programmed speed, 60–77 N·m with "
-            "nothing cut, is flagged `accelerating` per revolution and kept out of the alarms; the swings here, "
-            "under 0.1 % of speed, are far below that flag.)\n\n"
+            "\nThe daemon takes `J·Δω/Δt` out of the torque with `[[gears]] inertia_kgm2` "
+            "([physics.md](physics.md#inertia)), but only where the speed's change over a revolution is larger than "
+            "the speed readings' noise: the swings here, under 0.1 % of speed, stay inside that gate, so these "
+            "transition errors remain. The large case of the same effect, a spindle speeding up to a new programmed "
+            "speed (60–77 N·m with nothing cut), is subtracted, and the alarms judge those revolutions too.\n\n"
             "**Tapers: the truth file's depth is under the tool's centre.** A slot cutter cuts ahead of its centre "
             "(edge at x = s + R·sin φ); on a taper of slope k the chip-weighted depth it engages is deeper by πRk/4. "
             "The torque sees the engaged depth, so the estimate leads the centre depth by exactly that: "
@@ -270,14 +270,15 @@ def breakage_section(brk: dict) -> str:
         rows.append([f"{pct:g} %", f"at {caught:.2f} s" if caught is not None else "missed",
                      ", ".join(false) or "none"])
     return ("### Tool breakage detection\n\n"
-            "The daemon's detector (`alarms.BreakageTrack`: a revolution-to-revolution torque change of at least the "
-            "threshold while cutting ≥ 1 N·m) re-run on the replayed estimates of every paper scenario, at several "
+            "The daemon's detector (`alarms.BreakageTrack`: a drop of at least the threshold between a steady torque "
+            "level and the level after it, 3 steady revolutions before, 2 agreeing after, speed and feed per tooth "
+            "held, while cutting ≥ 1 N·m; not armed unless `[alarms] breakage_drop_pct` is set) re-run on the "
+            "replayed estimates of every paper scenario, at several "
             f"thresholds. Flute 1 breaks at {brk['t_s']:.2f} s; caught = an alarm within {BREAKAGE_CATCH_S} s after it.\n\n"
             + table(["breakage_drop_pct", "breakage caught", "other first alarms (false, or before the break)"], rows)
             + f"\nHere the broken flute cost {(1 - brk['true_after'] / brk['true_before']) * 100:.0f} % of the true "
             "torque — a revolution-to-revolution change of the same size as a tool entering or leaving the part or a "
-            "feed step makes, so a threshold that catches one catches the others. Reported, not changed "
-            "(alarms.py is outside this report's files).\n")
+            "feed step makes; the last column shows which of those the steady-level rule still takes for a break.\n")
 
 
 def header(meta: dict, elapsed: float, timings: dict) -> str:

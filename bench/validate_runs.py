@@ -9,7 +9,7 @@ daemon reads is exactly what a user would have typed. Replays are real
 `millsense replay` subprocesses; estimates are paired with the truth by
 `simcase.match` (the revolution's last sample) and classified by
 `simcase.settled`. Alarms are the daemon's defaults (no [alarms] section):
-what a user gets who sets no limits; tool breakage at its 50 % default.
+what a user gets who sets no limits; tool breakage not armed (its default).
 """
 
 from __future__ import annotations

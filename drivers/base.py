@@ -18,6 +18,8 @@ echo of the last heartbeat changed.
 from __future__ import annotations
 
 import collections
+import ctypes
+import sys
 import threading
 import time
 from dataclasses import dataclass, replace
@@ -326,6 +328,7 @@ class Driver:
             return False
 
     def _run(self) -> None:
+        name_os_thread(f"ms-daq-{self.transport}")
         backoff = self._backoff_initial_s
         while not self._closing.is_set():
             try:
@@ -370,12 +373,16 @@ class Driver:
             return
         was, self._link_state = self._link_state, up
         self._stats["link_changes"] += 1
-        # a lost or refused link is something to act on: warning, like the daemon's own "unreachable"
-        (log.info if up else log.warning)(
+        # a lost or refused link is something to act on: warning, like the daemon's own "unreachable";
+        # a link ended because the driver is closing (the daemon stopping) was asked for: info
+        asked = not up and self._closing.is_set()
+        extra = {"detail": "the driver is closing, as asked (the daemon is stopping)"} if asked else {}
+        (log.info if up or asked else log.warning)(
             "daq.link_up" if up else "daq.link_down",
             transport=self.transport,
             address=self.address,
             reason=reason,
+            **extra,
         )
         if up or was is not None:
             # A link that was never up was not lost: a consumer started once it came up (`run` waits
@@ -437,6 +444,20 @@ class Driver:
             self._stats["sample_hook_errors"] += 1
             log.error("daq.sample_hook_failed", transport=self.transport, error=f"{type(exc).__name__}: {exc}")
             return False, True
+
+
+_PR_SET_NAME = 15
+
+
+def name_os_thread(name: str) -> None:
+    """Give the calling thread `name` in the OS too (`top -H`, `ps -L`, /proc/<pid>/task/*/comm):
+    Python 3.11 leaves every thread called after the executable. Linux keeps 15 bytes. Best effort."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_NAME, ctypes.c_char_p(name.encode("ascii", "replace")[:15]), 0, 0, 0)
+    except Exception:  # noqa: BLE001 - a name is a convenience; no prctl, no name
+        pass
 
 
 def _reason(exc: BaseException) -> str:

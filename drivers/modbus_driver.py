@@ -4,7 +4,10 @@ Each poll: read the head H, read whole samples from where we are up to H in
 chunks of at most 125 registers (split where the ring wraps), read the head
 again; samples k < H_after - D may have been overwritten while we read and are
 dropped (the index gap makes them count as lost).  A reader more than D behind
-resumes at H - D, and the skipped samples are lost the same way.
+resumes half a second (at most D/2) after H - D, so that what it reads is not overwritten
+while it reads, and the skipped samples are lost the same way.  A poll hands over what it
+read after READ_SLICE_S and the next poll goes on at once: a reader behind by seconds (after
+an outage, or slowed by a loaded box or a slow gateway) still hands samples over as it goes.
 
 pymodbus clients are not thread-safe, so every request holds the I/O lock;
 outputs from other threads slip in between ring chunks.
@@ -58,6 +61,13 @@ IR_OVERRIDE = 6  # version 2: 6 override applied, 7 capabilities, 8-15 context
 V2_HEAD_REGS = 16  # version 2: registers 0-15 in one read each poll
 STATUS_PERIOD_S = 0.1
 ATTEMPTS = 3  # tries of one request before the link counts as down
+RETRY_PAUSE_S = 0.02  # between tries, outside the I/O lock (see `_call`)
+# A poll hands over what it has read after this long and the next poll goes on at once: behind by
+# seconds (after an outage, or on a loaded box where each request waits for the CPU), reading the
+# whole backlog first would keep every sample from the pipeline for as long, and the pipeline
+# would take the silence for a stalled DAQ (drivers/base.py: `_read` returns within ~0.2 s).
+READ_SLICE_S = 0.1
+OVERRUN_MARGIN_S = 0.5  # a reader more than the ring behind skips this much more than it must
 DEFAULT_TIMEOUT_MS = 200
 PERMANENT_EXCEPTION_CODES = frozenset({1, 2, 3})  # illegal function / data address / data value
 
@@ -126,6 +136,9 @@ class ModbusDriver(Driver):
             if attempt < ATTEMPTS:
                 self._stats["modbus_retries"] += 1
                 log.debug("modbus request retried", transport=self.transport, attempt=attempt, problem=problem)
+                # a heartbeat waiting for the lock through this try goes before the next one: a lock
+                # is not handed over on release, and the retry would take it straight back
+                time.sleep(RETRY_PAUSE_S)
         raise LinkDown(f"{problem} ({ATTEMPTS} tries)")
 
     @staticmethod
@@ -280,14 +293,18 @@ class ModbusDriver(Driver):
         just_connected, self._just_connected = self._just_connected, False
         if behind > depth:
             self._stats["reconnect_gaps" if just_connected else "overruns"] += 1
-            self._next = (head - depth) % INDEX_MOD
-            behind = depth
+            # Not at the oldest sample the ring holds: the device overwrites it while it is being read,
+            # and a reader that cannot keep up would start there again and again and hand over nothing.
+            keep = depth - min(depth // 2, int(self._layout[2] * OVERRUN_MARGIN_S))
+            self._next = (head - keep) % INDEX_MOD
+            behind = keep
         if behind == 0:
             return []
         per_chunk = max(1, MAX_REGS // c)
         parts = []
         k = self._next
         remaining = behind
+        sliced_at = time.monotonic() + READ_SLICE_S
         while remaining:
             slot = k % depth
             n = min(per_chunk, remaining, depth - slot)  # split where the ring wraps
@@ -295,13 +312,17 @@ class ModbusDriver(Driver):
             parts.append(np.asarray(regs, dtype=np.uint16))
             k = (k + n) % INDEX_MOD
             remaining -= n
+            if remaining and time.monotonic() >= sliced_at:
+                self._stats["sliced_reads"] += 1
+                self._next_poll = time.monotonic()  # the rest at once, in the next poll
+                break
         head_after = self._head()
         first = self._next
         self._next = k
-        counts = np.concatenate(parts).view(np.int16).reshape(behind, c)
+        counts = np.concatenate(parts).view(np.int16).reshape(behind - remaining, c)
         # samples older than head_after - D may have been overwritten while we read
         diff = (head_after - depth - first) % INDEX_MOD
-        overwritten = min(behind, diff) if diff < INDEX_MOD // 2 else 0
+        overwritten = min(len(counts), diff) if diff < INDEX_MOD // 2 else 0
         if overwritten:
             self._stats["overwritten_during_read"] += overwritten
             counts = counts[overwritten:]

@@ -1,9 +1,17 @@
-"""The framed stream over a raw TCP socket (a serial-to-Ethernet converter, `millsense sim --tcp`)."""
+"""The framed stream over a raw TCP socket (a serial-to-Ethernet converter, `millsense sim --tcp`).
+
+One system call per arriving frame (issue 13): the socket is in blocking mode with the
+kernel's own receive and send timeouts (SO_RCVTIMEO / SO_SNDTIMEO), so the reader
+sleeps in `recv` itself. Python's own socket timeout would poll first and then
+receive, and the select-then-read of the generic stream driver was a third call:
+each costs tens of microseconds on the cold path of a wake-up.
+"""
 
 from __future__ import annotations
 
-import select
 import socket
+import struct
+import time
 
 from millsense.drivers.base import LinkDown, StreamDriver
 
@@ -22,6 +30,7 @@ class TcpDriver(StreamDriver):
         self.connect_timeout_s = connect_timeout_s
         self.read_timeout_s = read_timeout_s
         self._sock: socket.socket | None = None
+        self._down_next: LinkDown | None = None  # a loss found by the batched read, raised after its bytes
 
     @classmethod
     def from_options(cls, host: str = "", tcp_port: int = 0, **_ignored) -> TcpDriver:
@@ -34,7 +43,11 @@ class TcpDriver(StreamDriver):
     def _open(self) -> None:
         sock = socket.create_connection((self.host, self.tcp_port), timeout=self.connect_timeout_s)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        sock.settimeout(self.read_timeout_s)
+        sock.settimeout(None)  # blocking: the kernel's timeouts below bound each call
+        timeval = _timeval(self.read_timeout_s)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, timeval)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO, timeval)
+        self._down_next = None
         self._sock = sock
 
     def _close(self) -> None:
@@ -42,31 +55,52 @@ class TcpDriver(StreamDriver):
         if sock is not None:
             sock.close()
 
-    def _wait_readable(self, timeout_s: float) -> bool:
-        sock = self._sock
-        if sock is None:
-            raise LinkDown("socket closed")
-        try:
-            return bool(select.select([sock], [], [], timeout_s)[0])  # a closed peer reads as readable
-        except (OSError, ValueError) as exc:
-            raise LinkDown(f"lost communication with DAQ at {self.address}: {exc}") from exc
+    def _read(self) -> list:
+        """What lands is read at once; only bytes landing sooner than `read_interval_s` after the
+        last read wait out the rest of it and are read together with what came meanwhile (a DAQ
+        sending one sample a frame wakes the reader at most 500 times a second)."""
+        down, self._down_next = self._down_next, None
+        if down is not None:
+            raise down
+        data = self._read_bytes()
+        now = time.monotonic()
+        if data and now - self._last_read < self.read_interval_s:
+            time.sleep(self._last_read + self.read_interval_s - now)
+            try:
+                data += self._read_bytes(wait=False)
+            except LinkDown as exc:  # the bytes read before it are decoded first; the link goes down next
+                self._down_next = exc
+            now = time.monotonic()
+        if not data:
+            return []
+        self._last_read = now
+        return self._decoder.feed(data)
 
-    def _read_bytes(self) -> bytes:
+    def _wait_readable(self, timeout_s: float) -> bool:
+        return True  # `_read_bytes` waits itself, up to read_timeout_s
+
+    def _read_bytes(self, wait: bool = True) -> bytes:
         sock = self._sock
         if sock is None:
             raise LinkDown("socket closed")
         try:
-            data = sock.recv(262144)
-        except TimeoutError:
+            data = sock.recv(262144) if wait else sock.recv(262144, socket.MSG_DONTWAIT)
+        except BlockingIOError:  # SO_RCVTIMEO ran out (or, not waiting, nothing there): the loop looks up
             return b""
         except OSError as exc:
             raise LinkDown(f"lost communication with DAQ at {self.address}: {exc}") from exc
-        if not data:
+        if not data and wait:
             raise LinkDown(f"lost communication with DAQ at {self.address}: connection closed by peer")
-        return data
+        return data  # not waiting, an end of stream reads as nothing: the next read raises, after these bytes
 
     def _write(self, data: bytes) -> None:
         sock = self._sock
         if sock is None:
             raise LinkDown("socket closed")
         sock.sendall(data)
+
+
+def _timeval(seconds: float) -> bytes:
+    """A `struct timeval` for SO_RCVTIMEO / SO_SNDTIMEO."""
+    whole = int(seconds)
+    return struct.pack("@ll", whole, int(round((seconds - whole) * 1e6)))

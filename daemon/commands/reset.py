@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from millsense.daemon.pipeline.local_control import CLIENT_TIMEOUT_S
 from millsense.daemon.publish.cli_args import (
     EXIT_CONFIG,
     EXIT_USAGE,
@@ -50,6 +51,10 @@ from millsense.daemon.publish.cli_args import (
 PROG = "millsense reset"
 TOKEN_ENV = "MILLSENSE_RESET_TOKEN"
 HINT_MORE = ("a longer --timeout", "at the machine: millsense reset --local")
+ZENOH_TIMEOUT_S = 2.0
+# At the machine nothing else can answer, and a loaded box answers late: wait (the error says
+# when the daemon does not answer at all).
+LOCAL_TIMEOUT_S = CLIENT_TIMEOUT_S
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -63,7 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="reset token, if the daemon requires one (other users see it in ps: "
                           f"prefer --token-file or the environment variable {TOKEN_ENV})")
     tok.add_argument("--token-file", metavar="FILE", default=None, help="read the token from FILE (first line)")
-    parser.add_argument("--timeout", type=float, default=2.0, metavar="S", help="how long to wait for a reply (default 2 s)")
+    parser.add_argument("--timeout", type=float, default=None, metavar="S",
+                        help=f"how long to wait for a reply (default {ZENOH_TIMEOUT_S:g} s; "
+                             f"{LOCAL_TIMEOUT_S:g} s with --local)")
 
 
 def _fail(message: str, code: int = 1) -> int:
@@ -78,6 +85,8 @@ def _seconds(s: float) -> str:
 def run(args: argparse.Namespace) -> int:
     if check_machine(args.machine, PROG):
         return EXIT_USAGE
+    if args.timeout is None:
+        args.timeout = LOCAL_TIMEOUT_S if args.local else ZENOH_TIMEOUT_S
     if not (0 < args.timeout < 3600):
         return _fail("error: --timeout must be between 0 and 3600 seconds", EXIT_USAGE)
     try:

@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from millsense.daemon.pipeline.local_control import CLIENT_TIMEOUT_S
 from millsense.daemon.publish.cli_args import (
     EXIT_CONFIG,
     EXIT_USAGE,
@@ -43,6 +44,9 @@ from millsense.daemon.publish.cli_args import (
 PROG = "millsense test-trip"
 TOKEN_ENV = "MILLSENSE_RESET_TOKEN"
 DEFAULT_TIMEOUT_S = 6.0  # the daemon waits up to 2 s for each confirmation
+# At the machine nothing else can answer, and a loaded box answers late: wait (the error says
+# when the daemon does not answer at all).
+LOCAL_TIMEOUT_S = CLIENT_TIMEOUT_S
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -52,8 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_argument(parser, "its machine id and where to connect")
     parser.add_argument("--token-file", metavar="FILE", default=None,
                         help=f"reset token for Zenoh (first line of FILE; or the environment variable {TOKEN_ENV})")
-    parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="S",
-                        help=f"how long to wait for each answer (default {DEFAULT_TIMEOUT_S:g} s)")
+    parser.add_argument("--timeout", type=float, default=None, metavar="S",
+                        help=f"how long to wait for each answer (default {DEFAULT_TIMEOUT_S:g} s; "
+                             f"{LOCAL_TIMEOUT_S:g} s with --local)")
     add_zenoh_arguments(parser, listen=False)
 
 
@@ -65,6 +70,8 @@ def _fail(message: str, code: int = 1) -> int:
 def run(args: argparse.Namespace) -> int:
     if check_machine(args.machine, PROG):
         return EXIT_USAGE
+    if args.timeout is None:
+        args.timeout = LOCAL_TIMEOUT_S if args.local else DEFAULT_TIMEOUT_S
     if not (0 < args.timeout < 3600):
         return _fail("error: --timeout must be between 0 and 3600 seconds", EXIT_USAGE)
     try:

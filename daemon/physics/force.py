@@ -42,6 +42,14 @@ def resultant_force_magnitude_n(torque_nm: float, tool_radius_mm: float, cf: flo
     return float(resultant_force_n(max(torque_nm, 0.0), tool_radius_mm, cf))
 
 
+def resultant_force_magnitudes_n(torque_nm, tool_radius_mm: float, cf, noise_nm):
+    """``resultant_force_magnitude_n`` over arrays of revolutions, N: nan where eq. (18) does not apply
+    (a torque more than ``noise_nm`` below zero), else ``C_f·max(T_c, 0)/R`` ([P] eq. 18)."""
+    torque = np.asarray(torque_nm, dtype=float)
+    applies = ~(torque < -np.asarray(noise_nm, dtype=float))
+    return np.where(applies, resultant_force_n(np.maximum(torque, 0.0), tool_radius_mm, cf), np.nan)
+
+
 def cf_model(average_chip_thickness_mm, r1, r1_exp):
     """C_f = √(1 + r₁²) with r₁ = k₁·t_a^p₁ ([P] eq. 17 with [D] eq. 9)."""
     r1_t = r1 * np.asarray(average_chip_thickness_mm, dtype=float) ** r1_exp

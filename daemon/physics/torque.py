@@ -97,3 +97,26 @@ def select_gear(
     order = np.argsort(maxima, kind="stable")
     fits = np.nonzero(maxima[order] >= abs(spindle_rpm))[0]
     return int(order[fits[0]] if fits.size else order[-1])
+
+
+def select_gears(spindle_rpm, max_spindle_rpm: Sequence[float], ratios: Sequence[float], motor_to_spindle_ratio=None):
+    """``select_gear`` over arrays of revolutions: (R,) gear indices.
+
+    Where a measured motor/spindle ratio is finite and > 0 (nan elsewhere), the gear
+    nearest in log ratio; else the lowest ``max_spindle_rpm`` ≥ |rpm|, or the highest.
+    """
+    if len(max_spindle_rpm) != len(ratios) or not ratios:
+        raise ValueError("select_gears: need one max_spindle_rpm per gear ratio, at least one gear")
+    rpm = np.abs(np.atleast_1d(np.asarray(spindle_rpm, dtype=float)))
+    maxima = np.asarray(max_spindle_rpm, dtype=float)
+    order = np.argsort(maxima, kind="stable")
+    fits = maxima[order][None, :] >= rpm[:, None]
+    by_speed = np.where(fits.any(axis=1), order[fits.argmax(axis=1)], order[-1])
+    if motor_to_spindle_ratio is None:
+        return by_speed
+    measured = np.atleast_1d(np.asarray(motor_to_spindle_ratio, dtype=float))
+    ok = np.isfinite(measured) & (measured > 0)
+    # clipped into a range that cannot overflow the quotient; the nearest gear in log ratio stays the same
+    measured = np.clip(np.where(ok, measured, 1.0), 1e-12, 1e12)
+    distance = np.abs(np.log(np.asarray(ratios, dtype=float)[None, :] / measured[:, None]))
+    return np.where(ok, distance.argmin(axis=1), by_speed)

@@ -3,8 +3,10 @@
 Per block, vectorised: scale counts (`scaling.py`), instantaneous input power
 and copper loss ([P] eq. 11 terms), the voltage space vector's rotation rate,
 spindle angle (encoder or integrated speed), then exact per-revolution
-integrals (`revolutions.py`). Per closed revolution: the physics chain of
-`per_revolution.py`.
+integrals (`revolutions.py`). Per block, over all the revolutions it closed at
+once: their plausibility (`signal_check.py`) and the physics chain of
+`per_revolution.py` on (R,) columns; only what one revolution hands the next
+(the previous speed, the f_e window) is a short loop on plain floats.
 
 The electrical frequency f_e (filter gain, gear, slip-free speed) is the mean
 rotation rate of the Clarke voltage vector over the revolution — or over the
@@ -57,7 +59,7 @@ from millsense.daemon.physics.power import (
     input_power_symmetric_w,
     input_power_two_wattmeter_w,
 )
-from millsense.daemon.pipeline.per_revolution import RevolutionMeans, RevolutionPhysics
+from millsense.daemon.pipeline.per_revolution import RevolutionColumns, RevolutionPhysics
 from millsense.daemon.pipeline.revolutions import STOP_RPM, EncoderAngle, RevolutionSplitter, SpeedAngle
 from millsense.daemon.pipeline.scaling import Scaler
 from millsense.daemon.pipeline.signal_check import SignalCheck
@@ -284,25 +286,13 @@ class Estimator:
                 x[:, c["f_mag"]] = np.hypot(x[:, c["fx"]], x[:, c["fy"]])
 
         self._last_seq = seq0 + n - 1
-        # plausibility first: the revolutions closing in this block are judged with this block's samples
-        sp = phys[self._sp_name] if self._sp_name is not None else None
-        clip_seq, signal_fault = self.signals.push(seq0, counts, x, rpm, moving, sp)
         batch = self.splitter.push(seq0, angle_rev, x, moving, block.lost_before, block.discontinuity)
+        # plausibility: the revolutions closing in this block are judged with this block's samples, in the
+        # same pass as the fault windows
+        sp = phys[self._sp_name] if self._sp_name is not None else None
+        clip_seq, signal_fault = self.signals.push(seq0, counts, x, rpm, moving, sp, batch.start_pos, batch.seq_end)
 
-        estimates = []
-        if len(batch):
-            # the batch's columns as plain Python numbers, converted once: per revolution the work is
-            # scalar, and indexing numpy arrays element by element costs more than the arithmetic
-            revs = zip(batch.start_pos.tolist(), batch.end_pos.tolist(), batch.seq_end.tolist(),
-                       batch.samples.tolist(), batch.lost.tolist(), batch.damaged.tolist(),
-                       batch.integrals.tolist())
-            for rev in revs:
-                # judged before any physics: a revolution built on implausible samples gets none
-                problems, saturated = self.signals.revolution(rev[0], rev[2])
-                invalid = "lost_samples" if rev[5] else "signals" if problems or saturated else None
-                est = self._estimate(rev, invalid)
-                est["saturated"] = saturated
-                estimates.append(est)
+        estimates = self._estimates(batch) if len(batch) else []
 
         # sample-level air-gap power and line current for the crash trip, at the latest filter gain
         both = np.empty((2, n))
@@ -315,15 +305,15 @@ class Estimator:
                            current_a=current, clip_seq=clip_seq, signal_fault=signal_fault)
 
     @staticmethod
-    def _accelerating(spindle_rpm: float, rise_rpm: float, prev_rpm: float | None) -> bool:
-        """Sped up against the revolution just before, or within this one while not slowing on the whole."""
-        step_pct = None if prev_rpm is None else 100.0 * (spindle_rpm - prev_rpm) / spindle_rpm
-        if step_pct is not None and step_pct > ACCEL_STEP_PCT:
-            return True
+    def _accelerating(spindle_rpm: np.ndarray, rise_rpm: np.ndarray, prev_rpm: np.ndarray) -> np.ndarray:
+        """Sped up against the revolution just before (nan: none), or within this one while not slowing on
+        the whole; over arrays of revolutions."""
+        step_pct = 100.0 * (spindle_rpm - prev_rpm) / spindle_rpm
         # A rise within the revolution while its mean speed fell clearly is a drive catching up after a
         # spindle bogged down by its load: that torque is load, and the overload must see it.
-        slowing = step_pct is not None and step_pct < -ACCEL_STEP_PCT
-        return rise_rpm > max(ACCEL_RISE_PCT / 100.0 * spindle_rpm, ACCEL_RISE_MIN_RPM) and not slowing
+        slowing = step_pct < -ACCEL_STEP_PCT
+        rising = rise_rpm > np.maximum(ACCEL_RISE_PCT / 100.0 * spindle_rpm, ACCEL_RISE_MIN_RPM)
+        return (step_pct > ACCEL_STEP_PCT) | (rising & ~slowing)
 
     def _f_e_hz(self, integral_hz: float, duration: float, mean_v_sq: float) -> float | None:
         """Mean f_e over this revolution, extended back over recent ones to MIN_FE_WINDOW samples."""
@@ -339,49 +329,85 @@ class Estimator:
                 break
         return abs(total / span)
 
-    def _estimate(self, rev: tuple, invalid: str | None) -> dict:
-        """One revolution's estimate; `invalid` (why, or None) publishes it `valid: false` with no quantity.
+    def _estimates(self, batch) -> list[dict]:
+        """The estimates of every revolution a block closed, built once over the batch's columns.
 
-        `rev`: (start position, end position, seq_end, samples, lost, damaged, integrals) as plain numbers.
+        A revolution is judged before any physics: one built on implausible samples (or a damaged one)
+        gets none and is published `valid: false` with its reason. What carries from one revolution to
+        the next (the previous revolution's speed, the f_e window) is a short loop on plain floats; the
+        physics runs once over the good revolutions' columns (`RevolutionPhysics.estimate_many`).
         """
-        self.rev += 1
-        start_pos, end_pos, seq_end, samples, lost, _, integ = rev
-        base = {"rev": self.rev, "seq_end": seq_end, "samples": samples, "lost_samples": lost}
-        if invalid is not None:
-            # what the physics carries to the next revolution must not come from these samples
-            self._fe_recent.clear()
-            self._prev_rev = None
-            out = dict.fromkeys(NULL_FIELDS)
-            out.update(base, valid=False, invalid=invalid, cutting=False, accelerating=False)
-            if "f_mag" in self._cols:
-                out["force_measured_n"] = None
-            return out
+        count = len(batch)
+        problems, saturated = self.signals.revolution_verdicts     # judged by this block's `signals.push`
+        sat = saturated.tolist()
+        invalid = ["lost_samples" if dmg else "signals" if prob or s else None
+                   for dmg, prob, s in zip(batch.damaged.tolist(), problems, sat)]
         c = self._cols
-        duration = end_pos - start_pos
-        mean = [v / duration for v in integ]
-        spindle_rpm = 60.0 * self.sample_rate_hz / duration
-        prev = self._prev_rev   # the revolution just before, if it ended where this one starts (no stop, none dropped)
-        prev_rpm = prev[1] if prev is not None and abs(prev[0] - start_pos) < 1e-6 else None
-        self._prev_rev = (end_pos, spindle_rpm)
-        accelerating = self._accelerating(spindle_rpm, integ[c["rpm_rise"]], prev_rpm)
-        f_e = self._f_e_hz(integ[c["f_e"]], duration, mean[c["v_sq"]])
-        means = RevolutionMeans(
-            spindle_rpm=spindle_rpm,
-            speed_rise_rpm=integ[c["rpm_rise"]],   # end − start speed: the inertia term's Δω
-            prev_spindle_rpm=prev_rpm,
-            p_in_meas_w=mean[c["p_in"]],
-            p_cu_meas_w=mean[c["p_cu"]],
-            p_gap_sq_meas_w2=mean[c["p_gap_sq"]],
-            samples=samples,
-            f_e_hz=f_e,
-            motor_rpm=mean[c["motor_rpm"]] if "motor_rpm" in c else None,
-            feed_rate_mm_min=mean[c["feed_rate"]] if "feed_rate" in c else None,
-            feed_current_a=mean[c["feed_current"]] if "feed_current" in c else None,
-            force_x_n=mean[c["fx"]] if "fx" in c else None,
-            force_y_n=mean[c["fy"]] if "fx" in c else None,
-        )
-        out = self.physics.estimate(means)
-        out.update(base, valid=True, invalid=None, accelerating=accelerating)
-        if "f_mag" in c:
-            out["force_measured_n"] = mean[c["f_mag"]]
+        duration = batch.end_pos - batch.start_pos
+        mean = batch.integrals / duration[:, None]
+        rpm = 60.0 * self.sample_rate_hz / duration
+        starts, ends, rpm_l = batch.start_pos.tolist(), batch.end_pos.tolist(), rpm.tolist()
+        fe_int, dur_l = batch.integrals[:, c["f_e"]].tolist(), duration.tolist()
+        v_sq = mean[:, c["v_sq"]].tolist()
+        good: list[int] = []
+        f_e: list[float] = []
+        prev_rpm: list[float] = []
+        for i in range(count):
+            if invalid[i] is not None:
+                # what the physics carries to the next revolution must not come from these samples
+                self._fe_recent.clear()
+                self._prev_rev = None
+                continue
+            prev = self._prev_rev   # the revolution just before, if it ended where this one starts
+            prev_rpm.append(prev[1] if prev is not None and abs(prev[0] - starts[i]) < 1e-6 else np.nan)
+            self._prev_rev = (ends[i], rpm_l[i])
+            fe = self._f_e_hz(fe_int[i], dur_l[i], v_sq[i])
+            f_e.append(np.nan if fe is None else fe)
+            good.append(i)
+
+        phys: dict[str, list] = {}
+        accelerating: list[bool] = []
+        if good:
+            g = np.array(good, dtype=np.intp)
+            m = mean[g]
+            rise = batch.integrals[g, c["rpm_rise"]]   # end − start speed: the inertia term's Δω
+            prev = np.array(prev_rpm)
+
+            def column(name):
+                return m[:, c[name]] if name in c else None
+
+            cols = RevolutionColumns(
+                spindle_rpm=rpm[g], p_in_meas_w=m[:, c["p_in"]], p_cu_meas_w=m[:, c["p_cu"]],
+                p_gap_sq_meas_w2=m[:, c["p_gap_sq"]], samples=batch.samples[g], f_e_hz=np.array(f_e),
+                motor_rpm=column("motor_rpm"), feed_rate_mm_min=column("feed_rate"),
+                feed_current_a=column("feed_current"), force_x_n=column("fx"), force_y_n=column("fy"),
+                speed_rise_rpm=rise, prev_spindle_rpm=prev,
+            )
+            phys = self.physics.estimate_many(cols)
+            accelerating = self._accelerating(rpm[g], rise, prev).tolist()
+            if "f_mag" in c:
+                phys["force_measured_n"] = m[:, c["f_mag"]].tolist()
+
+        seq_end, samples, lost = batch.seq_end.tolist(), batch.samples.tolist(), batch.lost.tolist()
+        keys = list(phys)
+        rows = iter(zip(*phys.values())) if phys else iter(())
+        acc = iter(accelerating)
+        out = []
+        for i in range(count):
+            self.rev += 1
+            base = {"rev": self.rev, "seq_end": seq_end[i], "samples": samples[i], "lost_samples": lost[i]}
+            if invalid[i] is not None:
+                est = dict.fromkeys(NULL_FIELDS)
+                est.update(base, valid=False, invalid=invalid[i], cutting=False, accelerating=False)
+                if "f_mag" in c:
+                    est["force_measured_n"] = None
+            else:
+                values = dict(zip(keys, next(rows)))
+                force_measured = values.pop("force_measured_n", None)
+                est = values
+                est.update(base, valid=True, invalid=None, accelerating=next(acc))
+                if "f_mag" in c:
+                    est["force_measured_n"] = force_measured
+            est["saturated"] = sat[i]
+            out.append(est)
         return out

@@ -198,15 +198,21 @@ class Interlock:
         return result
 
     # -- heartbeats and device status --------------------------------------
-    def beat(self, healthy: bool) -> None:
-        """Called every `heartbeat_ms`: a heartbeat only while the pipeline is healthy."""
+    def beat(self, healthy: bool, stopping: bool = False) -> None:
+        """Called every `heartbeat_ms`: a heartbeat only while the pipeline is healthy.
+
+        `stopping`: the daemon is stopping on purpose; the heartbeats end as asked (info, not warning).
+        """
         if not self.enabled:
             self.heartbeating = False
             return
         if self.latched and self.hold_unconfirmed:
             self._retry_hold()
         if not healthy:
-            if self.heartbeating:
+            if self.heartbeating and stopping:
+                log.info("interlock.heartbeats_stopped", asked=True,
+                         detail="the daemon is stopping, as asked; the DAQ watchdog takes over")
+            elif self.heartbeating:
                 log.warning("interlock.heartbeats_stopped", detail="pipeline not healthy; the DAQ watchdog takes over")
             self.heartbeating = False
             return

@@ -37,6 +37,11 @@ COMMANDS = ("reset", "test-trip", "status")
 MAX_REQUEST_BYTES = 4096
 READ_DEADLINE_S = 2.0
 SOCKET_MODE = 0o660
+# How long a local client waits for the daemon's answer. An edge box can be loaded (a slicer, a
+# backup, another daemon): a daemon that is running answers, only later, and an operator at the
+# machine would rather wait than be told to try again. What cannot be answered in this long is a
+# daemon that is hung, and the error says so.
+CLIENT_TIMEOUT_S = 30.0
 
 
 class LocalControlError(Exception):
@@ -48,7 +53,7 @@ def socket_path(state_dir: Path) -> Path:
 
 
 # -- client ----------------------------------------------------------------------
-def local_command(state_dir: Path, command: str, timeout_s: float = 2.0) -> dict[str, Any]:
+def local_command(state_dir: Path, command: str, timeout_s: float = CLIENT_TIMEOUT_S) -> dict[str, Any]:
     """Ask the daemon whose state directory is `state_dir`; its JSON reply.
 
     Raises `LocalControlError` with a sentence for the user when no daemon
@@ -72,7 +77,10 @@ def local_command(state_dir: Path, command: str, timeout_s: float = 2.0) -> dict
             sock.sendall((json.dumps({"command": command}) + "\n").encode())
             data = _read_line(sock)
         except socket.timeout:
-            raise LocalControlError(f"no answer from the daemon within {timeout_s:g} s") from None
+            raise LocalControlError(
+                f"the daemon at {path} accepted the request but did not answer within {timeout_s:g} s: "
+                "it is running but hung or starved of CPU (see its log; a longer --timeout waits more)"
+            ) from None
         except OSError as exc:
             raise LocalControlError(f"the daemon closed the connection: {exc}") from None
     finally:

@@ -1,13 +1,16 @@
-"""One closed revolution's means -> the `estimate` payload fields.
+"""Closed revolutions' means -> the `estimate` payload fields, every revolution of a block at once.
 
-The chain of `shared/spec/physics.md`, per revolution: filter gain divided out
+The chain of `shared/spec/physics.md`, over (R,) columns: filter gain divided out
 of the measured powers, air-gap power ([P] eq. 11), gear from the measured
 motor/spindle ratio, cutting torque ([P] eq. 13, slip-free power speed),
 its uncertainty ([P] eq. 20), resultant force ([P] eq. 18), feed-drive force,
 feed per tooth, and depths of cut ([D] §3) by the configured method.
 
 Kept apart from the sample-level code in `estimator.py` so that the physics of
-a revolution can be read (and tested) on plain floats.
+a revolution can be read (and tested): `estimate` takes one revolution's plain
+floats, `estimate_many` the columns of a block's revolutions (the live path).
+Revolution by revolution stay only the feed check (a state machine) and, when
+configured, the depth's root finding.
 """
 
 from __future__ import annotations
@@ -15,14 +18,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from millsense.daemon.physics import depth as depth_mod
-from millsense.daemon.physics.force import cf_model, resultant_force_magnitude_n
+from millsense.daemon.physics.force import cf_model, resultant_force_magnitudes_n
 from millsense.daemon.physics.milling import Material, average_chip_thickness_mm, engagement_angles_rad
 from millsense.daemon.physics.power import air_gap_power_w, butterworth_power_gain
 from millsense.daemon.physics.torque import (
     cutting_torque_nm,
     inertia_torque_nm,
-    select_gear,
+    select_gears,
     synchronous_spindle_omega_rad_s,
     torque_sigma_nm,
 )
@@ -105,6 +110,26 @@ class RevolutionMeans:
 
 
 @dataclass(frozen=True)
+class RevolutionColumns:
+    """The same over R revolutions at once: (R,) arrays; nan in `f_e_hz` and `prev_spindle_rpm` = none,
+    None for a column the configuration lacks."""
+
+    spindle_rpm: np.ndarray
+    p_in_meas_w: np.ndarray
+    p_cu_meas_w: np.ndarray
+    p_gap_sq_meas_w2: np.ndarray
+    samples: np.ndarray
+    f_e_hz: np.ndarray
+    motor_rpm: np.ndarray | None
+    feed_rate_mm_min: np.ndarray | None
+    feed_current_a: np.ndarray | None
+    force_x_n: np.ndarray | None
+    force_y_n: np.ndarray | None
+    speed_rise_rpm: np.ndarray
+    prev_spindle_rpm: np.ndarray
+
+
+@dataclass(frozen=True)
 class Gear:
     name: str
     ratio: float
@@ -128,7 +153,12 @@ class RevolutionPhysics:
             for g in gears
         )
         self._max_rpm = tuple(g.max_spindle_rpm for g in self.gears)
-        self._ratios = tuple(g.ratio for g in self.gears)
+        # per-gear columns, indexed by the gear of each revolution
+        self._names = [g.name for g in self.gears]
+        self._ratios = np.array([g.ratio for g in self.gears])
+        self._friction = np.array([g.friction_torque_nm for g in self.gears])
+        self._viscous = np.array([g.viscous_nms for g in self.gears])
+        self._inertia = np.array([np.nan if g.inertia_kgm2 is None else g.inertia_kgm2 for g in self.gears])
         self.cutoff_hz = float(settings.daq.filter_cutoff_hz or 0.0)
         self.filter_order = int(getattr(settings.daq, "filter_order", 2) or 2)
         pp = getattr(settings.motor, "pole_pairs", None)
@@ -165,82 +195,124 @@ class RevolutionPhysics:
 
     # ---------------------------------------------------------------------------------
 
-    def filter_gain(self, f_e_hz: float | None) -> float:
-        """|H(f_e)|² of the DAQ's anti-alias filter (physics.md §1); 1 with no filter."""
-        if self.cutoff_hz <= 0.0 or f_e_hz is None or not math.isfinite(f_e_hz):
-            return 1.0
-        return float(butterworth_power_gain(f_e_hz, self.cutoff_hz, self.filter_order))
-
-    def gear_index(self, r: RevolutionMeans) -> int:
-        """Gear from the motor/spindle speed ratio when measurable, else by spindle speed."""
-        ratio = None
-        if r.motor_rpm is not None and r.spindle_rpm > 0:
-            ratio = r.motor_rpm / r.spindle_rpm
-        elif self.pole_pairs and r.f_e_hz and r.spindle_rpm > 0:
-            ratio = (60.0 * r.f_e_hz / self.pole_pairs) / r.spindle_rpm   # synchronous speed / spindle
-        return int(select_gear(r.spindle_rpm, self._max_rpm, self._ratios, motor_to_spindle_ratio=ratio))
-
     def estimate(self, r: RevolutionMeans) -> dict:
-        """All physical fields of one good revolution (payload of interfaces.md)."""
-        gain = self.filter_gain(r.f_e_hz)
-        self.last_gain = gain
-        gi = self.gear_index(r)
-        gear = self.gears[gi]
-        omega = TWO_PI * r.spindle_rpm / 60.0
-        p_in_w = r.p_in_meas_w / gain
-        p_gap_w = float(air_gap_power_w(r.p_in_meas_w, r.p_cu_meas_w, gain))               # eq. (11)
-        power_omega = None
-        if self.pole_pairs and r.f_e_hz:
-            power_omega = float(synchronous_spindle_omega_rad_s(r.f_e_hz, self.pole_pairs, gear.ratio))
-        torque_nm = float(cutting_torque_nm(p_gap_w, omega, gear.friction_torque_nm, gear.viscous_nms,
-                                            power_omega_rad_s=power_omega))              # eq. (13)
-        p_inertia_w = None
-        if gear.inertia_kgm2 is not None:
-            inertia_nm = self.inertia_nm(gear.inertia_kgm2, r, omega)                        # eq. (13) + J·dω/dt
-            torque_nm -= inertia_nm
-            p_inertia_w = inertia_nm * omega
-        p_gap_meas = r.p_in_meas_w - r.p_cu_meas_w
-        var_w2 = max(r.p_gap_sq_meas_w2 - p_gap_meas * p_gap_meas, 0.0)
-        sigma_p_w = math.sqrt(var_w2 / max(r.samples, 1)) / gain                           # std. error of the mean
-        sigma_nm = float(torque_sigma_nm(sigma_p_w, power_omega or omega))                  # eq. (20)
+        """All physical fields of one good revolution (payload of interfaces.md), on plain floats."""
+        def col(v):
+            return None if v is None else np.array([v], dtype=float)
 
-        feed_mm_min = r.feed_rate_mm_min if r.feed_rate_mm_min is not None else self.feed_mm_min
-        feed_per_tooth_mm = None
-        if feed_mm_min is not None and r.spindle_rpm > 0:
-            feed_per_tooth_mm = feed_mm_min / (self.flutes * r.spindle_rpm)
+        cols = RevolutionColumns(
+            spindle_rpm=np.array([r.spindle_rpm]), p_in_meas_w=np.array([r.p_in_meas_w]),
+            p_cu_meas_w=np.array([r.p_cu_meas_w]), p_gap_sq_meas_w2=np.array([r.p_gap_sq_meas_w2]),
+            samples=np.array([r.samples], dtype=np.int64),
+            f_e_hz=np.array([np.nan if r.f_e_hz is None else r.f_e_hz]),
+            motor_rpm=col(r.motor_rpm), feed_rate_mm_min=col(r.feed_rate_mm_min),
+            feed_current_a=col(r.feed_current_a), force_x_n=col(r.force_x_n), force_y_n=col(r.force_y_n),
+            speed_rise_rpm=np.array([r.speed_rise_rpm]),
+            prev_spindle_rpm=np.array([np.nan if r.prev_spindle_rpm is None else r.prev_spindle_rpm]),
+        )
+        out = self.estimate_many(cols)
+        return {k: v[0] for k, v in out.items()}
+
+    def estimate_many(self, c: RevolutionColumns) -> dict[str, list]:
+        """All physical fields of R good revolutions at once: {field: list of R plain values (None: null)}.
+
+        Every formula runs once over the (R,) columns; only the feed check (a state machine over
+        consecutive revolutions) and the depth's root finding, when configured, go revolution by revolution.
+        """
+        rpm = c.spindle_rpm
+        f_e = c.f_e_hz
+        count = len(rpm)
+        has_fe = np.isfinite(f_e)
+        gain = self._filter_gains(f_e)
+        gi = self._gear_indices(c)
+        ratio = self._ratios[gi]
+        omega = TWO_PI * rpm / 60.0
+        p_in_w = c.p_in_meas_w / gain
+        p_gap_w = air_gap_power_w(c.p_in_meas_w, c.p_cu_meas_w, gain)                         # eq. (11)
+        use_sync = has_fe & (f_e != 0.0) if self.pole_pairs else np.zeros(count, dtype=bool)
+        if use_sync.any():
+            power_omega = np.where(use_sync, synchronous_spindle_omega_rad_s(
+                np.where(use_sync, f_e, 0.0), self.pole_pairs, ratio), omega)                  # eq. (10)
+        else:
+            power_omega = omega
+        torque_nm = cutting_torque_nm(p_gap_w, omega, self._friction[gi], self._viscous[gi],
+                                      power_omega_rad_s=power_omega)                            # eq. (13)
+        steady = self.steady_many(c.speed_rise_rpm, rpm, c.prev_spindle_rpm)
+        inertia = self._inertia[gi]
+        has_j = np.isfinite(inertia)
+        if has_j.any():
+            apply = has_j & (omega > 0.0) & ~steady
+            d_omega = TWO_PI * c.speed_rise_rpm / 60.0
+            # a revolution's rpm is 60·rate/duration: always finite and > 0, so nothing here divides by 0
+            inertia_nm = np.where(apply, inertia_torque_nm(np.where(has_j, inertia, 0.0), omega - d_omega / 2.0,
+                                                           omega + d_omega / 2.0, TWO_PI / omega, omega), 0.0)
+            torque_nm = torque_nm - inertia_nm                                                  # eq. (13) + J·dω/dt
+            p_inertia_w = _optional(inertia_nm * omega, has_j)
+        else:
+            p_inertia_w = [None] * count
+        p_gap_meas = c.p_in_meas_w - c.p_cu_meas_w
+        var_w2 = np.maximum(c.p_gap_sq_meas_w2 - p_gap_meas * p_gap_meas, 0.0)
+        sigma_p_w = np.sqrt(var_w2 / np.maximum(c.samples, 1)) / gain                            # std. error of the mean
+        sigma_nm = torque_sigma_nm(sigma_p_w, power_omega)                                      # eq. (20)
+
+        feed_mm_min = c.feed_rate_mm_min
+        if feed_mm_min is None and self.feed_mm_min is not None:
+            feed_mm_min = np.full(count, self.feed_mm_min)
+        if feed_mm_min is not None:
+            t_c = np.where(rpm > 0, feed_mm_min / (self.flutes * rpm), np.nan)
+        else:
+            t_c = np.full(count, np.nan)
         force_feed_n = None
-        if self.feed_force is not None and r.feed_current_a is not None:
+        if self.feed_force is not None and c.feed_current_a is not None:
             _, n_per_a, friction_n = self.feed_force
-            force_feed_n = n_per_a * r.feed_current_a - friction_n
-        tangential_n = torque_nm / (self.tool_radius_mm * 1e-3)
+            force_feed_n = n_per_a * c.feed_current_a - friction_n
+        tangential_n = torque_nm / (self.tool_radius_mm * 1e-3)                                 # eq. (16)
 
         cutting = torque_nm >= self.min_torque_nm
-        self.feed_check.update(r.feed_rate_mm_min, cutting and self.steady(r))
-        depth = self._depth(torque_nm, tangential_n, force_feed_n, feed_per_tooth_mm, r, cutting)
-        force_n = self._force(torque_nm, feed_per_tooth_mm, depth, self.force_noise_nm(sigma_nm))
+        self._feed_check_many(c.feed_rate_mm_min, cutting & steady)
+        radial_mm, axial_mm, status = self._depth_many(torque_nm, tangential_n, force_feed_n, t_c, c, cutting)
+        force_n = self._force_many(torque_nm, t_c, radial_mm, self.force_noise_nm(sigma_nm))
+        self.last_gain = float(gain[-1])
+        t_c_ok = np.isfinite(t_c)
         return {
-            "spindle_rpm": r.spindle_rpm,
-            "gear": gear.name,
-            "p_in_w": p_in_w,
-            "p_gap_w": p_gap_w,
+            "spindle_rpm": rpm.tolist(),
+            "gear": [self._names[g] for g in gi.tolist()],
+            "p_in_w": p_in_w.tolist(),
+            "p_gap_w": p_gap_w.tolist(),
             "p_inertia_w": p_inertia_w,
-            "spindle_accel_rad_s2": self.accel_rad_s2(r),
-            "torque_nm": torque_nm,
-            "torque_sigma_nm": sigma_nm,
-            "force_n": force_n,
-            "force_tangential_n": tangential_n,
-            "force_feed_n": force_feed_n,
-            "feed_per_tooth_mm": feed_per_tooth_mm,
-            "radial_depth_mm": depth.radial_depth_mm,
-            "axial_depth_mm": depth.axial_depth_mm,
-            "depth_status": depth.status,
-            "cutting": bool(cutting),
+            "spindle_accel_rad_s2": (TWO_PI / 60.0 * c.speed_rise_rpm * rpm / 60.0).tolist(),
+            "torque_nm": torque_nm.tolist(),
+            "torque_sigma_nm": sigma_nm.tolist(),
+            "force_n": _optional(force_n, ~np.isnan(force_n)),
+            "force_tangential_n": tangential_n.tolist(),
+            "force_feed_n": [None] * count if force_feed_n is None else force_feed_n.tolist(),
+            "feed_per_tooth_mm": _optional(t_c, t_c_ok),
+            "radial_depth_mm": _optional(radial_mm, ~np.isnan(radial_mm)),
+            "axial_depth_mm": _optional(axial_mm, ~np.isnan(axial_mm)),
+            "depth_status": status,
+            "cutting": cutting.tolist(),
         }
 
-    @staticmethod
-    def accel_rad_s2(r: RevolutionMeans) -> float:
-        """Mean angular acceleration over the revolution, Δω/Δt (rad/s²), Δt = 60/rpm."""
-        return TWO_PI / 60.0 * r.speed_rise_rpm * r.spindle_rpm / 60.0
+    def _filter_gains(self, f_e_hz: np.ndarray) -> np.ndarray:
+        """|H(f_e)|² of the DAQ's anti-alias filter (physics.md §1); 1 with no filter or no f_e."""
+        if self.cutoff_hz <= 0.0:
+            return np.ones(len(f_e_hz))
+        known = np.isfinite(f_e_hz)
+        return np.where(known, butterworth_power_gain(np.where(known, f_e_hz, 0.0), self.cutoff_hz,
+                                                      self.filter_order), 1.0)
+
+    def _gear_indices(self, c: RevolutionColumns) -> np.ndarray:
+        """Gear from the motor/spindle speed ratio when measurable, else by spindle speed."""
+        rpm = c.spindle_rpm
+        if c.motor_rpm is not None:
+            ratio = np.where(rpm > 0, c.motor_rpm / rpm, np.nan)
+        elif self.pole_pairs:
+            f_e = c.f_e_hz
+            usable = np.isfinite(f_e) & (f_e != 0.0) & (rpm > 0)
+            ratio = np.where(usable, (60.0 * f_e / self.pole_pairs) / rpm, np.nan)   # synchronous / spindle
+        else:
+            ratio = None
+        return select_gears(rpm, self._max_rpm, self._ratios.tolist(), motor_to_spindle_ratio=ratio)
 
     # A spindle at a steady speed has no inertia torque, but the speed reading's rise over a revolution
     # still scatters by its quantisation (an encoder of 4096 counts read over 16 samples: steps of
@@ -255,47 +327,61 @@ class RevolutionPhysics:
     STEADY_STEP_PCT = 0.05
 
     @staticmethod
-    def steady(r: RevolutionMeans) -> bool:
-        """Is the speed's change over this revolution within the speed readings' noise?"""
-        if abs(r.speed_rise_rpm) > RevolutionPhysics.STEADY_RISE_RPM:
-            return False
-        if r.prev_spindle_rpm is None:
-            return True
-        band = max(RevolutionPhysics.STEADY_STEP_RPM, RevolutionPhysics.STEADY_STEP_PCT / 100.0 * r.spindle_rpm)
-        return abs(r.spindle_rpm - r.prev_spindle_rpm) <= band
+    def steady_many(speed_rise_rpm: np.ndarray, spindle_rpm: np.ndarray, prev_spindle_rpm: np.ndarray) -> np.ndarray:
+        """Is the speed's change over each revolution within the speed readings' noise? (nan prev: none before)"""
+        band = np.maximum(RevolutionPhysics.STEADY_STEP_RPM, RevolutionPhysics.STEADY_STEP_PCT / 100.0 * spindle_rpm)
+        step_ok = np.isnan(prev_spindle_rpm) | (np.abs(spindle_rpm - prev_spindle_rpm) <= band)
+        return (np.abs(speed_rise_rpm) <= RevolutionPhysics.STEADY_RISE_RPM) & step_ok
 
-    @staticmethod
-    def inertia_nm(inertia_kgm2: float, r: RevolutionMeans, omega: float) -> float:
-        """The masses' share of the revolution's mean torque: ½J(ω_end² − ω_start²)/(Δt·ω̄).
+    # The masses' share of a revolution's mean torque is ½J(ω_end² − ω_start²)/(Δt·ω̄) with Δt = 2π/ω̄
+    # exactly (a revolution) and ω_start, ω_end = ω̄ ∓ Δω/2, Δω the speed reading's rise over the
+    # revolution: J·Δω/Δt (torque.inertia_torque_nm). Why the rise and not the difference of consecutive
+    # revolutions' mean speeds (which is far less noisy): that difference is centred half a revolution
+    # earlier, and in a crash the speed turns within a revolution: the lagged term hands the recovering
+    # revolution's load to the masses (reads low, the unsafe side). See docs for the noise (J·σ_Δω·ω̄/2π).
 
-        Δt = 2π/ω̄ exactly (a revolution); ω_start, ω_end = ω̄ ∓ Δω/2 with Δω the
-        speed reading's rise over the revolution, so this is J·Δω/Δt. Why the rise
-        and not the difference of consecutive revolutions' mean speeds (which is
-        far less noisy): that difference is centred half a revolution earlier, and
-        in a crash the speed turns within a revolution: the lagged term hands the
-        recovering revolution's load to the masses (reads low, the unsafe side).
-        See docs for the noise (J·σ_Δω·ω̄/2π).
-        """
-        if not omega > 0.0 or RevolutionPhysics.steady(r):
-            return 0.0
-        d_omega = TWO_PI * r.speed_rise_rpm / 60.0
-        duration_s = TWO_PI / omega
-        return float(inertia_torque_nm(inertia_kgm2, omega - d_omega / 2.0, omega + d_omega / 2.0, duration_s, omega))
+    def _feed_check_many(self, measured_mm_min: np.ndarray | None, steady_cutting: np.ndarray) -> None:
+        if measured_mm_min is None or self.feed_check.configured_mm_min is None:
+            # nothing to judge: the check only remembers the last measured feed
+            self.feed_check.update(None if measured_mm_min is None else float(measured_mm_min[-1]), False)
+            return
+        for measured, steady in zip(measured_mm_min.tolist(), steady_cutting.tolist()):
+            self.feed_check.update(measured, steady)
 
-    def _depth(self, torque_nm, tangential_n, force_feed_n, t_c, r: RevolutionMeans, cutting: bool):
+    def _depth_many(self, torque_nm, tangential_n, force_feed_n, t_c, c: RevolutionColumns, cutting):
+        """(radial mm, axial mm: nan where none; statuses): root finding only on cutting revolutions."""
+        count = len(torque_nm)
+        radial = np.full(count, np.nan)
+        axial = np.full(count, np.nan)
         if self.method == "off":
-            return depth_mod.DepthResult(None, None, None)
-        if not cutting:
-            return depth_mod.DepthResult(None, None, depth_mod.AIR_CUT)
-        if t_c is None or not t_c > 0:
-            return depth_mod.DepthResult(None, None, depth_mod.OUT_OF_RANGE)
+            return radial, axial, [None] * count
+        status = np.where(cutting, depth_mod.OUT_OF_RANGE, depth_mod.AIR_CUT).tolist()
+        todo = np.flatnonzero(cutting & (t_c > 0))
+        if len(todo):
+            fx = c.force_x_n.tolist() if c.force_x_n is not None else None
+            fy = c.force_y_n.tolist() if c.force_y_n is not None else None
+            ff = force_feed_n.tolist() if force_feed_n is not None else None
+            tq, tn, tc = torque_nm.tolist(), tangential_n.tolist(), t_c.tolist()
+            for i in todo.tolist():
+                d = self._depth(tq[i], tn[i], None if ff is None else ff[i], tc[i],
+                                None if fx is None else fx[i], None if fy is None else fy[i])
+                status[i] = d.status
+                if d.radial_depth_mm is not None:
+                    radial[i] = d.radial_depth_mm
+                if d.axial_depth_mm is not None:
+                    axial[i] = d.axial_depth_mm
+        return radial, axial, status
+
+    def _depth(self, torque_nm: float, tangential_n: float, force_feed_n: float | None, t_c: float,
+               force_x_n: float | None, force_y_n: float | None) -> depth_mod.DepthResult:
+        """One cutting revolution's depths by the configured method ([D] §3), on plain floats."""
         common = dict(feed_per_tooth_mm=t_c, tool_radius_mm=self.tool_radius_mm, flutes=self.flutes,
                       material=self.material, mode=self.mode)
         try:
             if self.method == "dynamometer":
-                if r.force_x_n is None or r.force_y_n is None:
+                if force_x_n is None or force_y_n is None:
                     return depth_mod.DepthResult(None, None, depth_mod.NO_SECOND_FORCE)
-                return depth_mod.depths_from_forces(fx_n=r.force_x_n, fy_n=r.force_y_n, **common)
+                return depth_mod.depths_from_forces(fx_n=force_x_n, fy_n=force_y_n, **common)
             if self.method == "feed-drive":
                 if force_feed_n is None:
                     return depth_mod.DepthResult(None, None, depth_mod.NO_SECOND_FORCE)
@@ -317,22 +403,30 @@ class RevolutionPhysics:
     # rule below leaves uncompensated reads -0.6 N·m: null either way, eq. (18) has no cut to size.
     FORCE_NOISE_SIGMAS = 3.0
 
-    def force_noise_nm(self, sigma_nm: float) -> float:
-        return self.min_torque_nm + self.FORCE_NOISE_SIGMAS * (sigma_nm if math.isfinite(sigma_nm) else 0.0)
+    def force_noise_nm(self, sigma_nm):
+        return self.min_torque_nm + self.FORCE_NOISE_SIGMAS * np.where(np.isfinite(sigma_nm), sigma_nm, 0.0)
 
-    def _force(self, torque_nm: float, t_c: float | None, depth, noise_nm: float) -> float | None:
-        """Resultant in-plane force magnitude, [P] eq. (18), >= 0 or None (force.resultant_force_magnitude_n);
-        C_f constant or from r_1(t_a) ([D] eqs. 8-9)."""
+    def _force_many(self, torque_nm: np.ndarray, t_c: np.ndarray, radial_mm: np.ndarray, noise_nm) -> np.ndarray:
+        """Resultant in-plane force magnitude, [P] eq. (18), >= 0, nan where none
+        (force.resultant_force_magnitudes_n); C_f constant or from r_1(t_a) ([D] eqs. 8-9)."""
         if not self.cf_model:
-            return resultant_force_magnitude_n(torque_nm, self.tool_radius_mm, self.cf, noise_nm)
-        radial_mm = depth.radial_depth_mm if depth.radial_depth_mm is not None else self.known_radial_mm
+            return resultant_force_magnitudes_n(torque_nm, self.tool_radius_mm, self.cf, noise_nm)
         if self.mode == "slot":
-            radial_mm = 2.0 * self.tool_radius_mm
-        if radial_mm is None or t_c is None or not t_c > 0:
-            return None
-        entry, exit_ = engagement_angles_rad(radial_mm / self.tool_radius_mm, self.mode)
-        t_a = float(average_chip_thickness_mm(t_c, entry, exit_))
-        if not (math.isfinite(t_a) and t_a > 0):
-            return None
-        cf = float(cf_model(t_a, self.material.r1, self.material.r1_exp))
-        return resultant_force_magnitude_n(torque_nm, self.tool_radius_mm, cf, noise_nm)
+            radial_mm = np.full(len(torque_nm), 2.0 * self.tool_radius_mm)
+        elif self.known_radial_mm is not None:
+            radial_mm = np.where(np.isnan(radial_mm), self.known_radial_mm, radial_mm)
+        usable = np.isfinite(radial_mm) & (t_c > 0)
+        entry, exit_ = engagement_angles_rad(np.where(usable, radial_mm, 1.0) / self.tool_radius_mm, self.mode)
+        t_a = average_chip_thickness_mm(np.where(usable, t_c, 1.0), entry, exit_)                # [D] eq. 8
+        usable &= np.isfinite(t_a) & (t_a > 0)
+        cf = cf_model(np.where(usable, t_a, 1.0), self.material.r1, self.material.r1_exp)        # [D] eq. 9
+        return np.where(usable, resultant_force_magnitudes_n(torque_nm, self.tool_radius_mm, cf, noise_nm), np.nan)
+
+
+def _optional(values: np.ndarray, known: np.ndarray) -> list:
+    """Plain values, None where not `known`."""
+    if known.all():
+        return values.tolist()
+    if not known.any():
+        return [None] * len(values)
+    return [v if k else None for v, k in zip(values.tolist(), known.tolist())]

@@ -179,10 +179,14 @@ class RevolutionSplitter:
             lost_i = np.zeros(n - 1, dtype=np.int64)
         else:
             lp, lt, lx, lm = self._last
-            pos = np.concatenate([[lp], seq])
-            th = np.concatenate([[lt], angle_rev])
-            x = np.vstack([lx[None, :], values])
-            mv = np.concatenate([[lm], moving])
+            pos = np.empty(n + 1)
+            pos[0], pos[1:] = lp, seq
+            th = np.empty(n + 1)
+            th[0], th[1:] = lt, angle_rev
+            x = np.empty((n + 1, self.k))
+            x[0], x[1:] = lx, values
+            mv = np.empty(n + 1, dtype=bool)
+            mv[0], mv[1:] = lm, moving
             carry = 1
             gap = np.zeros(n, dtype=bool)
             gap[0] = lost_before > 0 or discontinuity or seq0 != lp + 1
@@ -206,7 +210,8 @@ class RevolutionSplitter:
 
         dpos = pos[1:] - pos[:-1]
         area = 0.5 * (x[:-1] + x[1:]) * dpos[:, None]
-        area[gap] = 0.0                                   # no data inside a gap
+        if len(gap) and gap[0]:                           # a gap can only open a block
+            area[0] = 0.0                                 # no data inside a gap
         run = np.zeros((m, self.k))
         np.cumsum(area, axis=0, out=run[1:])
         k_left = k_pt[:-1]
@@ -217,7 +222,8 @@ class RevolutionSplitter:
         stop_i = ~(mv[:-1] & mv[1:])
 
         cum_dmg = np.concatenate([[0], np.cumsum(damage_i)])
-        cum_lost = np.concatenate([[0], np.cumsum(lost_i)])
+        cum_lost = np.zeros(m, dtype=np.int64)           # lost samples sit before the block's first sample
+        cum_lost[1:] = lost_i[0] if len(lost_i) else 0
         cum_stop = np.concatenate([[0], np.cumsum(stop_i)])
 
         j = np.flatnonzero(cross)

@@ -12,8 +12,9 @@ Threads (one job each, one hand-off queue — the driver's):
   the revolution predicted to close next (`_wake_at_seq`), by a frame whose
   current is over `stall_current_a` (the stall check needs the revolutions),
   by any event but samples (link, status, descriptor) — or for at most
-  `BATCH_S`, then takes everything queued and runs contiguous frames as one
-  block (issue 13: 50-sample blocks every 50 ms cost a third of 10-sample
+  `BATCH_S` (`BATCH_TURNING_S` while a revolution's close is predicted: that
+  close wakes it anyway), then takes everything queued and runs contiguous
+  frames as one block (issue 13: 50-sample blocks every 50 ms cost a third of 10-sample
   blocks every 10 ms). It trips the interlock itself for what only it can see
   (overload, breakage, stall, blindness), then hands estimates and alarms to
   the sink (whose methods return at once, so a slow subscriber never slows it);
@@ -66,7 +67,7 @@ from millsense.daemon.pipeline.power_check import PowerSignCheck
 from millsense.daemon.pipeline.run_core import PipelineCore, estimate_payload
 from millsense.daemon.pipeline.safety_check import FrameCheck
 from millsense.daemon.pipeline.status import LatencyStats, SeqClock, bad_frames, status_line
-from millsense.drivers.base import LinkEvent, SampleBlock
+from millsense.drivers.base import LinkEvent, SampleBlock, name_os_thread
 from millsense.drivers.protocol import Descriptor, Status
 
 log = structlog.get_logger("millsense.runner")
@@ -82,6 +83,9 @@ TEST_TRIP_WAIT_S = 2.0  # longest wait for each confirmation of a test-trip
 # reader thread with a crash frame must not wait out the estimator's batch (Python's default is 5 ms).
 GIL_SWITCH_S = 0.0005
 BATCH_S = 0.05  # the estimator thread's longest sleep: frames are processed in batches of up to this
+# ... and while the spindle turns with a revolution's close predicted: that close wakes the estimator
+# anyway (every 100 ms at 600 rpm), so a 50 ms timer woke it once more each revolution for nothing
+BATCH_TURNING_S = 0.1
 WAKE_EARLY = 0.02  # wake this share of a revolution (and 2 samples) before the predicted close: the spindle
                    # may speed up a little; a close missed waits for the next frame past it or for BATCH_S
 
@@ -186,7 +190,7 @@ class Runner:
         if self.interlock.enabled:
             targets.append(("heartbeat", self._heartbeat_loop))
         for name, target in targets:
-            t = threading.Thread(target=target, name=f"millsense-{name}", daemon=True)
+            t = threading.Thread(target=_named(f"ms-{name}", target), name=f"millsense-{name}", daemon=True)
             t.start()
             self._threads.append(t)
 
@@ -233,7 +237,7 @@ class Runner:
         while not self._stop.is_set():
             try:
                 if batched:
-                    drv.wake.wait(BATCH_S)
+                    drv.wake.wait(BATCH_S if self._wake_at_seq is None else BATCH_TURNING_S)
                     drv.wake.clear()  # before draining: a frame queued after the drain wakes the next wait
                     events = _merged(drv.drain())
                 else:
@@ -523,7 +527,7 @@ class Runner:
         if self.state in ("running", "starting") and self.ready.is_set():
             self.state = "degraded"
         self._safe(lambda: log.error("fault", kind=kind, reason=reason, dump=self._diagnostics(), traceback=tb))
-        self._safe(lambda: self.interlock.beat(self.healthy()))
+        self._safe(lambda: self.interlock.beat(self.healthy(), stopping=self.state == "stopping"))
         if kind in ("daq_link", "daq_stalled"):
             self._safe(self._daq_alarm, False)
         if kind in BLIND_KINDS:  # and again per block: a `signals` fault waits for a turning spindle
@@ -583,7 +587,7 @@ class Runner:
         period = self.interlock.heartbeat_ms / 1000.0
         next_t = time.monotonic()
         while not self._stop.is_set():
-            self.interlock.beat(self.healthy())
+            self.interlock.beat(self.healthy(), stopping=self.state == "stopping")
             next_t += period
             delay = next_t - time.monotonic()
             if delay < 0:
@@ -764,6 +768,14 @@ class Runner:
         log.info("interlock.test_trip_result", requester=requester or "unknown",
                  **{k: v for k, v in result.items() if k != "interlock_detail"})
         return result
+
+
+def _named(os_name: str, target: Callable[[], None]) -> Callable[[], None]:
+    """`target`, run under `os_name` in the OS's thread list (`top -H`: which thread costs what)."""
+    def run() -> None:
+        name_os_thread(os_name)
+        target()
+    return run
 
 
 def _merged(events: list[Any]) -> list[tuple[Any, list[tuple[int, int, float]] | None]]:

@@ -27,11 +27,14 @@ The checks, on raw counts and on what the estimator already computes:
   reads "stopped" under a running drive).
 
 Cost: per block, the column minima and maxima of the raw counts and a few sums
-go into a ring of per-block rows (one numpy pass each); the counts are looked
-at sample by sample only in a block that touches a limit. The checks run on
-the rows: over the blocks of each revolution as it closes (so the revolution
-that holds the bad samples is the one marked), and every `EVAL_STEP_S` of
-samples over the last `WINDOW_S` for the fault. Everything counts samples by
+go into a ring of rows (one row per `EVAL_STEP_S` of the block, all built by one
+`reduceat` each); the counts are looked at sample by sample only in a block that
+touches a limit. The checks run on the rows: over the blocks of each revolution
+as it closes (so the revolution that holds the bad samples is the one marked),
+and every `EVAL_STEP_S` of samples over the last `WINDOW_S` for the fault. All
+the ranges a block asks about are screened together in one numpy pass
+(`_problems_many`); only a range that could hold a problem is worded by the exact
+check, one at a time. Everything counts samples by
 index, never by wall clock: a replay decides exactly as the live daemon.
 
 Fault: raised after `RAISE_S` of samples in which every window was bad (a
@@ -94,9 +97,15 @@ class SignalCheck:
         nv = len(self.v_cols)
         self._groups = [range(nv), range(nv, len(self.vi_cols))]
         self._vi_scale = self.scale[self.vi_cols].tolist()
+        self._vi_scale_arr = self.scale[self.vi_cols]
+        # for each voltage/current column, the other columns of its kind (padded with the spare column)
+        others = [[g for g in grp if g != j] for grp in self._groups for j in grp]
+        width = max(1, max(len(o) for o in others))
+        self._others = np.array([o + [len(self.vi_cols)] * (width - len(o)) for o in others], dtype=np.intp)
         self.roles = roles
         self.pole_pairs = getattr(settings.motor, "pole_pairs", None)
         self.gears = [(str(g.name), float(g.ratio)) for g in settings.gears]
+        self._inv_ratios = 1.0 / np.array([ratio for _, ratio in self.gears])
         signals = getattr(settings, "signals", None)
         self.tol = float(getattr(signals, "speed_tolerance_pct", 10.0)) / 100.0
         # the speed sources: the angle source's rpm always; the speed channel apart when an encoder leads
@@ -118,77 +127,125 @@ class SignalCheck:
         self._good_since: int | None = None
         self.faulted = False
         self.last_problems: dict[str, str] = {}
+        # the problems and saturation of the revolutions handed to the last `push`
+        self.revolution_verdicts: tuple[list[dict[str, str]], np.ndarray] = ([], np.zeros(0, dtype=bool))
 
     def _alloc(self, cap: int, c: int) -> None:
         self.cap = cap
         self.w = 0
-        self.first = np.zeros(cap, dtype=np.int64)
-        self.last = np.zeros(cap, dtype=np.int64)
-        self.mn = np.zeros((cap, c), dtype=np.int32)
-        self.mx = np.zeros((cap, c), dtype=np.int32)
-        self.clip_lo = np.zeros((cap, c), dtype=np.int32)
-        self.clip_hi = np.zeros((cap, c), dtype=np.int32)
+        # one spare row past the capacity: `np.ufunc.reduceat` needs every range's end to be a valid index
+        self.first = np.zeros(cap + 1, dtype=np.int64)
+        self.last = np.zeros(cap + 1, dtype=np.int64)
+        self.mn = np.zeros((cap + 1, c), dtype=np.int32)
+        self.mx = np.zeros((cap + 1, c), dtype=np.int32)
+        self.clip_lo = np.zeros((cap + 1, c), dtype=np.int32)
+        self.clip_hi = np.zeros((cap + 1, c), dtype=np.int32)
         # per row: samples, moving samples, sum f_e (Hz), sum v_sq, sum |rpm| (angle source), sum |speed channel|
-        self.sums = np.zeros((cap, 6))
+        self.sums = np.zeros((cap + 1, 6))
 
     # ------------------------------------------------------------------ per block
     def push(self, seq0: int, counts: np.ndarray, x: np.ndarray, rpm: np.ndarray,
-             moving: np.ndarray, sp_rpm: np.ndarray | None) -> tuple[int | None, str | None]:
+             moving: np.ndarray, sp_rpm: np.ndarray | None, rev_start: np.ndarray | None = None,
+             rev_end: np.ndarray | None = None) -> tuple[int | None, str | None]:
         """One block: raw counts (n, C), the estimator's per-sample columns `x` (n, K) (of which `fe_col`
         is f_e in Hz and `vsq_col` the squared voltage space vector), the spindle speed (rpm) of the angle
-        source, which samples turn, and the speed channel when an encoder leads. Returns (seq of its first clipped current sample that was high, else None; the fault reason
-        if the fault is raised by this block, "" if cleared, else None).
+        source, which samples turn, and the speed channel when an encoder leads. Returns (seq of its first
+        clipped current sample that was high, else None; the fault reason if the fault is raised by this
+        block, "" if cleared, else None).
 
         A block longer than the evaluation step (a replay's, a catch-up read) goes in as several rows, so
-        that the fault is decided at the same sample as with the DAQ's small frames.
+        that the fault is decided at the same sample as with the DAQ's small frames. All rows of a block
+        are built at once (`reduceat` over the row starts); the fault windows it closes are judged in one
+        batch (`_problems_many`), then fed in order to the raise/clear state machine.
+
+        `rev_start`, `rev_end`: the start positions and last seqs of the revolutions this block closed;
+        they are judged in the same pass (`revolutions` on this block's rows) and left in
+        `revolution_verdicts`: (problems of each, saturated (R,) bool).
         """
         n = counts.shape[0]
-        if n <= self.step:
-            return self._push(seq0, counts, x, rpm, moving, sp_rpm)
-        clip_seq, verdict = None, None
-        for a in range(0, n, self.step):
-            b = min(n, a + self.step)
-            c, v = self._push(seq0 + a, counts[a:b], x[a:b], rpm[a:b], moving[a:b],
-                              None if sp_rpm is None else sp_rpm[a:b])
-            clip_seq = c if clip_seq is None else clip_seq
-            verdict = v if v is not None else verdict
+        self.revolution_verdicts = ([], np.zeros(0, dtype=bool))
+        if n == 0:
+            return None, None
+        starts = np.arange(0, n, self.step)
+        rows = len(starts)
+        self._reserve(rows, seq0)
+        r0 = self.w
+        r1 = r0 + rows
+        self.w = r1
+        ends = np.empty_like(starts)
+        ends[:-1] = starts[1:]
+        ends[-1] = n
+        self.first[r0:r1] = seq0 + starts
+        last = seq0 + ends - 1
+        self.last[r0:r1] = last
+        mn = np.minimum.reduceat(counts, starts, axis=0)
+        mx = np.maximum.reduceat(counts, starts, axis=0)
+        self.mn[r0:r1] = mn
+        self.mx[r0:r1] = mx
+        s = self.sums[r0:r1]
+        s[:, 0] = ends - starts
+        s[:, 1] = np.add.reduceat(moving, starts, dtype=np.int64)
+        s[:, 2] = np.add.reduceat(x[:, self.fe_col], starts)
+        s[:, 3] = np.add.reduceat(x[:, self.vsq_col], starts)
+        s[:, 4] = np.add.reduceat(rpm, starts)       # signed: the mean's magnitude is taken when judged
+        s[:, 5] = np.add.reduceat(sp_rpm, starts) if sp_rpm is not None else 0.0
+        clip_seq = None
+        if (mn.min(axis=0) <= self.lo).any() or (mx.max(axis=0) >= self.hi).any():
+            self.clip_lo[r0:r1] = np.add.reduceat(counts <= self.lo, starts, axis=0, dtype=np.int32)
+            self.clip_hi[r0:r1] = np.add.reduceat(counts >= self.hi, starts, axis=0, dtype=np.int32)
+            for r, a, b in zip(range(r0, r1), starts.tolist(), ends.tolist()):   # rare: a limit touched
+                if clip_seq is None and (self.clip_lo[r].any() or self.clip_hi[r].any()):
+                    clip_seq = self._high_clip(counts[a:b], seq0 + a, r)
+        else:
+            self.clip_lo[r0:r1] = 0
+            self.clip_hi[r0:r1] = 0
+
+        # which rows close a fault window: every EVAL_STEP_S of samples, counted from the first row ever
+        evals: list[tuple[int, int]] = []     # (row, its last seq)
+        nxt = self._next_eval
+        for r, end in zip(range(r0, r1), last.tolist()):
+            if nxt is None:
+                nxt = seq0 + self.step - 1                       # the very first row of all
+            if end >= nxt:
+                nxt = end + self.step
+                evals.append((r, end))
+        self._next_eval = nxt
+        verdict = None
+        revs = len(rev_start) if rev_start is not None else 0
+        if evals or revs:
+            # the fault windows and the closed revolutions' rows, screened in one pass
+            w = self.w
+            a_eval = np.searchsorted(self.last[:w], np.array([end - self.window + 1 for _, end in evals], dtype=np.int64))
+            b_eval = np.array([r + 1 for r, _ in evals], dtype=np.int64)
+            if revs:
+                a_rev = np.searchsorted(self.last[:w], np.floor(rev_start))
+                b_rev = np.maximum(np.searchsorted(self.first[:w], rev_end, side="right"), a_rev + 1)
+                found = self._problems_many(np.concatenate([a_eval, a_rev]), np.concatenate([b_eval, b_rev]))
+            else:
+                found = self._problems_many(a_eval, b_eval)
+            for (_, end), f in zip(evals, found):
+                v = self._judge(end, f)
+                verdict = v if v is not None else verdict
+            self.revolution_verdicts = ([f[0] for f in found[len(evals):]],
+                                        np.array([f[1] for f in found[len(evals):]], dtype=bool))
+        else:
+            self.revolution_verdicts = ([], np.zeros(0, dtype=bool))
         return clip_seq, verdict
 
-    def _push(self, seq0: int, counts: np.ndarray, x: np.ndarray, rpm: np.ndarray,
-              moving: np.ndarray, sp_rpm: np.ndarray | None) -> tuple[int | None, str | None]:
-        n = counts.shape[0]
-        if self.w == self.cap:
-            self._compact(seq0)
-        r = self.w
-        self.w += 1
-        mn = counts.min(axis=0)
-        mx = counts.max(axis=0)
-        self.first[r], self.last[r] = seq0, seq0 + n - 1
-        self.mn[r], self.mx[r] = mn, mx
-        xs = x.sum(axis=0)
-        s = self.sums[r]
-        s[0] = n
-        s[1] = np.count_nonzero(moving)
-        s[2] = xs[self.fe_col]
-        s[3] = xs[self.vsq_col]
-        s[4] = rpm.sum()        # signed: the mean's magnitude is taken when judged
-        s[5] = sp_rpm.sum() if sp_rpm is not None else 0.0
-        clip_seq = None
-        if ((mn <= self.lo) | (mx >= self.hi)).any():
-            self.clip_lo[r] = (counts <= self.lo).sum(axis=0)
-            self.clip_hi[r] = (counts >= self.hi).sum(axis=0)
-            clip_seq = self._high_clip(counts, seq0, r)
-        else:
-            self.clip_lo[r] = 0
-            self.clip_hi[r] = 0
-        verdict = None
-        end = seq0 + n - 1
-        if self._next_eval is None:
-            self._next_eval = seq0 + self.step - 1
-        if end >= self._next_eval:
-            self._next_eval = end + self.step
-            verdict = self._judge(end)
-        return clip_seq, verdict
+    def _reserve(self, rows: int, seq0: int) -> None:
+        """Room for `rows` more rows: drop old ones, or grow for a block larger than half the ring."""
+        if self.w + rows <= self.cap:
+            return
+        self._compact(seq0)
+        if self.w + rows <= self.cap:
+            return
+        cap, old = max(2 * self.cap, self.w + rows), self
+        keep = {k: getattr(old, k)[: old.w].copy() for k in ("first", "last", "mn", "mx", "clip_lo", "clip_hi", "sums")}
+        w = self.w
+        self._alloc(cap, self.mn.shape[1])
+        for k, v in keep.items():
+            getattr(self, k)[:w] = v
+        self.w = w
 
     @property
     def speed_suspect(self) -> bool:
@@ -206,7 +263,7 @@ class SignalCheck:
         self.w = keep
 
     def _high_clip(self, counts: np.ndarray, seq0: int, r: int) -> int | None:
-        """The first clipped current sample of this block, if that current was high (swinging, not stuck)."""
+        """The first clipped current sample of this row, if that current was high (swinging, not stuck)."""
         cols = self.i_cols
         clipped = (counts[:, cols] <= self.lo[cols]) | (counts[:, cols] >= self.hi[cols])
         if not clipped.any():
@@ -227,13 +284,21 @@ class SignalCheck:
     # ------------------------------------------------------------------ verdicts
     def revolution(self, start_pos: float, end_seq: int) -> tuple[dict[str, str], bool]:
         """Problems in the blocks holding one revolution's samples, and whether a current saturated high."""
-        a = self._rows_from(np.floor(start_pos))
-        b = int(np.searchsorted(self.first[: self.w], end_seq, side="right"))
-        return self._problems(a, max(b, a + 1))
+        problems, saturated = self.revolutions(np.array([start_pos], float), np.array([end_seq], np.int64))
+        return problems[0], bool(saturated[0])
 
-    def _judge(self, end: int) -> str | None:
-        a = self._rows_from(end - self.window + 1)
-        problems, _ = self._problems(a, self.w)
+    def revolutions(self, start_pos: np.ndarray, end_seq: np.ndarray) -> tuple[list[dict[str, str]], np.ndarray]:
+        """`revolution` for every revolution a block closed at once: (problems of each, saturated (R,) bool)."""
+        if len(start_pos) == 0:
+            return [], np.zeros(0, dtype=bool)
+        w = self.w
+        a = np.searchsorted(self.last[:w], np.floor(start_pos))
+        b = np.searchsorted(self.first[:w], end_seq, side="right")
+        found = self._problems_many(a, np.maximum(b, a + 1))
+        return [f[0] for f in found], np.array([f[1] for f in found], dtype=bool)
+
+    def _judge(self, end: int, found: tuple[dict[str, str], bool, set[str]]) -> str | None:
+        problems, _, saturated_names = found
         if problems:
             self.last_problems = problems
             self._good_since = None
@@ -241,7 +306,7 @@ class SignalCheck:
                 self._bad_since = end - self.step + 1
             # currents driven past their sensors' range by a crash are a crash (its trip), not a sensor
             # fault, unless it lasts: then the range does not fit the machine
-            only_saturation = set(problems) <= self._saturated_names
+            only_saturation = set(problems) <= saturated_names
             need = self.saturation_raise_n if only_saturation else self.raise_n
             if not self.faulted and end - self._bad_since + 1 >= need:
                 self.faulted = True
@@ -256,16 +321,83 @@ class SignalCheck:
             return ""
         return None
 
-    def _problems(self, a: int, b: int) -> tuple[dict[str, str], bool]:
+    _CLEAN: tuple[dict[str, str], bool, set[str]] = ({}, False, set())
+
+    def _problems_many(self, a: np.ndarray, b: np.ndarray) -> list[tuple[dict[str, str], bool, set[str]]]:
+        """`_problems` of the row ranges [a_i, b_i) (a_i < b_i), screened together.
+
+        One numpy pass over all ranges finds those that could hold a problem; only those (a clipped,
+        flat or dead channel, a speed near or past its tolerance: rare) go through the exact
+        `_problems`, which words the reasons. The screen errs towards "could": its speed limits are
+        a hair (relative 1e-9) tighter, so a range the exact check would fault is never passed clean.
+        """
+        q = len(a)
+        idx = np.empty(2 * q, dtype=np.intp)
+        idx[0::2] = a
+        idx[1::2] = b
+        top = min(max(self.w, int(b.max())) + 1, len(self.sums))   # the spare row keeps every end valid
+        sums = np.add.reduceat(self.sums[:top], idx, axis=0)[0::2]
+        mn = np.minimum.reduceat(self.mn[:top], idx, axis=0)[0::2]
+        mx = np.maximum.reduceat(self.mx[:top], idx, axis=0)[0::2]
+        suspect = ((mn <= self.lo) | (mx >= self.hi)).any(axis=1)
+        suspect |= self._flat_many(mn, mx)
+        suspect |= self._speed_many(sums)
+        if not suspect.any():
+            return [self._CLEAN] * q
+        a_l, b_l = a.tolist(), b.tolist()
+        return [self._problems(a_l[i], b_l[i]) if s else self._CLEAN for i, s in enumerate(suspect.tolist())]
+
+    def _flat_many(self, mn: np.ndarray, mx: np.ndarray) -> np.ndarray:
+        """(Q,) bool: `_flat` would name some channel (the same rule, every range at once)."""
+        swing = mx[:, self.vi_cols] - mn[:, self.vi_cols]
+        live = swing >= LIVE_COUNTS
+        n_live = live.sum(axis=1)
+        phys = swing * self._vi_scale_arr
+        strength = np.full((len(swing), phys.shape[1] + 1), -np.inf)   # one spare column: "no other"
+        np.copyto(strength[:, :-1], phys, where=live)
+        strongest = strength[:, self._others].max(axis=2)             # the strongest other live one of its kind
+        weak = phys < FLAT_REL * strongest
+        dead = (swing <= FLAT_COUNTS) & ((n_live[:, None] - live) > 0)
+        return (dead | weak).any(axis=1) & (n_live > 0)
+
+    def _speed_many(self, sums: np.ndarray) -> np.ndarray:
+        """(Q,) bool: `_speed` could name a speed source. A screen: its limits are a relative 1e-9 tighter
+        (and divisions are multiplied out, which moves a comparison by rounding only)."""
+        tight = 1.0 - 1e-9
+        n = sums[:, 0]
+        src = np.abs(sums[:, 4] / n)
+        sp = np.abs(sums[:, 5] / n) if self.sp_name is not None else None
+        turning = sums[:, 1] == n
+        out = np.zeros(len(n), dtype=bool)
+        if self.pole_pairs:
+            fe = np.abs(sums[:, 2] / n)
+            v_ok = sums[:, 3] >= (MIN_VOLTAGE_V**2 * tight) * n
+            implied = (fe * 60.0 / self.pole_pairs)[:, None] * self._inv_ratios      # [P] eq. 10, every gear
+            checked = v_ok & (turning | (implied.min(axis=1) >= 3.0 * STOP_RPM * tight))
+            if checked.any():
+                band = (MAX_SLIP + self.tol) * tight * implied
+                positive = implied > 0
+                for rpm in (src, sp):
+                    if rpm is not None:
+                        fits = (positive & (np.abs(rpm[:, None] - implied) <= band)).any(axis=1)
+                        out |= checked & ~fits
+        if sp is not None:
+            ref = np.maximum(src, 1e-9)
+            near = turning | (src >= STOP_RPM * tight) | (sp >= STOP_RPM * tight)
+            out |= near & (np.abs(sp - ref) > self.tol * tight * ref)
+        return out
+
+    def _problems(self, a: int, b: int) -> tuple[dict[str, str], bool, set[str]]:
+        """Problems of rows [a, b), worded; whether a current saturated high, and which."""
         if b <= a:
-            return {}, False
+            return {}, False, set()
         out: dict[str, str] = {}
         sums = self.sums[a:b].sum(axis=0)
         n = sums[0]
         mn = self.mn[a:b].min(axis=0)
         mx = self.mx[a:b].max(axis=0)
         saturated = False
-        self._saturated_names: set[str] = set()
+        saturated_names: set[str] = set()
         if (mn <= self.lo).any() or (mx >= self.hi).any():
             lo_n = self.clip_lo[a:b].sum(axis=0)
             hi_n = self.clip_hi[a:b].sum(axis=0)
@@ -279,11 +411,11 @@ class SignalCheck:
             clipped = (lo_n[cols] + hi_n[cols]) > 0
             high = clipped & (swing >= HIGH_FRAC * (self.hi[cols] - self.lo[cols]))
             saturated = bool(high.any())
-            self._saturated_names = {self.names[k] for k in cols[high]}
+            saturated_names = {self.names[k] for k in cols[high]}
         self._flat(mn, mx, int(n), out)
         if not any(self.names[k] in out for k in self.v_cols):  # f_e from a bad voltage means nothing
             self._speed(sums, out)
-        return out, saturated
+        return out, saturated, saturated_names
 
     def _flat(self, mn: np.ndarray, mx: np.ndarray, n: int, out: dict[str, str]) -> None:
         # six numbers at most: plain Python is cheaper than numpy here

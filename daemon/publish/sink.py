@@ -38,6 +38,7 @@ from millsense.daemon.audit import AuditLog
 from millsense.daemon.publish.command_auth import CommandGate, policy_and_token
 from millsense.daemon.publish.payload import dumps
 from millsense.daemon.publish.queryables import QueryServer
+from millsense.drivers.base import name_os_thread
 
 
 class Controls(Protocol):
@@ -268,6 +269,7 @@ class ZenohSink:
     # ---- publisher thread ----------------------------------------------------------
 
     def _run(self) -> None:
+        name_os_thread("ms-zenoh-sink")
         queue, alarms = self._queue, self._alarms
         while True:
             if alarms:

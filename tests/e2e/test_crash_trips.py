@@ -143,7 +143,7 @@ def test_live_crash_on_a_pty_holds_the_feed(tmp_path):
     with Procs(tmp_path) as procs:
         sim = procs.start("sim", ["sim", "--scenario", "crash", "--pty", str(link), "--loop", "--realtime",
                                   "--status-log", str(log_path), "--watchdog-ms", "1000"])
-        wait_for(lambda: "serving" in procs.text("sim"), 30.0, "emulator serving")
+        wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
         daemon = procs.start("daemon", ["run", "--config", str(cfg)],
                              env_extra={"STATE_DIRECTORY": str(tmp_path / "state")})
         sub = Subscriber([tcp(z_port)], machine)

@@ -48,7 +48,7 @@ def test_hang_dead_daq_restart_and_stuck_subscriber(tmp_path):
     release = threading.Event()
     with Procs(tmp_path) as procs:
         sim1 = procs.start("sim1", ["sim", *sim_args, "--status-log", str(log1)])
-        wait_for(lambda: "serving" in procs.text("sim1"), 30.0, "emulator serving")
+        wait_for(lambda: "serving" in procs.text("sim1"), 60.0, "emulator serving")
         systemd = NotifyListener(tmp_path / "notify.sock")
         daemon = procs.start(
             "daemon",

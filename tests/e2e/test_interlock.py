@@ -82,7 +82,7 @@ def _start(procs, tmp_path, scenario, machine, alarms, watchdog_ms=1000):
         ["sim", "--scenario", scenario, "--tcp", f"127.0.0.1:{daq_port}", "--realtime", "--truth", str(truth_path),
          "--status-log", str(log_path), "--watchdog-ms", str(watchdog_ms)],
     )
-    wait_for(lambda: "serving" in procs.text("sim"), 30.0, "emulator serving")
+    wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
     daemon = procs.start("daemon", ["run", "--config", str(cfg), *CONNECT_WINDOW])
     sub = Subscriber([tcp(z_port)], machine)
     return sim, daemon, sub, z_port, truth_path, log_path
@@ -216,12 +216,12 @@ def test_reset_refused_while_the_overload_persists_and_the_latch_survives_a_kill
     def start_sim(log_path):
         sim = procs.start(f"sim-{log_path.stem}", ["sim", "--scenario", "step", "--loop", "--tcp", f"127.0.0.1:{daq_port}",
                                                    "--realtime", "--status-log", str(log_path), "--watchdog-ms", "1000"])
-        wait_for(lambda: "serving" in procs.text(f"sim-{log_path.stem}"), 30.0, "emulator serving")
+        wait_for(lambda: "serving" in procs.text(f"sim-{log_path.stem}"), 60.0, "emulator serving")
         return sim
 
     def start_daemon(name):
         d = procs.start(name, ["run", "--config", str(cfg), *CONNECT_WINDOW], env_extra=env)
-        wait_for(lambda: (state / "control.sock").exists() or d.poll() is not None, 30.0, "control socket")
+        wait_for(lambda: (state / "control.sock").exists() or d.poll() is not None, SLOW_S, "control socket")
         assert d.poll() is None, procs.text(name, "out") + procs.text(name)
         return d
 
@@ -229,7 +229,7 @@ def test_reset_refused_while_the_overload_persists_and_the_latch_survives_a_kill
         log1, log2 = tmp_path / "status1.jsonl", tmp_path / "status2.jsonl"
         sim = start_sim(log1)
         daemon = start_daemon("daemon1")
-        wait_for(lambda: _holds(read_jsonl(log1)), 30.0, "feed hold from the overload")
+        wait_for(lambda: _holds(read_jsonl(log1)), SLOW_S, "feed hold from the overload")
         revs_at_hold = local_command(state, "status")["revolutions"]
         wait_for(lambda: local_command(state, "status")["revolutions"] >= revs_at_hold + 3, SLOW_S, "revolutions since")
         for _ in range(3):

@@ -39,7 +39,7 @@ def _run_live(tmp_path, transport: str):
             "sim",
             ["sim", "--scenario", SCENARIO, *serve, "--realtime", "--truth", str(truth_path), "--status-log", str(log_path)],
         )
-        wait_for(lambda: "serving" in procs.text("sim"), 30.0, "emulator serving")
+        wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
         daemon = procs.start("daemon", ["run", "--config", str(cfg)])
         sub = Subscriber([tcp(z_port)], machine)
         try:

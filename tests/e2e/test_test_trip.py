@@ -32,13 +32,13 @@ def _start(procs, tmp_path, machine, protocol_args=()):
     log_path = tmp_path / "status.jsonl"
     sim = procs.start("sim", ["sim", "--scenario", "step", "--loop", "--tcp", f"127.0.0.1:{daq_port}", "--realtime",
                               "--status-log", str(log_path), "--watchdog-ms", "1000", *protocol_args])
-    wait_for(lambda: "serving" in procs.text("sim"), 30.0, "emulator serving")
+    wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
     state = tmp_path / "state"
     env = {"STATE_DIRECTORY": str(state)}
     daemon = procs.start("daemon", ["run", "--config", str(cfg)], env_extra=env)
-    wait_for(lambda: (state / "control.sock").exists() or daemon.poll() is not None, 30.0, "control socket")
+    wait_for(lambda: (state / "control.sock").exists() or daemon.poll() is not None, 60.0, "control socket")
     assert daemon.poll() is None, procs.text("daemon", "out") + procs.text("daemon")
-    wait_for(lambda: '"daemon.ready"' in procs.text("daemon", "out"), 30.0, "daemon ready")
+    wait_for(lambda: '"daemon.ready"' in procs.text("daemon", "out"), 60.0, "daemon ready")
     return sim, daemon, cfg, log_path, env
 
 
@@ -103,3 +103,54 @@ def test_test_trip_on_a_protocol_2_daq_measures_the_cnc_feed_held(tmp_path):
         assert daemon.wait(10) == 0
         sim.send_signal(signal.SIGTERM)
         sim.wait(10)
+
+
+def _connected_unix_socket(pid: int) -> bool:
+    """Whether process `pid` holds a connected Unix socket (/proc/net/unix state 03)."""
+    import os
+
+    try:
+        inodes = {os.readlink(f"/proc/{pid}/fd/{fd}")[8:-1] for fd in os.listdir(f"/proc/{pid}/fd")}
+    except OSError:
+        return False
+    with open("/proc/net/unix") as f:
+        rows = [line.split() for line in f.readlines()[1:]]
+    return any(len(r) >= 7 and r[5] == "03" and r[6] in inodes for r in rows)
+
+
+def test_local_reset_waits_for_a_daemon_slow_to_answer_and_names_one_that_does_not(tmp_path):
+    """A loaded edge box answers late, not never: the client at the machine waits (30 s by default).
+
+    The daemon is stopped (SIGSTOP) for 3 s, longer than the client's old 2 s, while a reset is
+    asked; it answers once it runs again. Stopped for longer than the client's --timeout, it is
+    named as running but not answering.
+    """
+    import os
+    import time
+
+    machine = "tt-slow"
+    with Procs(tmp_path) as procs:
+        sim, daemon, cfg, log_path, env = _start(procs, tmp_path, machine)
+        run_env = dict(os.environ, **env)
+        reset = CMD + ["reset", "--local", "--config", str(cfg)]
+        os.kill(daemon.pid, signal.SIGSTOP)
+        try:
+            late = subprocess.Popen(reset, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=run_env)
+            # from its connect (the kernel queues it for the stopped daemon) longer than the old 2 s
+            wait_for(lambda: _connected_unix_socket(late.pid) or late.poll() is not None, 60.0, "the client connected")
+            time.sleep(3.0)
+            assert late.poll() is None, late.communicate()  # still waiting, not given up
+        finally:
+            os.kill(daemon.pid, signal.SIGCONT)
+        out, err = late.communicate(timeout=120)
+        assert late.returncode == 0 and json.loads(out)["ok"] is True, out + err
+
+        os.kill(daemon.pid, signal.SIGSTOP)
+        try:
+            hung = subprocess.run([*reset, "--timeout", "1"], capture_output=True, text=True, timeout=60, env=run_env)
+        finally:
+            os.kill(daemon.pid, signal.SIGCONT)
+        assert hung.returncode == 1 and "did not answer within 1 s" in hung.stderr, hung.stderr
+        assert "hung or starved of CPU" in hung.stderr and "Traceback" not in hung.stderr, hung.stderr
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(60) == 0

@@ -274,7 +274,7 @@ class ModbusProxy:
     answer (the client times out); `late(fc, n, seconds)` delivers the answer
     that much later (after the client gave up, into its next request's wait);
     `hold(seconds)` forwards nothing either way for that long and then drops
-    what was held. `requests` counts what passed.
+    what was held. `requests` counts what passed; `arrivals` lists every request in order.
     """
 
     def __init__(self, upstream_port: int) -> None:
@@ -289,6 +289,7 @@ class ModbusProxy:
         self._hold_until = 0.0
         self.injected: list[tuple[float, int, str]] = []  # (monotonic, fc, "exception" | "swallowed" | "late" | "held")
         self.requests: dict[int, int] = {}
+        self.arrivals: list[tuple[float, int]] = []  # (monotonic, fc) of every request, in order
         self.connections = 0
         self._socks: list[socket.socket] = []
         self._stop = threading.Event()
@@ -378,6 +379,7 @@ class ModbusProxy:
         now = time.monotonic()
         with self._lock:
             self.requests[fc] = self.requests.get(fc, 0) + 1
+            self.arrivals.append((now, fc))
             fail = self._fail.get(fc)
             if held:
                 self.injected.append((now, fc, "held"))

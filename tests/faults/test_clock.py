@@ -29,6 +29,7 @@ STEPS = ((1.5, 2.0), (4.0, -3600.0), (6.5, 3600.0))  # (seconds after the estima
 # samples received may differ from 1 kHz of monotonic time by less than half the burst; a
 # heartbeat on the wall clock stops for an hour, so beats stay inside a watchdog that load cannot
 # trip (1.5 s); `t` off the wall clock is off by a whole step (>= 2 s) long after it.
+START_S = 120.0  # a failure-detection deadline for what waits on two processes starting on a loaded box
 WATCHDOG_MS = 1500
 MAX_SAMPLE_DRIFT = 1000
 # An estimate's revolution ended at most this long before the subscriber got it: a failure-detection
@@ -64,7 +65,7 @@ def test_wall_clock_steps_do_not_touch_pacing_or_revolutions(tmp_path):
     with Procs(tmp_path) as procs:
         procs.start("sim", ["sim", "--scenario", "step", "--loop", "--tcp", f"127.0.0.1:{daq_port}", "--realtime",
                             "--watchdog-ms", str(WATCHDOG_MS), "--status-log", str(sim_log)], env_extra=env)
-        wait_for(lambda: "serving" in procs.text("sim"), 30.0, "emulator serving")
+        wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
         daemon = procs.start("daemon", ["run", "--config", str(cfg), "--connect-timeout", "120"], env_extra=env)
         sub = Subscriber([tcp(z_port)], machine)
         received: list[tuple[float, float, dict]] = []  # (monotonic, real wall, estimate) at receipt
@@ -73,7 +74,7 @@ def test_wall_clock_steps_do_not_touch_pacing_or_revolutions(tmp_path):
             lambda s: received.append((time.monotonic(), time.time(), json.loads(s.payload.to_bytes()))),
         )
         try:
-            wait_for(lambda: len(sub.get("estimate")) >= 3 or daemon.poll() is not None, 60.0, "estimates")
+            wait_for(lambda: len(sub.get("estimate")) >= 3 or daemon.poll() is not None, START_S, "estimates")
             assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
             s0, m0 = status(sub, machine)["samples_received"], time.monotonic()
             # the steps, on the system-wide monotonic clock, for both processes at once

@@ -69,7 +69,7 @@ def test_flood_raises_no_hold_loses_no_revolution_and_memory_stays_bounded(tmp_p
     with Procs(tmp_path) as procs:
         procs.start("sim", ["sim", "--scenario", "step", "--loop", "--tcp", f"127.0.0.1:{daq_port}", "--realtime",
                             "--status-log", str(status_log), "--watchdog-ms", "500"])
-        wait_for(lambda: "serving" in procs.text("sim"), 30.0, "emulator serving")
+        wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
         daemon = procs.start("daemon", ["run", "--config", str(cfg)])
         sub = Subscriber([tcp(z_port)], MACHINE, read=False)
         estimates = Estimates()

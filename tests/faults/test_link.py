@@ -36,6 +36,7 @@ DOWN_S = 0.4  # how long the "converter" refuses connections after each cut
 DEVICE_WATCHDOG_MS = 5000
 # Deadlines detect a failure; they are no budget (how fast is bench/'s business). The DAQ's start window likewise.
 SLOW_S = 60.0
+START_S = 120.0  # the same, for what waits on two processes starting on such a box
 CONNECT_WINDOW = ["--connect-timeout", "120"]
 INDEX_MOD = 1 << 32
 
@@ -47,7 +48,7 @@ def test_link_flapping_every_2_s_every_sample_delivered_or_counted(tmp_path):
     with Procs(tmp_path) as procs:
         procs.start("sim", ["sim", "--scenario", "step", "--loop", "--tcp", f"127.0.0.1:{daq_port}", "--realtime",
                             "--watchdog-ms", str(DEVICE_WATCHDOG_MS), "--status-log", str(sim_log)])
-        wait_for(lambda: "serving" in procs.text("sim"), 30.0, "emulator serving")
+        wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
         proxy = StreamProxy(daq_port)
         cfg = write_config(
             tmp_path / "d.toml",
@@ -116,15 +117,21 @@ def test_link_flapping_every_2_s_every_sample_delivered_or_counted(tmp_path):
     # -- status, alarms and logs tell the truth
     assert final["state"] == "degraded" and "daq_link" in final["faults"], final
     assert final["daq"]["link_changes"] == 2 * proxy.accepted
-    levels = [(a["level"], a["quantity"]) for a in alarms]
-    assert levels.count(("daq_lost", "daq")) == proxy.accepted
-    assert levels.count(("clear", "daq")) == proxy.accepted - 1
     events = log_events(procs.text("daemon", "out"))
     assert sum(e["event"] == "daq.link_down" for e in events) == proxy.accepted
     assert sum(e["event"] == "daq.link_up" for e in events) == proxy.accepted
     faults = [e for e in events if e["event"] == "fault"]
-    assert len(faults) == proxy.accepted and all(e["kind"] == "daq_link" for e in faults)
-    assert sum(e["event"] == "recovered" for e in events) == proxy.accepted - 1
+    recovered = [e for e in events if e["event"] == "recovered"]
+    # one fault per lost link, recovered but for the last; on a loaded box the proxy in this process
+    # can also go a second without forwarding, which the daemon rightly reports as a stalled DAQ
+    # (a fault, a daq_lost alarm and its clear of their own) and which is no link change
+    stalls = [e for e in faults if e["kind"] == "daq_stalled"]
+    stalls_over = sum(e["kind"] == "daq_stalled" for e in recovered)
+    assert [e["kind"] for e in faults if e not in stalls] == ["daq_link"] * proxy.accepted, faults
+    assert [e["kind"] for e in recovered if e["kind"] != "daq_stalled"] == ["daq_link"] * (proxy.accepted - 1)
+    levels = [(a["level"], a["quantity"]) for a in alarms]
+    assert levels.count(("daq_lost", "daq")) == proxy.accepted + len(stalls)
+    assert levels.count(("clear", "daq")) == proxy.accepted - 1 + stalls_over
     # -- the DAQ's watchdog never had to act: heartbeats resumed after every reconnect
     log = read_jsonl(sim_log)
     assert outputs(log) == [], "feed hold: heartbeats did not resume in time after a reconnect"
@@ -150,16 +157,19 @@ def test_pty_closed_under_the_reader_then_the_device_restarts_at_index_0(tmp_pat
     )
     with Procs(tmp_path) as procs:
         sim1 = procs.start("sim1", [*sim_args, "--status-log", str(log1)])
-        wait_for(lambda: "serving" in procs.text("sim1"), 30.0, "emulator serving on the pty")
+        wait_for(lambda: "serving" in procs.text("sim1"), 60.0, "emulator serving on the pty")
         daemon = procs.start("daemon", ["run", "--config", str(cfg), *CONNECT_WINDOW])
         sub = Subscriber([tcp(z_port)], machine)
         try:
-            wait_for(lambda: any(a["level"] == "overload" for a in sub.get("alarm")) or daemon.poll() is not None,
-                     60.0, "the overload")
+            # the first cut trips: on a loaded box that can be before this subscriber is connected, so
+            # the daemon's own log of the alarm (the same record) stands in for a publication missed
+            wait_for(lambda: any(a["level"] == "overload" for a in sub.get("alarm"))
+                     or any(e.get("alarm_level") == "overload" for e in log_events(procs.text("daemon", "out")))
+                     or daemon.poll() is not None, START_S, "the overload")
             assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
             wait_for(lambda: outputs(read_jsonl(log1), feed_hold=True, cause="command"), SLOW_S, "feed hold on device 1")
             # the device must have counted well past what a restarted one reaches before the daemon is back
-            wait_status(sub, machine, lambda s: s["samples_received"] >= 8000, 30.0, "8 s of samples")
+            wait_status(sub, machine, lambda s: s["samples_received"] >= 8000, SLOW_S, "8 s of samples")
             before = status(sub, machine)
             assert before["interlock"] == "feed_hold" and before["lost_samples"] == 0
 
@@ -183,8 +193,8 @@ def test_pty_closed_under_the_reader_then_the_device_restarts_at_index_0(tmp_pat
             t_back = time.monotonic()
             procs.start("sim2", [*sim_args, "--status-log", str(log2)])
             back = wait_status(sub, machine, lambda s: s["state"] == "running" and s["daq_link"] == "up"
-                               and s["samples_received"] > before["samples_received"] + 2000, 30.0, "running again")
-            wait_for(lambda: len(sub.get("estimate")) > n_before + 5, 20.0, "estimates after the restart")
+                               and s["samples_received"] > before["samples_received"] + 2000, SLOW_S, "running again")
+            wait_for(lambda: len(sub.get("estimate")) > n_before + 5, SLOW_S, "estimates after the restart")
             # the latched feed hold is written to the restarted device (it forgot it)
             wait_for(lambda: outputs(read_jsonl(log2), feed_hold=True, cause="command"), SLOW_S, "hold re-asserted")
             assert any(e["event"] == "heartbeat" for e in read_jsonl(log2)), "heartbeats did not resume"

@@ -32,7 +32,7 @@ def test_all_channels_pinned_live_fault_signals_and_the_feed_held(tmp_path):
     with Procs(tmp_path) as procs:
         procs.start("sim", ["sim", "--scenario", "step", "--loop", "--tcp", f"127.0.0.1:{daq_port}", "--realtime",
                             "--watchdog-ms", "1000", "--status-log", str(sim_log), *pins])
-        wait_for(lambda: "serving" in procs.text("sim"), 30.0, "emulator serving")
+        wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
         daemon = procs.start("daemon", ["run", "--config", str(cfg)])
         sub = Subscriber([tcp(z_port)], machine)
         try:

@@ -116,7 +116,7 @@ def test_peers_vanish_and_return_alarms_still_reach_everyone(tmp_path):
     peers: list[Peer] = []
     with Procs(tmp_path) as procs:
         sim = procs.start("sim1", sim_args)
-        wait_for(lambda: "serving" in procs.text("sim1"), 30.0, "emulator serving")
+        wait_for(lambda: "serving" in procs.text("sim1"), 60.0, "emulator serving")
         daemon = procs.start("daemon", ["run", "--config", str(cfg)])
         observer = Subscriber([tcp(z_port)], machine)
         try:
