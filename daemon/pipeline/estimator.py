@@ -255,10 +255,10 @@ class Estimator:
         p_meas = p_in - p_cu
 
         seq = seq0 + np.arange(n, dtype=np.int64)
-        if r.encoder is not None:
-            angle_rev, rpm = self.angle.push(seq, phys[r.encoder])
-        else:
-            angle_rev, rpm = self.angle.push(seq, phys[r.spindle_speed])
+        contiguous = (self._last_seq is not None and seq0 == self._last_seq + 1
+                      and not block.lost_before and not block.discontinuity)
+        angle_source = phys[r.encoder] if r.encoder is not None else phys[r.spindle_speed]
+        angle_rev, rpm = self.angle.push(seq, angle_source, restart=not contiguous)
         moving = np.abs(rpm) >= STOP_RPM
 
         x = np.empty((n, len(self._cols)))
@@ -266,8 +266,6 @@ class Estimator:
         x[:, c["p_in"]] = p_in
         x[:, c["p_cu"]] = p_cu
         x[:, c["p_gap_sq"]] = p_meas * p_meas
-        contiguous = (self._last_seq is not None and seq0 == self._last_seq + 1
-                      and not block.lost_before and not block.discontinuity)
         x[:, c["f_e"]], x[:, c["v_sq"]] = self._phase.push(v_uv, v_vw, v_wu, contiguous)
         rise = x[:, c["rpm_rise"]]  # rpm gained since the sample before: summed over a revolution, end − start
         rise[0] = rpm[0] - self._last_rpm if (contiguous and self._last_rpm is not None) else 0.0

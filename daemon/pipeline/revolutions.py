@@ -36,7 +36,13 @@ class EncoderAngle:
     """Spindle angle (revolutions) and speed (rpm) from an unwrapped encoder count.
 
     Speed is the count difference over the last `window` samples (by index, so
-    a gap stretches the baseline instead of faking a stop).
+    a few lost samples stretch the baseline instead of faking a stop). Across a
+    longer gap the count cannot be trusted: the DAQ's int16 encoder channel wraps
+    every 65536 counts (16 revolutions of a 4096-count encoder, 1.6 s at 600 rpm
+    and 0.3 s at 3000 rpm), so the unwrapped count after the gap may be off by
+    whole wraps, and a speed taken across it is wrong by any amount. After a gap
+    or a discontinuity (`restart`) the window starts again at the first sample
+    after it; that sample takes the speed of the one-sample step that follows it.
     """
 
     def __init__(self, counts_per_rev: float, sample_rate_hz: float, window: int = 16):
@@ -46,8 +52,13 @@ class EncoderAngle:
         self._hist_count = np.empty(0)
         self._hist_seq = np.empty(0)
 
-    def push(self, seq: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def push(self, seq: np.ndarray, count: np.ndarray, restart: bool = False) -> tuple[np.ndarray, np.ndarray]:
         angle_rev = count / self.counts_per_rev
+        if restart and len(self._hist_count):
+            self._hist_count = np.empty(0)
+            self._hist_seq = np.empty(0)
+        else:
+            restart = False
         c = np.concatenate([self._hist_count, count])
         s = np.concatenate([self._hist_seq, seq.astype(np.float64)])
         h = len(self._hist_count)
@@ -57,6 +68,8 @@ class EncoderAngle:
         with np.errstate(invalid="ignore", divide="ignore"):
             rpm = (c[j] - c[k]) / dseq * (self.sample_rate_hz * 60.0 / self.counts_per_rev)
         rpm[dseq == 0] = 0.0  # the very first sample: speed unknown, treated as stopped
+        if restart and len(rpm) > 1:
+            rpm[0] = rpm[1]   # the first sample after a gap: the speed of the step that follows it
         self._hist_count = c[-self.window :].copy()
         self._hist_seq = s[-self.window :].copy()
         return angle_rev, rpm
@@ -74,7 +87,8 @@ class SpeedAngle:
         self.sample_rate_hz = float(sample_rate_hz)
         self._last: tuple[float, float, float] | None = None  # (seq, rpm, angle)
 
-    def push(self, seq: np.ndarray, rpm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def push(self, seq: np.ndarray, rpm: np.ndarray, restart: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """`restart` is accepted for the same call as `EncoderAngle`: a measured speed needs no history."""
         s = seq.astype(np.float64)
         if self._last is None:
             s0, r0, a0 = s[0], rpm[0], 0.0
