@@ -34,16 +34,13 @@ from typing import Any
 
 from millsense.daemon.pipeline.local_control import CLIENT_TIMEOUT_S
 from millsense.daemon.publish.cli_args import (
-    EXIT_CONFIG,
     EXIT_USAGE,
     CliUsageError,
     DaemonConfig,
-    DaemonConfigError,
     add_config_argument,
     add_zenoh_arguments,
-    check_machine,
+    command_target,
     hint,
-    read_daemon_config,
     session_settings,
     strip_rust,
 )
@@ -83,22 +80,11 @@ def _seconds(s: float) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    if check_machine(args.machine, PROG):
-        return EXIT_USAGE
-    if args.timeout is None:
-        args.timeout = LOCAL_TIMEOUT_S if args.local else ZENOH_TIMEOUT_S
-    if not (0 < args.timeout < 3600):
-        return _fail("error: --timeout must be between 0 and 3600 seconds", EXIT_USAGE)
-    try:
-        daemon = read_daemon_config(args.config) if args.config else None
-    except DaemonConfigError as exc:
-        return _fail(f"error: {exc}", EXIT_CONFIG)
-    machine = args.machine or (daemon.machine if daemon else None)
-    if machine is not None and check_machine(machine, PROG):
-        return EXIT_USAGE
+    target = command_target(args, PROG, ZENOH_TIMEOUT_S, LOCAL_TIMEOUT_S)
+    if isinstance(target, int):
+        return target
+    daemon, machine = target.daemon, target.machine
     if args.local:
-        if machine is None:
-            return _fail("error: --local needs --machine or --config (to find the daemon's state directory)", EXIT_USAGE)
         return _local(machine, args.timeout)
     try:
         token = _token(args)

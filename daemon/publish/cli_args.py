@@ -240,3 +240,36 @@ def check_machine(machine: str | None, prog: str) -> str | None:
         print(f"{prog}: error: --machine {machine!r}: use letters, digits, '_' and '-' only", file=sys.stderr)
         return "bad"
     return None
+
+
+@dataclass(frozen=True)
+class Target:
+    """Which daemon a command (`reset`, `test-trip`) is for: its config if given, and its machine id."""
+
+    daemon: DaemonConfig | None
+    machine: str | None
+
+
+def command_target(args: argparse.Namespace, prog: str, zenoh_timeout_s: float, local_timeout_s: float) -> Target | int:
+    """`--machine`, `--config`, `--timeout` and `--local`, checked once: the target, or the exit code after
+    printing why. Sets `args.timeout` to its default for `--local` or Zenoh when it was not given."""
+    if check_machine(args.machine, prog):
+        return EXIT_USAGE
+    if args.timeout is None:
+        args.timeout = local_timeout_s if args.local else zenoh_timeout_s
+    if not (0 < args.timeout < 3600):
+        print(f"{prog}: error: --timeout must be between 0 and 3600 seconds", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        daemon = read_daemon_config(args.config) if args.config else None
+    except DaemonConfigError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
+    machine = args.machine or (daemon.machine if daemon else None)
+    if machine is not None and check_machine(machine, prog):
+        return EXIT_USAGE
+    if args.local and machine is None:
+        print(f"{prog}: error: --local needs --machine or --config (to find the daemon's state directory)",
+              file=sys.stderr)
+        return EXIT_USAGE
+    return Target(daemon, machine)
