@@ -392,12 +392,12 @@ class Runner:
                 self._check_power(item)
                 t = self.clock.time_of(int(item.get("seq_end", block.seq + n - 1)))
                 payload = estimate_payload(item, self.machine, t)
+                self.revolutions += 1  # counted before it is out: status never lags what subscribers got
+                self.last_estimate = payload
                 self.sink.estimate(payload)
                 done = time.monotonic()
                 self.latency.add(done - now)
                 self.delay.add(done - _arrival(parts, int(item.get("seq_end", last_seq)), now))
-                self.last_estimate = payload
-                self.revolutions += 1
                 self._last_rev_mono = now
             else:
                 self._publish_alarm(item, interlock_by_event.get(id(item), self._held()))

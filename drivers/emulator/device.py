@@ -209,6 +209,10 @@ class DeviceModel:
     def heartbeat(self, counter: int, now: float) -> None:
         """A heartbeat counts only if the value changed (the host writes a changing counter)."""
         counter &= 0xFFFF
+        # A device's watchdog runs on its own: a heartbeat that arrives after the deadline comes to a
+        # watchdog that has already tripped, even when nothing polled it in between (the in-process DAQ
+        # is polled by the daemon's reader thread, which a stopped or starved daemon does not run).
+        self.check_watchdog(now)
         if self._heard_heartbeat and counter == self.last_heartbeat:
             return
         self._heard_heartbeat = True

@@ -80,7 +80,8 @@ def test_link_flapping_every_2_s_every_sample_delivered_or_counted(tmp_path):
             time.sleep(1.0)
             proxy.refuse(True)
             assert proxy.cut() == 1
-            final = wait_status(sub, machine, lambda s: s["daq_link"] == "down" and s["daq"]["queue_len"] == 0,
+            final = wait_status(sub, machine, lambda s: s["daq_link"] == "down" and s["daq"]["queue_len"] == 0
+                                and "daq_link" in s["faults"],  # the estimator thread has taken the loss in
                                 SLOW_S, "link down after the final cut")
             time.sleep(0.5)
             again = status(sub, machine)
