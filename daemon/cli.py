@@ -29,7 +29,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "check-config": ("millsense.daemon.commands.check_config", "validate a configuration file"),
     "reset": ("millsense.daemon.commands.reset", "clear a latched interlock (over Zenoh, or --local at the machine)"),
     "token": ("millsense.daemon.commands.token", "make a reset token (`token new`)"),
+    "history": ("millsense.daemon.commands.history", "export the history (time range, program, tool, operation) as CSV or JSON lines"),
     "test-trip": ("millsense.daemon.commands.test_trip", "proof test: assert feed hold, time its confirmation, reset"),
+    "limits": ("millsense.daemon.commands.limits", "see, accept, relearn, widen or narrow learned limits; false alarms, new tools"),
 }
 
 

@@ -167,13 +167,16 @@ def _settings_from(data: dict[str, Any], base_dir: Path) -> Settings:
     if parts.get("calibration"):
         path = _resolve(base_dir, parts["calibration"])
         problems.extend(apply_calibration(parts, path))
-        updates.update(calibration=str(path), gears=parts["gears"], tool=parts["tool"])
+        updates.update(calibration=str(path), gears=parts["gears"], tool=parts["tool"], tools=parts["tools"])
     zenoh = parts.get("zenoh")
     if zenoh is not None and zenoh.config_file:
         path = _resolve(base_dir, zenoh.config_file)
         if not path.is_file():
             problems.append(f"zenoh.config_file: {path} does not exist (a Zenoh JSON5 file; a relative path is taken from the config file's folder)")
         updates["zenoh"] = zenoh.model_copy(update={"config_file": str(path)})
+    history = parts.get("history")
+    if history is not None and history.path:  # relative to the config file's folder, like the others
+        updates["history"] = history.model_copy(update={"path": str(_resolve(base_dir, history.path))})
     interlock = parts.get("interlock")
     if interlock is not None and interlock.reset_token_file:
         token, problem = _read_token(_resolve(base_dir, interlock.reset_token_file))

@@ -112,6 +112,34 @@ def cross_problems(parts: Mapping[str, Any]) -> list[str]:
                 f'cut.radial_depth_mm: {cut.radial_depth_mm:g} contradicts mode = "slot" (a slot\'s radial depth is the '
                 f"tool diameter, {d:g}; leave it out, or use mode down/up)"
             )
+    if isinstance(cut, CutSettings):
+        problems.extend(_listed_tool_problems(cut, parts.get("tools")))
+    return problems
+
+
+def _listed_tool_problems(cut: CutSettings, tools: Any) -> list[str]:
+    """`[cut]`'s rules against each `[tools.N]`, as against `[tool]`: any of them may be in the spindle.
+
+    The `[cut]` depth is one number for every tool, so a tool it cannot fit is the odd one out:
+    the problem names that tool's `tools.N.diameter_mm` (its depths would read `out_of_range`).
+    """
+    radial = cut.radial_depth_mm
+    if radial is None or not isinstance(tools, Mapping):
+        return []
+    problems = []
+    for number, t in sorted(tools.items()):
+        d = t.diameter_mm
+        if radial > d:
+            problems.append(
+                f"tools.{number}.diameter_mm: {d:g} is less than cut.radial_depth_mm {radial:g} (a known radial depth "
+                f"must fit every tool that may be in the spindle: at least {radial:g}, or leave "
+                f"cut.radial_depth_mm out and measure it)"
+            )
+        elif cut.mode == "slot" and radial != d:
+            problems.append(
+                f'tools.{number}.diameter_mm: {d:g} contradicts cut.radial_depth_mm {radial:g} with mode = "slot" (a '
+                f"slot's radial depth is each tool's own diameter: leave cut.radial_depth_mm out)"
+            )
     return problems
 
 
@@ -154,7 +182,12 @@ CALIBRATION_WHAT = "a TOML file written by `millsense calibrate`; a relative pat
 
 
 def apply_calibration(parts: dict[str, Any], path: Path) -> list[str]:
-    """Override `parts['gears']` friction (matched by name) and `parts['tool'].cf` in place."""
+    """Override `parts['gears']` friction (matched by name) and `parts['tool'].cf` in place.
+
+    The calibrated C_f was fitted on `[tool]`'s cutter, so it is `[tool]`'s alone: a
+    `[tools.N]` without its own `cf` keeps the `cf` the file gives `[tool]` (pinned
+    here in `parts['tools']`, before `[tool]` takes the calibrated one).
+    """
     data, problems = read_toml(path, "calibration", CALIBRATION_WHAT)
     if data is None:
         return problems
@@ -180,6 +213,11 @@ def apply_calibration(parts: dict[str, Any], path: Path) -> list[str]:
             updated[i] = updated[i].model_copy(update=update)
         parts["gears"] = updated
     if cal.tool is not None and parts.get("tool") is not None:
+        configured_cf = parts["tool"].cf
+        tools = parts.get("tools")
+        if tools:
+            parts["tools"] = {n: t if t.cf is not None else t.model_copy(update={"cf": configured_cf})
+                              for n, t in tools.items()}
         parts["tool"] = parts["tool"].model_copy(update={"cf": cal.tool.cf})
     return problems
 

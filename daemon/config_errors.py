@@ -196,6 +196,8 @@ def describe(root: type[BaseModel], err: dict[str, Any]) -> list[str]:
         return [f"{where}: unknown key{hint} (expected one of: {', '.join(allowed) or 'nothing here'})"]
     name = str(loc[-1]) if loc and isinstance(loc[-1], str) else ""
     if loc and loc[-1] == "[key]":
+        if kind == "value_error":  # a table name checked by its own validator ([tools.N])
+            return [f"{where}: {str(err.get('msg', '')).removeprefix('Value error, ')}"]
         wrong, exp = _PATTERNS.get(ctx.get("pattern", ""), ("is not an allowed name", "a different name"))
         return [f"{where}: {show(value)} {wrong} ({exp})"]
     field, ann = field_at(root, loc)

@@ -196,6 +196,30 @@ class ToolSettings(_Section):
     helix_deg: float | None = Field(None, gt=0, lt=90)
 
 
+class ToolTableSettings(_Section):
+    """`[tools.<number>]` (additive): one tool of the magazine by its CNC number (T12 → `[tools.12]`).
+
+    Force and depth use the tool the context says is in the spindle; a tool
+    not listed here uses `[tool]`. `cf` and `helix_deg` left out take `[tool]`'s.
+    """
+
+    diameter_mm: float = Field(gt=0)
+    flutes: int = Field(ge=1)
+    cf: Annotated[float | Literal["model"] | None, BeforeValidator(lambda v: v if v is None else _cf_value(v))] = None
+    helix_deg: float | None = Field(None, gt=0, lt=90)
+
+
+def _tool_number(value: Any) -> Any:
+    """A `[tools.N]` table name: the CNC's tool number, 0 … 2³²−1 (daq-protocol.md: uint32)."""
+    text = str(value)
+    if not text.isdigit() or int(text) > 0xFFFFFFFF:
+        raise ValueError(f"{text!r} is not a tool number (a whole number 0 … 4294967295, as [tools.12])")
+    return int(text)
+
+
+ToolNumber = Annotated[int, BeforeValidator(_tool_number)]
+
+
 class MaterialSettings(_Section):
     """`[material]`: [D] eqs. (8)–(9) power laws, t_a in mm, K_s in N/mm². Defaults: [D] Table 2 (SB40)."""
 
@@ -432,6 +456,60 @@ class SignalSettings(_Section):
     speed_tolerance_pct: float = Field(10.0, gt=0, le=100)
 
 
+class ContextSettings(_Section):
+    """`[context]` (additive): where the daemon learns what the machine is doing.
+
+    "auto": the DAQ's CONTEXT frames when its descriptor says it reports
+    context (protocol 2, capabilities bit 1), else the Zenoh key
+    `millsense/<machine>/context` (a CNC adapter puts it); "daq" or "zenoh":
+    only that one; "off": none, so no learned limits, only the fixed ones.
+    """
+
+    source: Literal["auto", "daq", "zenoh", "off"] = "auto"
+
+
+class LearningSettings(_Section):
+    """`[learning]` (additive): limits learned per process (program, tool, operation).
+
+    The first `processes` processes of a key that raised no alarm teach its
+    envelope: per revolution from entry, the learned mean ± max(`sigma` standard
+    deviations, `min_width_pct` % of the mean, `min_width_nm` / `min_width_n`).
+    The fixed `[alarms]` limits stay armed throughout. See docs/learning.md.
+    """
+
+    enabled: bool = True
+    processes: int = Field(5, ge=2, le=100)
+    confirm: bool = False
+    sigma: float = Field(4.0, gt=0, le=20)
+    min_width_pct: float = Field(25.0, ge=0, le=200)
+    # the low side's floor: a broken flute drops the torque by only 15–25 %, so the band below the
+    # mean is narrower than above it (where it must stay wider than wear_rise_pct); None: half of min_width_pct
+    min_width_low_pct: float | None = Field(None, ge=0, le=200)
+    min_width_nm: float = Field(0.5, ge=0)
+    min_width_n: float = Field(50.0, ge=0)
+    high_revolutions: int = Field(3, ge=1, le=1000)
+    low_revolutions: int = Field(3, ge=1, le=1000)
+    hold_high: bool = True
+    hold_low: bool = True
+    wear_rise_pct: float = Field(15.0, gt=0, le=500)
+    wear_window: int = Field(3, ge=1, le=100)
+
+
+class HistorySettings(_Section):
+    """`[history]` (additive): the embedded SQLite history in the state directory.
+
+    Learned limits, process summaries, alarms and (with `revolutions`) every
+    per-revolution estimate; kept `retention_days` and at most `max_mb`
+    (the oldest revolutions go first). See docs/history.md.
+    """
+
+    enabled: bool = True
+    path: str = ""
+    retention_days: float = Field(30.0, gt=0, le=3650)
+    max_mb: float = Field(500.0, ge=1, le=1_000_000)
+    revolutions: bool = True
+
+
 class LogSettings(_Section):
     """`[log]`: level, and format "auto" (console on a TTY, JSON otherwise), "json" or "console"."""
 
@@ -450,6 +528,7 @@ class Settings(_Section):
     motor: MotorSettings
     gears: GearList
     tool: ToolSettings
+    tools: dict[ToolNumber, ToolTableSettings] = Field(default_factory=dict)
     material: MaterialSettings = Field(default_factory=MaterialSettings)
     cut: CutSettings = Field(default_factory=CutSettings)
     depth: DepthSettings = Field(default_factory=DepthSettings)
@@ -457,5 +536,8 @@ class Settings(_Section):
     alarms: AlarmSettings = Field(default_factory=AlarmSettings)
     interlock: InterlockSettings = Field(default_factory=InterlockSettings)
     signals: SignalSettings = Field(default_factory=SignalSettings)
+    context: ContextSettings = Field(default_factory=ContextSettings)
+    learning: LearningSettings = Field(default_factory=LearningSettings)
+    history: HistorySettings = Field(default_factory=HistorySettings)
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     log: LogSettings = Field(default_factory=LogSettings)

@@ -19,6 +19,32 @@ def config_warnings(settings: Any, path: str | os.PathLike[str] | None = None) -
     out: list[str] = []
     out += _interlock_warnings(settings)
     out += _security_warnings(settings, Path(path) if path is not None else None)
+    out += _learning_warnings(settings)
+    return out
+
+
+def _learning_warnings(settings: Any) -> list[str]:
+    """Context, tools by number and learned limits that a valid file leaves unused or racing."""
+    out: list[str] = []
+    source = settings.context.source
+    if source == "off" and settings.tools:
+        tables = ", ".join(f"[tools.{n}]" for n in sorted(settings.tools))
+        out.append(
+            f"context.source: \"off\", so the daemon never knows the tool in the spindle: {tables} "
+            "are never used and every cut is computed with [tool] (source = \"auto\")"
+        )
+    if source == "off" and settings.learning.enabled:
+        out.append(
+            "learning.enabled: true but context.source is \"off\": without program, tool and operation there "
+            "are no processes to learn; only the fixed [alarms] limits watch the cut"
+        )
+    learning = settings.learning
+    if learning.enabled and learning.min_width_pct <= learning.wear_rise_pct:
+        out.append(
+            f"learning.min_width_pct: {learning.min_width_pct:g} % is not above wear_rise_pct = "
+            f"{learning.wear_rise_pct:g} %: a wearing tool may leave its envelope (envelope_high) before "
+            "the wear warning says it is wearing (docs/learning.md)"
+        )
     return out
 
 

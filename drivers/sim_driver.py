@@ -12,7 +12,6 @@ from __future__ import annotations
 import time
 
 from millsense.drivers.base import Driver, LinkDown
-from millsense.drivers.protocol import Samples
 
 
 class SimDriver(Driver):
@@ -72,7 +71,7 @@ class SimDriver(Driver):
             return
         from millsense.drivers.emulator.device import DeviceModel
         from millsense.drivers.emulator.pacing import Pacer
-        from millsense.drivers.emulator.source import SourceError, make_source
+        from millsense.drivers.emulator.source import SourceError, is_program, make_source
 
         try:
             source = make_source(
@@ -84,8 +83,9 @@ class SimDriver(Driver):
             )
         except SourceError as exc:
             raise LinkDown(str(exc)) from exc
+        protocol = 2 if is_program(self.scenario) else self.protocol  # a part program is there for its CONTEXT
         self.device = DeviceModel(source, start_index=self.start_index, watchdog_ms=self._initial_watchdog_ms,
-                                  protocol=self.protocol, cnc_hold_lag_ms=self.cnc_hold_lag_ms)
+                                  protocol=protocol, cnc_hold_lag_ms=self.cnc_hold_lag_ms)
         self._pacer = Pacer(self.device.sample_rate_hz, realtime=self.realtime, batch_s=self.batch_s)
 
     def _disconnect(self) -> None:
@@ -110,7 +110,7 @@ class SimDriver(Driver):
             n = pacer.due(now)
             if n:
                 first, counts = self.device.produce(n)
-                out.append(Samples(first, counts))
+                out.extend(self.device.stream_items(first, counts))  # a part program's CONTEXTs in between
             self.device.update_cnc(now)
             context = self.device.context()
             status = self.device.status()

@@ -2,7 +2,7 @@
 
 Same `PipelineCore` (estimator + alarms) as `millsense run`, fed as fast as the
 file can be read. One JSON object per line on stdout, `"type": "estimate"` or
-`"type": "alarm"`, in the payload formats of interfaces.md with `machine`.
+`"type": "alarm"` (and `"type": "process"`, one per finished process, with learned limits on), in the payload formats of interfaces.md with `machine`.
 `t` is the time of the revolution's last sample (of the deciding sample, for
 an alarm) in seconds after the capture's first sample: sample-index difference
 over the sample rate, so results are reproducible. Alarms carry
@@ -40,6 +40,10 @@ def run(args: argparse.Namespace) -> int:
     from millsense.daemon.config import load_config
 
     settings = load_config(args.config)  # ConfigError -> exit 78 in the CLI
+    from millsense.daemon.logging_setup import configure_logging
+
+    # stdout is the JSON lines: anything a module logs goes to stderr, warnings and worse only
+    configure_logging("warning", "console", sys.stderr, nonblocking=False)
     path = Path(args.capture)
     plot = None
     if args.plot:
@@ -96,18 +100,17 @@ class Replay:
         self.on_payload = on_payload        # e.g. the --plot recorder; sees every payload written
         self.first_seq: int | None = None
         self.rate: float | None = None
-        self.counts = {"estimates": 0, "invalid_estimates": 0, "alarms": 0, "discontinuities": 0, "lost_samples": 0}
+        self.counts = {"estimates": 0, "invalid_estimates": 0, "alarms": 0, "processes": 0, "discontinuities": 0,
+                       "lost_samples": 0}
+        self._context = None  # the DAQ repeats its CONTEXT once a second: only a change is news
         from millsense.daemon.pipeline.power_check import PowerSignCheck
 
         self.power_check = PowerSignCheck()
         self.warnings: list[str] = []       # what the live daemon would raise as fault `signals`
 
     def feed(self, data: bytes) -> None:
-        from millsense.daemon.pipeline.alarms import alarm_payload
-        from millsense.daemon.pipeline.run_core import estimate_payload
-        from millsense.daemon.publish.payload import dumps
         from millsense.drivers.base import SampleBlock
-        from millsense.drivers.protocol import Descriptor, Samples
+        from millsense.drivers.protocol import Context, Descriptor, Samples
 
         lines: list[bytes] = []
         for frame in self.decoder.feed(data):
@@ -116,6 +119,11 @@ class Replay:
                     self.tracker.mark_discontinuity()
                 if self.core.on_descriptor(frame):  # ConfigError: the capture does not fit the config
                     self.rate = float(frame.sample_rate_hz)
+                continue
+            if isinstance(frame, Context):  # protocol 2: what the CNC does from frame.index on
+                if frame != self._context:
+                    self._context = frame
+                    self._write_items(self.core.on_context(frame).items, lines)
                 continue
             if not isinstance(frame, Samples) or self.core.estimator is None:
                 continue
@@ -126,21 +134,31 @@ class Replay:
             self.counts["lost_samples"] += lost
             self.counts["discontinuities"] += int(disc)
             step = self.core.process(SampleBlock(seq, frame.first_index, frame.counts, lost, disc))
-            for kind, item in step.items:
-                if kind == "estimate":
-                    if verdict := self.power_check.update(item):
-                        self.warnings.append(f"from rev {item.get('rev')}: {verdict}")
-                    payload = {"type": "estimate", **estimate_payload(item, self.machine, self._t(item.get("seq_end")))}
-                    self.counts["estimates"] += 1
-                    self.counts["invalid_estimates"] += int(not item.get("valid", True))
-                else:
-                    payload = {"type": "alarm", **alarm_payload(item, self.machine, self._t(item.seq), None)}
-                    self.counts["alarms"] += 1
-                lines.append(dumps(payload))
-                if self.on_payload is not None:
-                    self.on_payload(payload)
+            self._write_items(step.items, lines)
         if lines:
             self.out.write(b"\n".join(lines).decode() + "\n")
+
+    def _write_items(self, items: list, lines: list[bytes]) -> None:
+        from millsense.daemon.pipeline.alarms import alarm_payload
+        from millsense.daemon.pipeline.run_core import estimate_payload, process_payload
+        from millsense.daemon.publish.payload import dumps
+
+        for kind, item in items:
+            if kind == "estimate":
+                if verdict := self.power_check.update(item):
+                    self.warnings.append(f"from rev {item.get('rev')}: {verdict}")
+                payload = {"type": "estimate", **estimate_payload(item, self.machine, self._t(item.get("seq_end")))}
+                self.counts["estimates"] += 1
+                self.counts["invalid_estimates"] += int(not item.get("valid", True))
+            elif kind == "process":
+                payload = {"type": "process", **process_payload(item, self.machine, self._t(item.get("seq_end")))}
+                self.counts["processes"] += 1
+            else:
+                payload = {"type": "alarm", **alarm_payload(item, self.machine, self._t(item.seq), None)}
+                self.counts["alarms"] += 1
+            lines.append(dumps(payload))
+            if self.on_payload is not None:
+                self.on_payload(payload)
 
     def _t(self, seq: int | None) -> float | None:
         if seq is None or self.first_seq is None or not self.rate:

@@ -166,8 +166,9 @@ class _Daemon:
         self.summary = _live_line(demo)
         self.demo = demo
         self.transport = settings.daq.transport
-        # The demo persists nothing: no latch, no audit file, no control socket.
+        # The demo persists nothing: no latch, no audit file, no control socket, no history.
         self.state_dir = None if demo else state_dir(settings.machine)
+        history, limits, tools, first_process, history_error = _open_history(settings, self.state_dir)
         self.runner = Runner(
             settings,
             driver,
@@ -177,7 +178,13 @@ class _Daemon:
             effective_config=lambda: effective_config_dict(settings),
             latch_store=LatchStore(self.state_dir) if self.state_dir is not None else None,
             audit=AuditLog(self.state_dir / "audit.log" if self.state_dir is not None else None, settings.machine),
+            history=history,
+            limits=limits,
+            tools=tools,
+            first_process=first_process,
         )
+        if history_error is not None:  # monitoring goes on with the fixed limits and what it learns from now
+            self.runner.fault("history", history_error)
         self.local = None
         self.sink = ZenohSink(session, self.runner.machine, self.runner, log=self.log, close_timeout_s=0.5,
                               expects_router=settings.zenoh.mode == "client")
@@ -213,6 +220,11 @@ class _Daemon:
         if self.local is not None:
             self.local.close(timeout_s=0.5)
         self.runner.stop(timeout_s=0.5)
+        if self.runner.history is not None:
+            try:
+                self.runner.history.close(timeout_s=1.0)  # what is queued is committed, within a second
+            except Exception as exc:  # noqa: BLE001
+                self.log.error("history.close_failed", error=str(exc))
         try:
             self.sink.close()  # drops the liveliness token
         except Exception as exc:  # noqa: BLE001
@@ -220,6 +232,32 @@ class _Daemon:
         if self.summary is not None:
             self.summary.end()
         self.log.info("daemon.stopped", stop_s=round(time.monotonic() - t0, 3), interlock=self.runner.interlock.state)
+
+
+def _open_history(settings: Any, state: Any) -> tuple[Any, dict | None, dict | None, int, str | None]:
+    """The history database and what earlier runs learned: (store, limits, tools, first process id, error).
+
+    Off in the demo and with `[history] enabled = false`: then what is learned lives only as long as
+    the process. A database that cannot be opened is the fault `history`; monitoring goes on.
+    """
+    from pathlib import Path
+
+    conf = getattr(settings, "history", None)
+    if state is None or conf is None or not conf.enabled:
+        return None, None, None, 1, None
+    from millsense.daemon.history.store import HistoryStore
+    from millsense.daemon.pipeline.latch_store import ensure_dir
+
+    path = Path(conf.path) if conf.path else Path(state) / "history.sqlite3"
+    try:
+        ensure_dir(Path(state))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        store = HistoryStore(path, machine=settings.machine, retention_days=conf.retention_days,
+                             max_mb=conf.max_mb, keep_revolutions=conf.revolutions)
+        store.start()  # never raises: a file it cannot open is the fault `history` once the runner listens
+        return store, store.load_limits(), store.load_tools(), store.last_process_id() + 1, None
+    except Exception as exc:  # noqa: BLE001 - the machine is still protected by the fixed limits
+        return None, None, None, 1, f"cannot open the history database {path}: {type(exc).__name__}: {exc}"
 
 
 def driver_options(daq: Any) -> dict[str, Any]:

@@ -20,26 +20,22 @@ looked at the path and runs `millsense reset`.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-from pathlib import Path
 from typing import Any
 
 from millsense.daemon.pipeline.local_control import CLIENT_TIMEOUT_S
 from millsense.daemon.publish.cli_args import (
     EXIT_USAGE,
-    CliUsageError,
     DaemonConfig,
     add_config_argument,
+    add_token_arguments,
     add_zenoh_arguments,
     command_target,
-    hint,
-    session_settings,
-    strip_rust,
+    open_command_session,
+    read_token,
 )
 
 PROG = "millsense test-trip"
-TOKEN_ENV = "MILLSENSE_RESET_TOKEN"
 DEFAULT_TIMEOUT_S = 6.0  # the daemon waits up to 2 s for each confirmation
 # At the machine nothing else can answer, and a loaded box answers late: wait (the error says
 # when the daemon does not answer at all).
@@ -51,8 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--local", action="store_true",
                         help="ask through the daemon's control socket at the machine (root or the daemon's user)")
     add_config_argument(parser, "its machine id and where to connect")
-    parser.add_argument("--token-file", metavar="FILE", default=None,
-                        help=f"reset token for Zenoh (first line of FILE; or the environment variable {TOKEN_ENV})")
+    add_token_arguments(parser, inline=False)
     parser.add_argument("--timeout", type=float, default=None, metavar="S",
                         help=f"how long to wait for each answer (default {DEFAULT_TIMEOUT_S:g} s; "
                              f"{LOCAL_TIMEOUT_S:g} s with --local)")
@@ -99,32 +94,19 @@ def _zenoh(args: argparse.Namespace, machine: str, daemon: DaemonConfig | None) 
         from millsense.daemon.publish.command_auth import CommandError, send_command
     except ImportError:
         return _fail("error: this build has no authorised Zenoh commands; use --local at the machine")
-    from millsense.daemon.publish.session import ZenohConfigError, ZenohUnavailable, open_session
-
-    token = None
-    if args.token_file:
-        try:
-            lines = Path(args.token_file).read_text(encoding="utf-8").splitlines()
-        except (OSError, UnicodeDecodeError) as exc:
-            return _fail(f"error: cannot read --token-file {args.token_file}: {exc}")
-        token = lines[0].strip() if lines else ""
-    elif os.environ.get(TOKEN_ENV):
-        token = os.environ[TOKEN_ENV].strip()
     try:
-        settings = session_settings(args, daemon)
-    except CliUsageError as exc:
-        return _fail(f"error: {exc}", EXIT_USAGE)
-    try:
-        session = open_session(settings, retry_for_s=args.timeout)
-    except ZenohConfigError as exc:
-        return _fail(f"error: {strip_rust(str(exc))}")
-    except ZenohUnavailable as exc:
-        return _fail(f"error: {strip_rust(str(exc))}\n{hint(settings, daemon, 'at the machine: --local')}")
+        token = read_token(args)
+    except ValueError as exc:
+        return _fail(f"error: {exc}")
+    opened = open_command_session(args, daemon, PROG, "at the machine: --local")
+    if isinstance(opened, int):
+        return opened
+    session, no_daemon_hint = opened.session, opened.no_daemon_hint
     try:
         try:
             trip = send_command(session, machine, "test-trip", token, timeout_s=args.timeout)
         except CommandError as exc:
-            more = f"\n{hint(settings, daemon, 'at the machine: --local')}" if str(exc).startswith("no daemon answered") else ""
+            more = f"\n{no_daemon_hint}" if str(exc).startswith("no daemon answered") else ""
             return _fail(f"error: {machine}: test-trip: {exc}{more}")
         if not _report_trip(machine, trip):
             return 1

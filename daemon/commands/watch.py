@@ -1,8 +1,11 @@
-"""`millsense watch`: a Zenoh subscriber showing live estimates, alarms, status and presence.
+"""`millsense watch`: a Zenoh subscriber showing live estimates, alarms, process summaries, status and presence.
 
-On a terminal: one refreshing line per machine. Piped, or with `--json`: one
+On a terminal: one refreshing line per machine, with the process in the
+spindle (program, tool, operation, revolutions since entry, the learned band),
+the last finished process (verdict, energy, the tool's wear) and the alarm
+(envelope and wear alarms with their process). Piped, or with `--json`: one
 JSON object per line, `{"key", "kind", "payload"}`, kind being estimate, alarm,
-status, alive or gone, so that scripts and tests can read it.
+process, status, alive or gone, so that scripts and tests can read it.
 
 Zenoh callbacks only put samples on a queue; the main thread prints, so lines
 never interleave and Ctrl-C / SIGTERM / `--seconds` end it cleanly.
@@ -34,7 +37,7 @@ from millsense.daemon.publish.cli_args import (
     strip_rust,
 )
 
-KINDS = ("estimate", "alarm", "status")
+KINDS = ("estimate", "alarm", "process", "status")
 PROG = "millsense watch"
 # With nothing seen this long (or by the end of --seconds, if sooner), say once on stderr what to try.
 HINT_AFTER_S = 5.0
@@ -237,13 +240,55 @@ class _TtyView:
         presence = {True: "alive", False: "GONE", None: "?"}[m["alive"]]
         level = a.get("level", "none")
         alarm = f"{level} {a.get('quantity', '')} {_num(a.get('value'), '.1f')}".strip() if level not in ("none", "clear") else level
+        if level in ("envelope_high", "envelope_low", "wear"):
+            alarm += f" {_process_key(a)}" + (f" rev {a['process_rev']}" if a.get("process_rev") is not None else "")
         if a.get("interlock"):
             alarm += f" [{a['interlock']}]"
         return (
             f"{name:<12} {presence:<5} {_num(e.get('spindle_rpm'), '6.0f')} rpm  "
-            f"T {_num(e.get('torque_nm'), '6.2f')}±{_num(e.get('torque_sigma_nm'), '.2f')} N·m  "
+            f"T {_num(e.get('torque_nm'), '6.2f')}±{_num(e.get('torque_sigma_nm'), '.2f')} N·m"
+            + _band(e) + "  "
             f"F {_num(e.get('force_n'), '7.1f')} N  "
             f"ae {_num(e.get('radial_depth_mm'), '.2f')} ap {_num(e.get('axial_depth_mm'), '.2f')} mm "
-            f"({e.get('depth_status', '–')})  alarm: {alarm}  status: {s.get('state', '–')}"
+            f"({e.get('depth_status', '–')})" + _context(e) + _last_process(m.get("process", {}))
+            + f"  alarm: {alarm}  status: {s.get('state', '–')}"
             + ("  [spindle speeding up: torque holds the inertia]" if e.get("accelerating") else "")
         )
+
+
+def _process_key(p: dict[str, Any]) -> str:
+    """program/tool/operation of a payload, "–" where unknown."""
+    if isinstance(p.get("key"), str):
+        return p["key"]
+    parts = [p.get("program"), p.get("tool"), p.get("operation")]
+    return "–" if all(v is None for v in parts) else "/".join("–" if v is None else str(v) for v in parts)
+
+
+def _context(e: dict[str, Any]) -> str:
+    """The process in the spindle: P<program> T<tool> op<operation>, and revolutions since entry."""
+    if all(e.get(k) is None for k in ("program", "tool", "operation")):
+        return ""
+    rev = f" r{e['process_rev']}" if e.get("process_rev") is not None else ""
+    return f"  P{e.get('program', '–')} T{e.get('tool', '–')} op{e.get('operation', '–')}{rev}"
+
+
+def _band(e: dict[str, Any]) -> str:
+    """The learned envelope around this revolution's torque, where one is active."""
+    low, high = e.get("envelope_low_nm"), e.get("envelope_high_nm")
+    if low is None and high is None:
+        return ""
+    return f" [{_num(low, '.2f')}..{_num(high, '.2f')}]"
+
+
+def _last_process(p: dict[str, Any]) -> str:
+    """The last finished process: its key, verdict, cutting energy and the tool's wear and life."""
+    if not p:
+        return ""
+    out = f"  last {_process_key(p)}: {p.get('verdict', '–')} {_num(p.get('energy_j'), '.0f')} J"
+    if p.get("envelope") == "learning" and p.get("learned") is not None:
+        out += f" (learning {p['learned']}/{p.get('learn_target', '–')})"
+    if p.get("tool_wear_pct") is not None:
+        out += f" wear {_num(p['tool_wear_pct'], '+.1f')} %"
+    if p.get("tool_processes") is not None:
+        out += f" life {p['tool_processes']}"
+    return out

@@ -54,7 +54,9 @@ import numpy as np
 
 # Levels that ask the interlock for feed hold.
 TRIP_LEVELS = frozenset({"overload", "crash", "tool_breakage"})
-LEVELS = ("warning", "overload", "crash", "tool_breakage", "daq_lost", "clear")
+# Learned limits (issue 14, daemon/learning): envelope alarms hold the feed as `[learning] hold_high` /
+# `hold_low` say (the event's `hold`); a wear warning never does.
+LEVELS = ("warning", "overload", "crash", "tool_breakage", "daq_lost", "clear", "envelope_high", "envelope_low", "wear")
 _RANK_NAMES = {1: "warning", 2: "overload"}
 
 DEFAULT_HYSTERESIS_PCT = 5.0
@@ -71,11 +73,13 @@ class AlarmEvent:
     limit: float | None
     rev: int | None = None  # revolution that decided it, if any
     seq: int | None = None  # sample (unwrapped index) that decided it, if known
+    hold: bool | None = None  # asks for feed hold regardless of level (learned limits); None: by level
+    detail: tuple[tuple[str, Any], ...] = ()  # extra payload fields (program, tool, operation, process, ...)
 
     @property
     def trips(self) -> bool:
         """Does this event ask for feed hold?"""
-        return self.level in TRIP_LEVELS
+        return self.level in TRIP_LEVELS if self.hold is None else self.hold
 
 
 def alarm_payload(event: AlarmEvent, machine: str, t: float | None, interlock: str | None) -> dict[str, Any]:
@@ -89,6 +93,7 @@ def alarm_payload(event: AlarmEvent, machine: str, t: float | None, interlock: s
         "value": event.value,
         "limit": event.limit,
         "interlock": interlock,
+        **dict(event.detail),
     }
 
 
@@ -97,7 +102,7 @@ def _setting(section: Any, name: str, default: float | None = None) -> float | N
     return default if value is None else float(value)
 
 
-def _finite(value: Any) -> float | None:
+def finite(value: Any) -> float | None:
     if value is None:
         return None
     try:
@@ -114,9 +119,9 @@ def _load_value(est: Mapping[str, Any], quantity: str) -> float | None:
     `p_gap_w` is the measured air-gap power, and `p_inertia_w` (null when J is
     unknown) is what of it went into (or, negative, came out of) the masses.
     """
-    value = _finite(est.get(quantity))
+    value = finite(est.get(quantity))
     if quantity == "p_gap_w" and value is not None:
-        value -= _finite(est.get("p_inertia_w")) or 0.0
+        value -= finite(est.get("p_inertia_w")) or 0.0
     return value
 
 
@@ -281,10 +286,10 @@ class AlarmEngine:
         if saturated:
             self.breakage.forget()   # no torque known: the window is not steady
             return events
-        torque_nm = _finite(est.get("torque_nm"))
+        torque_nm = finite(est.get("torque_nm"))
         if torque_nm is not None:
             ev = self.breakage.update(torque_nm, bool(est.get("cutting")), rev, seq,
-                                      _finite(est.get("spindle_rpm")), _finite(est.get("feed_per_tooth_mm")))
+                                      finite(est.get("spindle_rpm")), finite(est.get("feed_per_tooth_mm")))
             if ev is not None:
                 events.append(ev)
         return events

@@ -41,6 +41,11 @@ one: `invalid: "lost_samples"`). `saturated: true` marks a revolution in which
 a current clipped at its sensor's limit while it was high: a real crash
 saturates the sensors, and the alarms count it as over every armed limit.
 
+The tool in the spindle: `Estimator.tool_at`, set by the runner, gives the CNC
+tool number at a revolution's last sample (None: unknown); feed per tooth,
+force and depth then use that tool's `[tools.N]` geometry, `[tool]` for a tool
+the configuration does not list (`per_revolution.py`).
+
 Also per sample: the air-gap power and the largest line current, lightly
 smoothed, so that a crash can trip within milliseconds instead of waiting for
 the revolution to close (`safety_check.py`).
@@ -49,6 +54,7 @@ the revolution to close (`safety_check.py`).
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -150,7 +156,13 @@ class Estimator:
     quantity friction is fitted to. `force_magnitude=True` adds
     `force_measured_n`, the revolution mean of the dynamometer's instantaneous
     |(F_x, F_y)| (the quantity [P] eq. 18 estimates), when fx and fy exist.
+
+    `tool_at` (set by whoever knows the machine's context): given a revolution's
+    last sample seq, the CNC tool number in the spindle, or None when unknown.
+    None (the default): every revolution uses `[tool]`.
     """
+
+    tool_at: Callable[[int], int | None] | None = None
 
     def __init__(self, settings, descriptor, sample_rate_hz: float | None = None, *,
                  friction_zero: bool = False, force_magnitude: bool = False):
@@ -381,7 +393,9 @@ class Estimator:
                 feed_current_a=column("feed_current"), force_x_n=column("fx"), force_y_n=column("fy"),
                 speed_rise_rpm=rise, prev_spindle_rpm=prev,
             )
-            phys = self.physics.estimate_many(cols)
+            tool_at = self.tool_at
+            tools = None if tool_at is None else [tool_at(s) for s in batch.seq_end[g].tolist()]
+            phys = self.physics.estimate_many(cols, tools)
             accelerating = self._accelerating(rpm[g], rise, prev).tolist()
             if "f_mag" in c:
                 phys["force_measured_n"] = m[:, c["f_mag"]].tolist()

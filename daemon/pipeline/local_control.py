@@ -8,10 +8,14 @@ peer's credentials (`SO_PEERCRED`) must be uid 0 or the daemon's own uid.
 The socket file is mode 0660 in the state directory.
 
 Protocol: one connection per request; the client sends one JSON line
-`{"command": "reset" | "test-trip" | "status"}` and gets one JSON line back.
-`reset` and `test-trip` go through `Runner.reset` / `Runner.test_trip`, so a
-reset is still refused while the condition that latched persists; both are
-recorded in the audit log, granted or refused, with the peer's uid and pid.
+`{"command": "reset" | "test-trip" | "status" | "limits", "args": {...}}` and
+gets one JSON line back. `reset` and `test-trip` go through `Runner.reset` /
+`Runner.test_trip`, so a reset is still refused while the condition that
+latched persists. `limits` takes the args of `cmd/limits` (publish/limits_args.py):
+`list` and `show` read (`Runner.limits()`, or the key's detail), the other
+actions change the learned limits through `Runner.limits_command`. Every command
+that changes something is recorded in the audit log, granted or refused, with
+the peer's uid and pid.
 
 Requests are served one at a time by one thread (a test-trip takes up to a
 few seconds; a second request waits for it), each with a read deadline, so a
@@ -33,7 +37,7 @@ import structlog
 log = structlog.get_logger("millsense.local_control")
 
 SOCKET_NAME = "control.sock"
-COMMANDS = ("reset", "test-trip", "status")
+COMMANDS = ("reset", "test-trip", "status", "limits")
 MAX_REQUEST_BYTES = 4096
 READ_DEADLINE_S = 2.0
 SOCKET_MODE = 0o660
@@ -53,8 +57,9 @@ def socket_path(state_dir: Path) -> Path:
 
 
 # -- client ----------------------------------------------------------------------
-def local_command(state_dir: Path, command: str, timeout_s: float = CLIENT_TIMEOUT_S) -> dict[str, Any]:
-    """Ask the daemon whose state directory is `state_dir`; its JSON reply.
+def local_command(state_dir: Path, command: str, timeout_s: float = CLIENT_TIMEOUT_S,
+                  args: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Ask the daemon whose state directory is `state_dir`; its JSON reply. `args`: for `limits`.
 
     Raises `LocalControlError` with a sentence for the user when no daemon
     listens there, the socket is not ours to use, or nothing came back in time.
@@ -74,7 +79,8 @@ def local_command(state_dir: Path, command: str, timeout_s: float = CLIENT_TIMEO
         except OSError as exc:
             raise LocalControlError(f"cannot connect to {path}: {exc}") from None
         try:
-            sock.sendall((json.dumps({"command": command}) + "\n").encode())
+            request: dict[str, Any] = {"command": command} if args is None else {"command": command, "args": args}
+            sock.sendall((json.dumps(request) + "\n").encode())
             data = _read_line(sock)
         except socket.timeout:
             raise LocalControlError(
@@ -189,7 +195,7 @@ class LocalControl:
             line = _read_line(conn)
         except (socket.timeout, OSError):
             return
-        command = _command_of(line)
+        command, args = _command_of(line)
         audit = self.runner.audit
         if uid not in self.allowed_uids:
             reply = {"ok": False, "error": f"uid {uid} may not command this daemon (root or uid {os.getuid()} only)"}
@@ -198,6 +204,8 @@ class LocalControl:
             reply = {"ok": False, "error": f"bad request: expected one JSON line {{\"command\": one of {list(COMMANDS)}}}"}
         elif command == "status":
             reply = {"ok": True, **self.runner.status()}
+        elif command == "limits":
+            reply = self._limits(args, requester)
         else:
             fn = self.runner.reset if command == "reset" else self.runner.test_trip
             reply = fn(requester=requester)
@@ -208,10 +216,42 @@ class LocalControl:
         conn.sendall((json.dumps(reply, default=str) + "\n").encode())
 
 
-def _command_of(line: bytes) -> str | None:
+    def _limits(self, args: Any, requester: str) -> dict[str, Any]:
+        """`limits` at the machine: reads answered as they are, changes audited like a reset."""
+        from millsense.daemon.publish.limits_args import READS, check_args
+
+        audit = self.runner.audit
+        method = getattr(self.runner, "limits_command", None)
+        if not callable(method):
+            return {"ok": False, "error": "this daemon has no learned limits"}
+        try:
+            checked = check_args(args if args is not None else {"action": "list"})
+        except ValueError as exc:
+            audit.record("limits", requester, False, reason=str(exc))
+            return {"ok": False, "error": str(exc)}
+        if checked["action"] == "list":
+            return {"ok": True, **self.runner.limits()}
+        try:
+            result = method(checked, requester)
+        except Exception as exc:  # noqa: BLE001 - ValueError: the Runner's refusal; anything else: said, not hung up
+            result = {"ok": False, "error": str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"}
+        if not isinstance(result, dict):
+            result = {"ok": False, "error": f"the daemon returned {type(result).__name__}, expected an object"}
+        reply = {**checked, **result}
+        if checked["action"] not in READS:
+            # Granted as over Zenoh (cmd/limits): the operator was allowed and the Runner asked; whether it
+            # could do it is in the result (a refusal line would be rate-limited, and this is no attack).
+            audit.record("limits", requester, True, result=reply)
+        return reply
+
+
+def _command_of(line: bytes) -> tuple[str | None, Any]:
+    """(command, args) of a request line; (None, None) for anything else."""
     try:
         obj = json.loads(line.decode("utf-8"))
     except (UnicodeDecodeError, ValueError):
-        return None
+        return None, None
     command = obj.get("command") if isinstance(obj, dict) else None
-    return command if command in COMMANDS else None
+    if command not in COMMANDS:
+        return None, None
+    return command, obj.get("args")

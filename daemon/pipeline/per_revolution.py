@@ -11,12 +11,20 @@ a revolution can be read (and tested): `estimate` takes one revolution's plain
 floats, `estimate_many` the columns of a block's revolutions (the live path).
 Revolution by revolution stay only the feed check (a state machine) and, when
 configured, the depth's root finding.
+
+Tools by number (`[tools.N]`): feed per tooth, forces and depths use the tool in
+the spindle. `estimate_many` takes the CNC tool number of each revolution; a
+block's revolutions are grouped by tool (almost always one group: the same
+arrays as with no tool at all) and a tool the configuration does not list uses
+`[tool]`.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -130,6 +138,33 @@ class RevolutionColumns:
 
 
 @dataclass(frozen=True)
+class ToolGeometry:
+    """What the physics needs of one end mill: `[tool]` or a `[tools.N]` table."""
+
+    radius_mm: float
+    flutes: int
+    cf: float | None            # C_f of [P] eq. (18); None: "model", from r_1(t_a) ([D] eq. 9)
+
+    @property
+    def cf_model(self) -> bool:
+        return self.cf is None
+
+    @classmethod
+    def of(cls, diameter_mm: float, flutes: int, cf: float | str) -> ToolGeometry:
+        return cls(float(diameter_mm) / 2.0, int(flutes), None if isinstance(cf, str) else float(cf))
+
+
+def tool_geometries(settings) -> tuple[ToolGeometry, dict[int, ToolGeometry]]:
+    """`[tool]` and every `[tools.N]` by number; a `[tools.N]` without `cf` takes `[tool]`'s."""
+    default = settings.tool
+    listed = {
+        int(number): ToolGeometry.of(t.diameter_mm, t.flutes, default.cf if t.cf is None else t.cf)
+        for number, t in (getattr(settings, "tools", None) or {}).items()
+    }
+    return ToolGeometry.of(default.diameter_mm, default.flutes, default.cf), listed
+
+
+@dataclass(frozen=True)
 class Gear:
     name: str
     ratio: float
@@ -137,6 +172,17 @@ class Gear:
     friction_torque_nm: float
     viscous_nms: float
     inertia_kgm2: float | None = None   # referred to the spindle; None: unknown, no compensation
+
+
+class _ToolPart(NamedTuple):
+    """The tool-dependent columns of some revolutions (nan where none)."""
+
+    feed_per_tooth_mm: np.ndarray
+    tangential_n: np.ndarray
+    radial_mm: np.ndarray
+    axial_mm: np.ndarray
+    status: list
+    force_n: np.ndarray
 
 
 class RevolutionPhysics:
@@ -163,11 +209,7 @@ class RevolutionPhysics:
         self.filter_order = int(getattr(settings.daq, "filter_order", 2) or 2)
         pp = getattr(settings.motor, "pole_pairs", None)
         self.pole_pairs = int(pp) if pp else None
-        self.tool_radius_mm = float(settings.tool.diameter_mm) / 2.0
-        self.flutes = int(settings.tool.flutes)
-        cf = settings.tool.cf
-        self.cf_model = isinstance(cf, str)
-        self.cf = None if self.cf_model else float(cf)
+        self.tool, self.tools = tool_geometries(settings)
         m = settings.material
         self.material = Material(float(m.ks), float(m.ks_exp), float(m.r1), float(m.r1_exp), float(m.r2), float(m.r2_exp))
         cut = settings.cut
@@ -195,8 +237,9 @@ class RevolutionPhysics:
 
     # ---------------------------------------------------------------------------------
 
-    def estimate(self, r: RevolutionMeans) -> dict:
-        """All physical fields of one good revolution (payload of interfaces.md), on plain floats."""
+    def estimate(self, r: RevolutionMeans, tool: int | None = None) -> dict:
+        """All physical fields of one good revolution (payload of interfaces.md), on plain floats;
+        `tool`: the CNC number of the tool in the spindle (None: unknown, `[tool]`)."""
         def col(v):
             return None if v is None else np.array([v], dtype=float)
 
@@ -210,14 +253,16 @@ class RevolutionPhysics:
             speed_rise_rpm=np.array([r.speed_rise_rpm]),
             prev_spindle_rpm=np.array([np.nan if r.prev_spindle_rpm is None else r.prev_spindle_rpm]),
         )
-        out = self.estimate_many(cols)
+        out = self.estimate_many(cols, None if tool is None else [tool])
         return {k: v[0] for k, v in out.items()}
 
-    def estimate_many(self, c: RevolutionColumns) -> dict[str, list]:
+    def estimate_many(self, c: RevolutionColumns, tools: Sequence[int | None] | None = None) -> dict[str, list]:
         """All physical fields of R good revolutions at once: {field: list of R plain values (None: null)}.
 
         Every formula runs once over the (R,) columns; only the feed check (a state machine over
         consecutive revolutions) and the depth's root finding, when configured, go revolution by revolution.
+        `tools`: the CNC tool number in the spindle for each revolution (None: unknown); what depends on
+        the tool runs once per tool among them, on its revolutions.
         """
         rpm = c.spindle_rpm
         f_e = c.f_e_hz
@@ -258,20 +303,32 @@ class RevolutionPhysics:
         feed_mm_min = c.feed_rate_mm_min
         if feed_mm_min is None and self.feed_mm_min is not None:
             feed_mm_min = np.full(count, self.feed_mm_min)
-        if feed_mm_min is not None:
-            t_c = np.where(rpm > 0, feed_mm_min / (self.flutes * rpm), np.nan)
-        else:
-            t_c = np.full(count, np.nan)
         force_feed_n = None
         if self.feed_force is not None and c.feed_current_a is not None:
             _, n_per_a, friction_n = self.feed_force
             force_feed_n = n_per_a * c.feed_current_a - friction_n
-        tangential_n = torque_nm / (self.tool_radius_mm * 1e-3)                                 # eq. (16)
 
         cutting = torque_nm >= self.min_torque_nm
         self._feed_check_many(c.feed_rate_mm_min, cutting & steady)
-        radial_mm, axial_mm, status = self._depth_many(torque_nm, tangential_n, force_feed_n, t_c, c, cutting)
-        force_n = self._force_many(torque_nm, t_c, radial_mm, self.force_noise_nm(sigma_nm))
+        noise_nm = self.force_noise_nm(sigma_nm)
+        groups = self._tool_groups(tools, count)
+        if len(groups) == 1:   # the usual block: one tool, the whole columns
+            t_c, tangential_n, radial_mm, axial_mm, status, force_n = self._with_tool(
+                groups[0][0], torque_nm, rpm, feed_mm_min, force_feed_n, c.force_x_n, c.force_y_n, cutting, noise_nm)
+        else:
+            t_c, tangential_n, radial_mm, axial_mm, force_n = (np.empty(count) for _ in range(5))
+            status: list = [None] * count
+            for tool, rows in groups:
+                def pick(values):
+                    return None if values is None else values[rows]
+
+                part = self._with_tool(tool, torque_nm[rows], rpm[rows], pick(feed_mm_min), pick(force_feed_n),
+                                       pick(c.force_x_n), pick(c.force_y_n), cutting[rows], noise_nm[rows])
+                for whole, piece in zip((t_c, tangential_n, radial_mm, axial_mm), part[:4]):
+                    whole[rows] = piece
+                force_n[rows] = part.force_n
+                for i, st in zip(rows.tolist(), part.status):
+                    status[i] = st
         self.last_gain = float(gain[-1])
         t_c_ok = np.isfinite(t_c)
         return {
@@ -292,6 +349,28 @@ class RevolutionPhysics:
             "depth_status": status,
             "cutting": cutting.tolist(),
         }
+
+    def _tool_groups(self, tools: Sequence[int | None] | None, count: int) -> list[tuple[ToolGeometry, np.ndarray]]:
+        """(geometry, its revolutions' indices) per tool among `tools`; a number not listed is `[tool]`."""
+        if tools is None or not self.tools:
+            return [(self.tool, np.arange(count))]
+        rows: dict[int | None, list[int]] = {}
+        for i, number in enumerate(tools):
+            rows.setdefault(number if number in self.tools else None, []).append(i)
+        return [(self.tools.get(number, self.tool), np.array(r, dtype=np.intp)) for number, r in rows.items()]
+
+    def _with_tool(self, tool: ToolGeometry, torque_nm, rpm, feed_mm_min, force_feed_n, force_x_n, force_y_n,
+                   cutting, noise_nm) -> _ToolPart:
+        """What depends on the tool, for revolutions that all had `tool` in the spindle."""
+        if feed_mm_min is not None:
+            t_c = np.where(rpm > 0, feed_mm_min / (tool.flutes * rpm), np.nan)                  # t_c = f/(N·n)
+        else:
+            t_c = np.full(len(rpm), np.nan)
+        tangential_n = torque_nm / (tool.radius_mm * 1e-3)                                      # eq. (16)
+        radial_mm, axial_mm, status = self._depth_many(tool, torque_nm, tangential_n, force_feed_n, t_c,
+                                                       force_x_n, force_y_n, cutting)
+        force_n = self._force_many(tool, torque_nm, t_c, radial_mm, noise_nm)
+        return _ToolPart(t_c, tangential_n, radial_mm, axial_mm, status, force_n)
 
     def _filter_gains(self, f_e_hz: np.ndarray) -> np.ndarray:
         """|H(f_e)|² of the DAQ's anti-alias filter (physics.md §1); 1 with no filter or no f_e."""
@@ -348,7 +427,8 @@ class RevolutionPhysics:
         for measured, steady in zip(measured_mm_min.tolist(), steady_cutting.tolist()):
             self.feed_check.update(measured, steady)
 
-    def _depth_many(self, torque_nm, tangential_n, force_feed_n, t_c, c: RevolutionColumns, cutting):
+    def _depth_many(self, tool: ToolGeometry, torque_nm, tangential_n, force_feed_n, t_c, force_x_n, force_y_n,
+                    cutting):
         """(radial mm, axial mm: nan where none; statuses): root finding only on cutting revolutions."""
         count = len(torque_nm)
         radial = np.full(count, np.nan)
@@ -358,12 +438,12 @@ class RevolutionPhysics:
         status = np.where(cutting, depth_mod.OUT_OF_RANGE, depth_mod.AIR_CUT).tolist()
         todo = np.flatnonzero(cutting & (t_c > 0))
         if len(todo):
-            fx = c.force_x_n.tolist() if c.force_x_n is not None else None
-            fy = c.force_y_n.tolist() if c.force_y_n is not None else None
+            fx = force_x_n.tolist() if force_x_n is not None else None
+            fy = force_y_n.tolist() if force_y_n is not None else None
             ff = force_feed_n.tolist() if force_feed_n is not None else None
             tq, tn, tc = torque_nm.tolist(), tangential_n.tolist(), t_c.tolist()
             for i in todo.tolist():
-                d = self._depth(tq[i], tn[i], None if ff is None else ff[i], tc[i],
+                d = self._depth(tool, tq[i], tn[i], None if ff is None else ff[i], tc[i],
                                 None if fx is None else fx[i], None if fy is None else fy[i])
                 status[i] = d.status
                 if d.radial_depth_mm is not None:
@@ -372,10 +452,11 @@ class RevolutionPhysics:
                     axial[i] = d.axial_depth_mm
         return radial, axial, status
 
-    def _depth(self, torque_nm: float, tangential_n: float, force_feed_n: float | None, t_c: float,
-               force_x_n: float | None, force_y_n: float | None) -> depth_mod.DepthResult:
-        """One cutting revolution's depths by the configured method ([D] §3), on plain floats."""
-        common = dict(feed_per_tooth_mm=t_c, tool_radius_mm=self.tool_radius_mm, flutes=self.flutes,
+    def _depth(self, tool: ToolGeometry, torque_nm: float, tangential_n: float, force_feed_n: float | None,
+               t_c: float, force_x_n: float | None, force_y_n: float | None) -> depth_mod.DepthResult:
+        """One cutting revolution's depths by the configured method ([D] §3), on plain floats; a known
+        depth outside this tool's diameter gives `out_of_range`."""
+        common = dict(feed_per_tooth_mm=t_c, tool_radius_mm=tool.radius_mm, flutes=tool.flutes,
                       material=self.material, mode=self.mode)
         try:
             if self.method == "dynamometer":
@@ -406,21 +487,22 @@ class RevolutionPhysics:
     def force_noise_nm(self, sigma_nm):
         return self.min_torque_nm + self.FORCE_NOISE_SIGMAS * np.where(np.isfinite(sigma_nm), sigma_nm, 0.0)
 
-    def _force_many(self, torque_nm: np.ndarray, t_c: np.ndarray, radial_mm: np.ndarray, noise_nm) -> np.ndarray:
+    def _force_many(self, tool: ToolGeometry, torque_nm: np.ndarray, t_c: np.ndarray, radial_mm: np.ndarray,
+                    noise_nm) -> np.ndarray:
         """Resultant in-plane force magnitude, [P] eq. (18), >= 0, nan where none
         (force.resultant_force_magnitudes_n); C_f constant or from r_1(t_a) ([D] eqs. 8-9)."""
-        if not self.cf_model:
-            return resultant_force_magnitudes_n(torque_nm, self.tool_radius_mm, self.cf, noise_nm)
+        if not tool.cf_model:
+            return resultant_force_magnitudes_n(torque_nm, tool.radius_mm, tool.cf, noise_nm)
         if self.mode == "slot":
-            radial_mm = np.full(len(torque_nm), 2.0 * self.tool_radius_mm)
+            radial_mm = np.full(len(torque_nm), 2.0 * tool.radius_mm)
         elif self.known_radial_mm is not None:
             radial_mm = np.where(np.isnan(radial_mm), self.known_radial_mm, radial_mm)
         usable = np.isfinite(radial_mm) & (t_c > 0)
-        entry, exit_ = engagement_angles_rad(np.where(usable, radial_mm, 1.0) / self.tool_radius_mm, self.mode)
+        entry, exit_ = engagement_angles_rad(np.where(usable, radial_mm, 1.0) / tool.radius_mm, self.mode)
         t_a = average_chip_thickness_mm(np.where(usable, t_c, 1.0), entry, exit_)                # [D] eq. 8
         usable &= np.isfinite(t_a) & (t_a > 0)
         cf = cf_model(np.where(usable, t_a, 1.0), self.material.r1, self.material.r1_exp)        # [D] eq. 9
-        return np.where(usable, resultant_force_magnitudes_n(torque_nm, self.tool_radius_mm, cf, noise_nm), np.nan)
+        return np.where(usable, resultant_force_magnitudes_n(torque_nm, tool.radius_mm, cf, noise_nm), np.nan)
 
 
 def _optional(values: np.ndarray, known: np.ndarray) -> list:

@@ -20,9 +20,12 @@ engine's latch), but not listed in `Step.trips` again.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
+from millsense.daemon.learning.context import ContextTrack
+from millsense.daemon.learning.monitor import ProcessMonitor
 from millsense.daemon.pipeline.alarms import AlarmEngine, AlarmEvent
 from millsense.daemon.pipeline.safety_check import SafetyCheck
 
@@ -34,7 +37,8 @@ _INTERNAL = ("seq_end",)
 class Step:
     """What one block produced, in publication order."""
 
-    items: list[tuple[str, Any]] = field(default_factory=list)  # ("estimate", dict) | ("alarm", AlarmEvent)
+    # ("estimate", dict) | ("alarm", AlarmEvent) | ("process", dict: a finished process's summary)
+    items: list[tuple[str, Any]] = field(default_factory=list)
     trips: list[AlarmEvent] = field(default_factory=list)
     revolutions: int = 0
     # Signal plausibility (signal_check.py): fault kind ("signals") -> what is wrong, naming the
@@ -47,6 +51,22 @@ class Step:
     stalled: bool = False            # the stall check holds: no revolution closing while the current is high
     spindle_stopped: bool = False    # the block's last sample turned below the stop speed
     last_seq: int | None = None      # the block's last sample
+    # Learned limits (daemon/learning): envelopes and tools whose state changed (to persist), and
+    # one-time notes to log (event, fields).
+    changed_limits: set[str] = field(default_factory=set)
+    tools_changed: bool = False
+    notes: list[tuple[str, dict]] = field(default_factory=list)
+
+    def take_monitor(self, mon: Any) -> None:
+        """What the process monitor decided (`learning.monitor.MonitorStep`), in publication order."""
+        for ev in mon.events:
+            self.items.append(("alarm", ev))
+            if ev.trips:
+                self.trips.append(ev)
+        self.items.extend(("process", summary) for summary in mon.processes)
+        self.changed_limits |= set(mon.changed_keys)
+        self.tools_changed = self.tools_changed or bool(mon.tools_changed)
+        self.notes.extend(mon.notes)
 
 
 def estimate_payload(est: dict[str, Any], machine: str, t: float | None) -> dict[str, Any]:
@@ -58,12 +78,34 @@ def estimate_payload(est: dict[str, Any], machine: str, t: float | None) -> dict
     return out
 
 
+# A process summary's fields that are the monitor's bookkeeping, not the `process` payload.
+_PROCESS_INTERNAL = ("seq_start", "seq_end")
+
+
+def process_payload(summary: dict[str, Any], machine: str, t: float | None) -> dict[str, Any]:
+    """The `process` payload (one finished process): machine, t, then the monitor's summary."""
+    out: dict[str, Any] = {"machine": machine, "t": t}
+    out.update((k, v) for k, v in summary.items() if k not in out and k not in _PROCESS_INTERNAL)
+    return out
+
+
 class PipelineCore:
     """Owns the estimator (re-made when the descriptor changes) and the alarm engine."""
 
-    def __init__(self, settings: Any, estimator_factory: Any = None, check_descriptor: Any = None):
+    def __init__(self, settings: Any, estimator_factory: Any = None, check_descriptor: Any = None,
+                 limits: dict | None = None, tools: dict | None = None, first_process: int = 1):
         self.settings = settings
         self.alarms = AlarmEngine(getattr(settings, "alarms", None))
+        # What the machine is doing (the DAQ's CONTEXT or Zenoh's) and the limits learned per process.
+        context = getattr(settings, "context", None)
+        self.context = ContextTrack(str(getattr(context, "source", "off") or "off"))
+        learning = getattr(settings, "learning", None)
+        self.monitor: ProcessMonitor | None = (
+            ProcessMonitor(learning, limits=limits, tools=tools, first_process=first_process)
+            if learning is not None and getattr(learning, "enabled", False) else None)
+        self._block_end: tuple[int, int] | None = None  # (seq, device index) one past the last block
+        self._context_change: int | None = None  # a context change the process monitor has not settled yet
+        self._last_rev_end: int | None = None  # the last sample of the last revolution closed
         self._factory = estimator_factory
         self._check = check_descriptor
         self.estimator: Any = None
@@ -89,6 +131,9 @@ class PipelineCore:
             from millsense.daemon.pipeline.estimator import Estimator as factory
         self._retire()
         self.estimator = factory(self.settings, descriptor, descriptor.sample_rate_hz)
+        self.context.on_descriptor(int(getattr(descriptor, "capabilities", 0) or 0))
+        if hasattr(self.estimator, "tool_at"):
+            self.estimator.tool_at = self.tool_at  # force and depth use the tool in the spindle
         if hasattr(self.estimator, "rev"):
             self.estimator.rev = self._rev_base  # revolution numbers go on where the last estimator stopped
         self.descriptor = descriptor
@@ -113,6 +158,92 @@ class PipelineCore:
         if est is not None:
             self.lost_samples_before += int(getattr(est, "lost_samples_total", 0) or 0)
             self._rev_base = int(getattr(est, "rev", self._rev_base) or 0)
+
+    # -- context ----------------------------------------------------------
+    def tool_at(self, seq: int) -> int | None:
+        """The CNC's tool number in the spindle at sample `seq` (None: no context)."""
+        ctx = self.context.at(seq)
+        return None if ctx is None else ctx.tool
+
+    def seq_of_index(self, index: int) -> int | None:
+        """The unwrapped sample number of a device index near the samples processed (None before any)."""
+        if self._block_end is None:
+            return None
+        seq_end, index_end = self._block_end
+        delta = (int(index) - index_end) & 0xFFFFFFFF
+        if delta >= 1 << 31:
+            delta -= 1 << 32
+        return seq_end + delta
+
+    def on_context(self, ctx: Any) -> Step:
+        """The DAQ's CONTEXT frame: it holds from its index on (see `_settle_context`)."""
+        seq = self.seq_of_index(ctx.index)
+        self.context.on_daq(ctx, seq)
+        return self._context_changed(seq)
+
+    def on_zenoh_context(self, payload: dict) -> tuple[Step, str | None]:
+        """A CNC adapter's context on Zenoh, holding from the next sample processed; (step, refusal)."""
+        seq = None if self._block_end is None else self._block_end[0]
+        refused = self.context.on_zenoh(payload, seq)
+        return (Step() if refused else self._context_changed(seq)), refused
+
+    def _context_changed(self, seq: int | None) -> Step:
+        if self.monitor is None:
+            return Step()
+        self._context_change = seq if seq is not None else (self._block_end[0] if self._block_end else 0)
+        return self._settle_context()
+
+    def _settle_context(self) -> Step:
+        """Tell the process monitor of a context change once no revolution can still close before it.
+
+        A revolution closing after the change is judged with the new context by the monitor itself
+        (`on_revolution`); this is for a change with no revolution after it: the spindle stopped for a
+        tool change, or the cycle ended. The revolution under way when the frame came ends before the
+        change and still belongs to the old process: it waits for that revolution, for the spindle to
+        stop, or for 2 s of samples past the change.
+        """
+        step = Step()
+        change = self._context_change
+        if self.monitor is None or change is None:
+            return step
+        if self._last_rev_end is not None and self._last_rev_end >= change:
+            self._context_change = None  # a revolution after the change closed: the monitor has seen it
+            return step
+        done = self._block_end[0] if self._block_end is not None else None
+        rate = float(getattr(self.descriptor, "sample_rate_hz", 1000) or 1000)
+        if done is not None and done > change and (self.spindle_stopped or done - change > 2 * rate):
+            self._context_change = None
+            step.take_monitor(self.monitor.on_context(self.context.at(done - 1), done - 1))
+        return step
+
+    def on_link_lost(self) -> Step:
+        """The DAQ link went down: the process under way is incomplete (it never teaches)."""
+        step = Step()
+        if self.monitor is not None:
+            step.take_monitor(self.monitor.on_link_lost())
+        return step
+
+    def reset(self) -> list[AlarmEvent]:
+        """Operator reset: the fixed alarms' latches and the learned limits' latched alarms."""
+        events = self.alarms.reset()
+        if self.monitor is not None:
+            events.extend(self.monitor.reset())
+        return events
+
+    def active(self) -> dict[str, str]:
+        out = self.alarms.active()
+        if self.monitor is not None:
+            out.update(self.monitor.active())
+        return out
+
+    def summary(self) -> str:
+        """The worst active state in one word ("ok" when none)."""
+        states = set(self.active().values())
+        for level in ("crash", "tool_breakage", "overload", "envelope_high", "envelope_low", "daq_lost",
+                      "warning", "wear"):
+            if level in states:
+                return level
+        return "ok"
 
     @property
     def lost_samples_total(self) -> int:
@@ -158,20 +289,53 @@ class PipelineCore:
         step.spindle_stopped = bool(getattr(result, "spindle_stopped", False))
         n = len(getattr(block, "counts", ()))
         step.last_seq = int(block.seq) + n - 1 if n else None
+        if n:
+            self._block_end = (int(block.seq) + n, (int(getattr(block, "index", block.seq)) + n) & 0xFFFFFFFF)
+        monitor = self.monitor
+        if monitor is not None:
+            for ev in held + crashes:  # a process that raised an alarm does not teach
+                monitor.note_alarm(ev)
         for est in result.estimates:
             # publication stays in time order: a crash goes out after the revolutions that ended before it
             while crashes and est.get("seq_end") is not None and int(est["seq_end"]) >= crashes[0].seq:
                 step.items.append(("alarm", crashes.pop(0)))
+            seq_end = est.get("seq_end")
+            ctx = self.context.at(int(seq_end)) if seq_end is not None else None
+            # every estimate says what the machine was doing (null without context)
+            est["program"], est["tool"], est["operation"] = (
+                (ctx.program, ctx.tool, ctx.operation) if ctx is not None else (None, None, None))
+            mon = None
+            if monitor is not None:  # its process, and the envelope it is checked against
+                mon = monitor.on_revolution(est, ctx)
             step.items.append(("estimate", est))
             step.revolutions += 1
             if est.get("rev") is not None:
                 self.last_rev = int(est["rev"])
             for ev in self.alarms.on_revolution(est):
+                if ctx is not None:  # which program, tool and operation it happened in
+                    ev = dataclasses.replace(ev, detail=ev.detail + _context_detail(ctx))
                 step.items.append(("alarm", ev))
                 if ev.trips:
                     step.trips.append(ev)
+                if monitor is not None:
+                    monitor.note_alarm(ev)
+            if mon is not None:
+                step.take_monitor(mon)
+            if seq_end is not None:
+                self._last_rev_end = int(seq_end)
         step.items.extend(("alarm", ev) for ev in crashes)
+        if self._context_change is not None:
+            settled = self._settle_context()
+            step.items.extend(settled.items)
+            step.trips.extend(settled.trips)
+            step.changed_limits |= settled.changed_limits
+            step.tools_changed = step.tools_changed or settled.tools_changed
+            step.notes.extend(settled.notes)
         return step
+
+
+def _context_detail(ctx: Any) -> tuple[tuple[str, Any], ...]:
+    return (("program", ctx.program), ("tool", ctx.tool), ("operation", ctx.operation))
 
 
 def _rev_at_seq(seq: int, last_rev: int | None, estimates: list[dict]) -> int | None:
@@ -187,4 +351,4 @@ def _rev_at_seq(seq: int, last_rev: int | None, estimates: list[dict]) -> int | 
 def _with_rev(ev: AlarmEvent, rev: int | None) -> AlarmEvent:
     if ev.rev is not None or rev is None:
         return ev
-    return AlarmEvent(ev.level, ev.quantity, ev.value, ev.limit, rev, ev.seq)
+    return dataclasses.replace(ev, rev=rev)

@@ -64,11 +64,11 @@ from millsense.daemon.audit import AuditLog
 from millsense.daemon.pipeline.alarms import AlarmEvent, alarm_payload
 from millsense.daemon.pipeline.interlock import TEST_TRIP, Interlock, ResetCheck
 from millsense.daemon.pipeline.power_check import PowerSignCheck
-from millsense.daemon.pipeline.run_core import PipelineCore, estimate_payload
+from millsense.daemon.pipeline.run_core import PipelineCore, estimate_payload, process_payload
 from millsense.daemon.pipeline.safety_check import FrameCheck
 from millsense.daemon.pipeline.status import LatencyStats, SeqClock, bad_frames, status_line
 from millsense.drivers.base import LinkEvent, SampleBlock, name_os_thread
-from millsense.drivers.protocol import Descriptor, Status
+from millsense.drivers.protocol import Context, Descriptor, Status
 
 log = structlog.get_logger("millsense.runner")
 
@@ -110,6 +110,10 @@ class Runner:
         check_descriptor: Any = None,
         latch_store: Any = None,
         audit: AuditLog | None = None,
+        history: Any = None,
+        limits: dict | None = None,
+        tools: dict | None = None,
+        first_process: int = 1,
     ):
         self.settings = settings
         self.machine = str(getattr(settings, "machine", "millsense"))
@@ -118,7 +122,20 @@ class Runner:
         self._notify = notify
         self._on_second = on_second
         self._effective_config = effective_config
-        self.core = PipelineCore(settings, estimator_factory, check_descriptor)
+        self.core = PipelineCore(settings, estimator_factory, check_descriptor, limits=limits, tools=tools,
+                                 first_process=first_process)
+        # The SQLite history (daemon/history): estimates, alarms, process summaries, learned limits.
+        # Its writer thread takes what it is handed; a failing disk is the fault `history`, never a stop.
+        self.history = history
+        if history is not None:
+            history.on_error = lambda why: self.fault("history", why)
+            history.on_ok = lambda: self.recover("history")
+        self._zenoh_contexts: list[tuple[dict, str]] = []  # from Zenoh's thread, taken by the estimator's
+        self._context_lock = threading.Lock()
+        self._notes_said: set[str] = set()
+        self._context_refused = _RefusalLog("context.refused")
+        self.processes = 0
+        self.last_process: dict | None = None
         il_settings = getattr(settings, "interlock", None)
         self.latch_store = latch_store
         self.interlock = Interlock(driver, il_settings, on_change=latch_store.save if latch_store is not None else None)
@@ -249,6 +266,8 @@ class Runner:
                 continue
             now = time.monotonic()
             self._loop_mono = now
+            if self._zenoh_contexts:
+                self._safe(self._take_zenoh_contexts)
             if not any(isinstance(ev, SampleBlock) for ev, _ in events):
                 self._check_stall(now)
             for ev, parts in events:
@@ -264,6 +283,10 @@ class Runner:
             self._on_link(ev)
         elif isinstance(ev, Descriptor):
             self._on_descriptor(ev)
+        elif isinstance(ev, Context):
+            with self._alarm_lock:
+                step = self.core.on_context(ev)
+            self._publish_step(step)
         elif isinstance(ev, Status):
             self.interlock.observe_status(ev)
             if self.interlock.device_hold and not self._check.marked:
@@ -395,17 +418,119 @@ class Runner:
                 self.revolutions += 1  # counted before it is out: status never lags what subscribers got
                 self.last_estimate = payload
                 self.sink.estimate(payload)
+                if self.history is not None:
+                    self.history.add_revolution(payload)
                 done = time.monotonic()
                 self.latency.add(done - now)
                 self.delay.add(done - _arrival(parts, int(item.get("seq_end", last_seq)), now))
                 self._last_rev_mono = now
+            elif kind == "process":
+                self._publish_process(item)
             else:
                 self._publish_alarm(item, interlock_by_event.get(id(item), self._held()))
+        self._after_step(step)
         if not self.ready.is_set():
             self.state = "running" if not self.faults else "degraded"
             self.ready.set()
             self._safe(lambda: self._notify(ready=True, status="running: DAQ streaming, Zenoh open"))
             log.info("daemon.ready", machine=self.machine, interlock=self.interlock.state)
+
+    # ------------------------------------------------------------------ learned limits (daemon/learning)
+    def _publish_step(self, step: Any) -> None:
+        """A step that closed no revolution (a context change, a lost link): trips, alarms, processes."""
+        held: dict[int, str | None] = {}
+        for ev in step.trips:
+            held[id(ev)] = self._trip(f"{ev.level} {ev.quantity} {ev.value} < {ev.limit}"
+                                      if ev.level == "envelope_low" else f"{ev.level} {ev.quantity} {ev.value} > {ev.limit}")
+        for kind, item in step.items:
+            if kind == "process":
+                self._publish_process(item)
+            elif kind == "alarm":
+                self._publish_alarm(item, held.get(id(item), self._held()))
+        self._after_step(step)
+
+    def _publish_process(self, summary: dict) -> None:
+        seq = summary.get("seq_end")
+        t = self.clock.time_of(int(seq)) if (self.clock is not None and seq is not None) else time.time()
+        payload = process_payload(summary, self.machine, t)
+        self.processes += 1
+        self.last_process = payload
+        publish = getattr(self.sink, "process", None)
+        if publish is not None:
+            publish(payload)
+        if self.history is not None:
+            self.history.add_process(payload)
+        log.info("process", **{k: v for k, v in payload.items() if k not in ("machine", "t")})
+
+    def _after_step(self, step: Any) -> None:
+        """Persist the learned limits that changed; say each one-time note once."""
+        for event, fields in step.notes:
+            if event not in self._notes_said:
+                self._notes_said.add(event)
+                log.info(event, **fields)
+        monitor = self.core.monitor
+        if self.history is None or monitor is None or not (step.changed_limits or step.tools_changed):
+            return
+        with self._alarm_lock:
+            limits = {key: monitor.export_limits(key) for key in step.changed_limits}
+            tools = monitor.export_tools() if step.tools_changed else None
+        for key, data in limits.items():
+            self.history.save_limits(key, data)
+        if tools is not None:
+            self.history.save_tools(tools)
+
+    def on_context_payload(self, payload: dict, source: str = "") -> None:
+        """A CNC adapter's `context` put (Zenoh's thread): applied by the estimator thread, in order."""
+        with self._context_lock:
+            if len(self._zenoh_contexts) < 64:  # a flood keeps the newest few, never grows
+                self._zenoh_contexts.append((payload, source))
+            else:
+                self._zenoh_contexts[-1] = (payload, source)
+        wake = getattr(self.driver, "wake", None)
+        if wake is not None:
+            wake.set()
+
+    def _take_zenoh_contexts(self) -> None:
+        with self._context_lock:
+            taken, self._zenoh_contexts = self._zenoh_contexts, []
+        for payload, source in taken:
+            with self._alarm_lock:
+                step, refused = self.core.on_zenoh_context(payload)
+            if refused:
+                self._context_refused.note(source or "unknown", refused)
+                continue
+            self._publish_step(step)
+
+    def limits(self) -> dict[str, Any]:
+        """The `limits` queryable: learned limits per process key, and the tools' life and wear."""
+        monitor = self.core.monitor
+        if monitor is None:
+            return {"machine": self.machine, "enabled": False, "limits": [], "tools": {}}
+        with self._alarm_lock:
+            return {"machine": self.machine, "enabled": True, **monitor.limits_summary()}
+
+    def limits_command(self, args: dict, requester: str = "") -> dict[str, Any]:
+        """`cmd/limits` and `millsense limits`: the operator's changes (the caller authorised them)."""
+        monitor = self.core.monitor
+        if monitor is None:
+            return {"ok": False, "error": "learning is off ([learning] enabled = false)"}
+        if not isinstance(args, dict):
+            return {"ok": False, "error": "the arguments must be a JSON object"}
+        with self._alarm_lock:
+            result = monitor.command(dict(args))
+            changed = list(result.pop("changed_keys", ()) or ())
+            tools_changed = bool(result.pop("tools_changed", False))
+        if args.get("action") not in ("list", "show"):  # a read changes nothing: a flood of them logs nothing
+            log.warning("limits.command", requester=requester or "unknown", action=args.get("action"),
+                        key=args.get("key"), tool=args.get("tool"), pct=args.get("pct"), ok=result.get("ok"),
+                        error=result.get("error"))
+        if changed or tools_changed:
+            from millsense.daemon.pipeline.run_core import Step
+
+            step = Step()
+            step.changed_limits, step.tools_changed = set(changed), tools_changed
+            self._after_step(step)
+        return result
 
     def _check_power(self, est: dict) -> None:
         verdict = self.power_check.update(est)
@@ -440,6 +565,8 @@ class Runner:
         self.sink.alarm(payload)
         self.alarms_sent += 1
         self.last_alarm = payload
+        if self.history is not None:
+            self.history.add_alarm(payload)
         # The alarm's kind goes under `alarm_level`: structlog's add_log_level writes the log level
         # into `level` and would overwrite it (issue 10, finding 7).
         fields = {k: v for k, v in payload.items() if k not in ("machine", "level")}
@@ -550,8 +677,11 @@ class Runner:
     def _daq_alarm(self, ok: bool) -> None:
         with self._alarm_lock:
             events = self.core.alarms.on_daq(ok)
+            lost = self.core.on_link_lost() if not ok else None
         for ev in events:
             self._publish_alarm(ev, self._held())
+        if lost is not None:
+            self._publish_step(lost)
 
     def _diagnostics(self) -> dict[str, Any]:
         d: dict[str, Any] = {"samples": self.samples_received, "revolutions": self.revolutions}
@@ -625,7 +755,7 @@ class Runner:
             self._safe(lambda: log.debug("stats", **{k: v for k, v in status.items() if k not in ("machine", "version")}))
             if self._on_second is not None:
                 with self._alarm_lock:
-                    alarm_state = self.core.alarms.summary()
+                    alarm_state = self.core.summary()
                 self._safe(self._on_second, status, self.last_estimate, alarm_state)
 
     # ------------------------------------------------------------------ Controls
@@ -636,8 +766,10 @@ class Runner:
         except Exception:  # noqa: BLE001
             pass
         with self._alarm_lock:
-            alarms = self.core.alarms.active()
-            alarm = self.core.alarms.summary()
+            alarms = self.core.active()
+            alarm = self.core.summary()
+            ctx = self.core.context.at(self._last_seq) if self._last_seq is not None else None
+            learning = _learning_status(self.core.monitor)
         return {
             "machine": self.machine,
             "t": time.time(),
@@ -657,11 +789,22 @@ class Runner:
             "alarm": alarm,
             "alarms": alarms,
             "faults": dict(self.faults),
+            "context": None if ctx is None else {"program": ctx.program, "tool": ctx.tool,
+                                                 "operation": ctx.operation, "source": ctx.source},
+            "processes": self.processes,
+            "learning": learning,
+            "history": self._history_stats(),
             "daq": stats,
             "sink": self._sink_stats(),
             "uptime_s": round(time.monotonic() - self.started_mono, 1),
             "version": self.version,
         }
+
+    def _history_stats(self) -> dict | None:
+        try:
+            return self.history.stats() if self.history is not None else None
+        except Exception:  # noqa: BLE001
+            return None
 
     def _sink_stats(self) -> dict | None:
         try:
@@ -694,20 +837,20 @@ class Runner:
         if refusal is not None:
             log.warning("interlock.reset_refused", requester=requester or "unknown", reason=il.reason, **refusal)
             result = {"ok": False, **refusal, **il.state_dict()}
-            result["alarm"] = self.core.alarms.summary()
+            result["alarm"] = self.core.summary()
             return result
         result = il.reset()
         if result.get("ok"):
             with self._check_lock:
                 self._check.clear()
             with self._alarm_lock:
-                events = self.core.alarms.reset()
+                events = self.core.reset()
             with self._frame_lock:
                 if self.frame_check is not None:
                     self.frame_check.rearm()
             for ev in events:
                 self._safe(self._publish_alarm, ev, None)
-        result["alarm"] = self.core.alarms.summary()
+        result["alarm"] = self.core.summary()
         return result
 
     def test_trip(self, requester: str = "", wait_s: float = TEST_TRIP_WAIT_S) -> dict[str, Any]:
@@ -768,6 +911,34 @@ class Runner:
         log.info("interlock.test_trip_result", requester=requester or "unknown",
                  **{k: v for k, v in result.items() if k != "interlock_detail"})
         return result
+
+
+def _learning_status(monitor: Any) -> dict[str, Any] | None:
+    """For `status`: how many process keys are learning, pending, active (None: learning off)."""
+    if monitor is None:
+        return None
+    counts = {"learning": 0, "pending": 0, "active": 0}
+    for entry in monitor.limits_summary().get("limits", []):
+        state = entry.get("state")
+        if state in counts:
+            counts[state] += 1
+    return counts
+
+
+class _RefusalLog:
+    """Refused Zenoh contexts, logged at most once per 10 s with a count (a flooding adapter)."""
+
+    def __init__(self, event: str):
+        from millsense.daemon.throttle import Throttle
+
+        self.event = event
+        self.throttle = Throttle(10.0)
+
+    def note(self, source: str, reason: str) -> None:
+        due = self.throttle.note((source, reason))
+        if due is not None:
+            count, (last_source, last_reason) = due
+            log.warning(self.event, source=last_source, reason=last_reason, refused=count)
 
 
 def _named(os_name: str, target: Callable[[], None]) -> Callable[[], None]:

@@ -58,6 +58,10 @@ FLAT_COUNTS = 8         # a live channel swings thousands of counts; a stuck one
 LIVE_COUNTS = 200       # ... and "the drive runs" when some voltage or current swings this much
 FLAT_REL = 0.1          # the phases of a running motor swing alike; a tenth is a dead or unplugged sensor
 MAX_SLIP = 0.10         # breakdown slip of spindle motors is 5-15 %; the drive's current limit keeps it lower
+# The speed channel and the encoder may differ by this much whatever the speed: a tacho or the drive's
+# speed output lags the encoder by milliseconds, which while the spindle brakes hard for a tool change is
+# 5-15 rpm, "more than 10 %" below 150 rpm. A stuck or mis-scaled channel is caught above a few hundred.
+SPEED_AGREE_RPM = 20.0
 MIN_VOLTAGE_V = 1.0     # space-vector amplitude below which the drive is off: f_e means nothing
 HIGH_FRAC = 0.25        # a clipped current is "high" (not stuck) if it swung this share of its range
 HIGH_WINDOW_S = 0.05    # ... within this much of samples before
@@ -384,7 +388,7 @@ class SignalCheck:
         if sp is not None:
             ref = np.maximum(src, 1e-9)
             near = turning | (src >= STOP_RPM * tight) | (sp >= STOP_RPM * tight)
-            out |= near & (np.abs(sp - ref) > self.tol * tight * ref)
+            out |= near & (np.abs(sp - ref) > np.maximum(self.tol * ref, SPEED_AGREE_RPM) * tight)
         return out
 
     def _problems(self, a: int, b: int) -> tuple[dict[str, str], bool, set[str]]:
@@ -467,8 +471,8 @@ class SignalCheck:
                     return
         if sp is not None and (turning or src >= STOP_RPM or sp >= STOP_RPM):
             ref = max(src, 1e-9)
-            if abs(sp / ref - 1.0) > self.tol:
+            if abs(sp - ref) > max(self.tol * ref, SPEED_AGREE_RPM):
                 out[self.sp_name] = (
                     f"{self.sp_name}: reads {sp:.0f} rpm, the encoder {self.src_name} {src:.0f} rpm "
-                    f"(more than speed_tolerance_pct {100 * self.tol:g} % apart)"
+                    f"(more than speed_tolerance_pct {100 * self.tol:g} % and {SPEED_AGREE_RPM:g} rpm apart)"
                 )

@@ -1,4 +1,4 @@
-"""Zenoh options shared by `millsense watch`, `reset` and `test-trip`.
+"""Zenoh options shared by `millsense watch`, `reset`, `test-trip` and `limits`.
 
 They are short-lived tools, not the daemon: they take the session settings from
 the command line (or the operator's own Zenoh JSON5 file for TLS) and, given
@@ -273,3 +273,135 @@ def command_target(args: argparse.Namespace, prog: str, zenoh_timeout_s: float, 
               file=sys.stderr)
         return EXIT_USAGE
     return Target(daemon, machine)
+
+
+# ---- the commands' token and session (`reset`, `test-trip`, `limits`): one copy -------------------
+TOKEN_ENV = "MILLSENSE_RESET_TOKEN"
+
+
+def add_token_arguments(parser: argparse.ArgumentParser, *, inline: bool = True) -> None:
+    """`--token-file FILE` (and, with `inline`, `--token`, which other users see in ps)."""
+    tok = parser.add_mutually_exclusive_group()
+    if inline:
+        tok.add_argument("--token", default=None,
+                         help="reset token, if the daemon requires one (other users see it in ps: "
+                              f"prefer --token-file or the environment variable {TOKEN_ENV})")
+    tok.add_argument("--token-file", metavar="FILE", default=None,
+                     help=f"read the token from FILE (first line; or the environment variable {TOKEN_ENV})")
+
+
+def read_token(args: argparse.Namespace) -> str | None:
+    """The token given on purpose: `--token-file`, `--token`, else $MILLSENSE_RESET_TOKEN; None if none.
+
+    Raises ValueError (one sentence) when the file cannot be read.
+    """
+    import os
+
+    if getattr(args, "token_file", None):
+        try:
+            lines = Path(args.token_file).read_text(encoding="utf-8").splitlines()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ValueError(f"cannot read --token-file {args.token_file}: {exc}") from None
+        return lines[0].strip() if lines else ""
+    if getattr(args, "token", None) is not None:
+        return args.token
+    if os.environ.get(TOKEN_ENV):
+        return os.environ[TOKEN_ENV].strip()
+    return None
+
+
+@dataclass
+class CommandSession:
+    """An open Zenoh session for one command, with the `try:` line to print when nobody answers;
+    `open_machine_session` adds the machine it is for and the deadline of the user's `--timeout`."""
+
+    session: Any
+    settings: Any
+    no_daemon_hint: str
+    machine: str | None = None
+    deadline: float = 0.0
+
+
+def open_machine_session(args: argparse.Namespace, daemon: DaemonConfig | None, machine: str | None, prog: str,
+                         *hint_more: str) -> CommandSession | int:
+    """`open_command_session`, then the machine: `machine`, or the only one alive (closed and the exit code
+    when there is none or several)."""
+    import time
+
+    started = time.monotonic()
+    opened = open_command_session(args, daemon, prog, *hint_more)
+    if isinstance(opened, int):
+        return opened
+    opened.deadline = started + args.timeout
+    if machine is None:
+        machine, code = only_machine_alive(opened.session, opened.deadline, args.timeout, opened.no_daemon_hint, prog)
+        if machine is None:
+            opened.session.close()
+            return code
+    opened.machine = machine
+    return opened
+
+
+def command_error_text(exc: Any, opened: CommandSession, command: str, args: argparse.Namespace,
+                       daemon: DaemonConfig | None, token: str | None) -> str:
+    """What to print when `exchange` raised `CommandError`: nobody answered (with the `try:` line), no
+    token where the daemon's config names a token file (with that file), or the daemon's refusal."""
+    if exc.no_answer:
+        message = str(exc)
+        if message.startswith("no daemon answered"):  # the user's timeout, not what was left of it
+            message = f"no daemon answered on millsense/{opened.machine}/cmd/{command} within {args.timeout:g} s"
+        return f"{message}\n{opened.no_daemon_hint}"
+    if token is None and daemon is not None and daemon.token_file and "none was given" in str(exc):
+        return f"{exc}\ntry: --token-file {daemon.token_file} (the token file its config names, if you may read it)"
+    return str(exc)
+
+
+def open_command_session(args: argparse.Namespace, daemon: DaemonConfig | None, prog: str,
+                         *hint_more: str) -> CommandSession | int:
+    """The session `args` and the daemon's config say, waiting up to `args.timeout`; or, after printing
+    why on stderr, the exit code (2 for a bad option, 1 when Zenoh cannot be opened)."""
+    from millsense.daemon.publish.session import ZenohConfigError, ZenohUnavailable, open_session
+
+    try:
+        settings = session_settings(args, daemon)
+    except CliUsageError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    no_daemon_hint = hint(settings, daemon, *hint_more)
+    try:
+        session = open_session(settings, retry_for_s=args.timeout)
+    except ZenohConfigError as exc:
+        print(f"{prog}: error: {strip_rust(str(exc))}", file=sys.stderr)
+        return 1
+    except ZenohUnavailable as exc:
+        print(f"{prog}: error: {strip_rust(str(exc))}\n{no_daemon_hint}", file=sys.stderr)
+        return 1
+    return CommandSession(session, settings, no_daemon_hint)
+
+
+def only_machine_alive(session: Any, deadline: float, timeout_s: float, no_daemon_hint: str,
+                       prog: str) -> tuple[str | None, int]:
+    """The one machine whose `millsense/*/alive` token is visible by `deadline`; with none or several,
+    (None, 1) after saying so: a command is not sent to a guessed machine."""
+    import time
+
+    machines: set[str] = set()
+    while True:
+        left = deadline - time.monotonic()
+        for reply in session.liveliness().get("millsense/*/alive", timeout=max(0.1, min(left, 0.5))):
+            if reply.ok is not None:
+                parts = str(reply.ok.key_expr).split("/")
+                if len(parts) == 3:
+                    machines.add(parts[1])
+        if machines or deadline - time.monotonic() <= 0.05:
+            break
+        time.sleep(0.05)  # the session may still be learning its peers' tokens
+    if not machines:
+        print(f"{prog}: no daemon alive on millsense/*/alive within {timeout_s:g} s\n{no_daemon_hint}",
+              file=sys.stderr)
+        return None, 1
+    if len(machines) > 1:
+        print(f"{prog}: several daemons are alive ({', '.join(sorted(machines))}); choose one with --machine",
+              file=sys.stderr)
+        return None, 1
+    return machines.pop(), 0

@@ -1,6 +1,6 @@
 """The daemon's queryables: bounded in Zenoh, served by one Python thread, cheap to flood.
 
-Each queryable (`status`, `config`, `cmd/*`) takes a Zenoh ring channel of a
+Each queryable (`status`, `config`, `limits`, `cmd/*`) takes a Zenoh ring channel of a
 few entries: when queries come faster than they are served, Zenoh drops the
 oldest inside its own threads, before any Python runs or the GIL is taken
 (a query flood starved the heartbeat thread through per-query Python
@@ -12,7 +12,9 @@ time a flood can take.
 
 Per query: the payload's length is checked before anything reads it
 (`MAX_QUERY_BYTES`); `status` and `config` answers are kept as bytes for a
-moment, so a burst of status queries costs one `Runner.status()`. Refusals are
+moment, so a burst of status queries costs one `Runner.status()`. `limits`
+reads only (no token): with no payload it answers `controls.limits()`, with
+`{"key": "program/tool/operation"}` that key's detail. Refusals are
 never logged one line each (finding 6): `cmd/*` refusals go to the audit log,
 which writes them at most once per 10 s with a count, and other failed queries
 are summed in one `zenoh.queries_refused` line per 10 s.
@@ -36,6 +38,7 @@ RING_CAPACITY = 8
 LOG_EVERY_S = 10.0
 STATUS_CACHE_S = 0.2
 CONFIG_CACHE_S = 2.0
+LIMITS_CACHE_S = 1.0  # cleared when a command runs: the next read shows what it changed
 TOO_LARGE = dumps({"ok": False, "error": f"payload over {MAX_QUERY_BYTES} bytes: refused unread"})
 
 
@@ -53,8 +56,10 @@ class QueryServer:
     def __init__(self, session: zenoh.Session, prefix: str, *, status: Callable[[], dict],
                  config: Callable[[], dict], commands: dict[str, Callable[[dict, str], dict]],
                  gate: CommandGate | None, log: Any = None, capacity: int = RING_CAPACITY,
-                 max_rate_hz: float = 1000.0, cache_status: bool = True):
+                 max_rate_hz: float = 1000.0, cache_status: bool = True,
+                 limits: Callable[[str | None], dict] | None = None):
         self._status, self._config, self._gate, self._log = status, config, gate, log
+        self._limits = limits
         self._commands = commands
         self._max_per_tick = max(1, int(max_rate_hz / 10))
         self._cache: dict[str, tuple[float, bytes]] = {}
@@ -69,6 +74,8 @@ class QueryServer:
         self._refused = Throttle(LOG_EVERY_S)
 
         entries = [_Entry(f"{prefix}/status", self._serve_status), _Entry(f"{prefix}/config", self._serve_config)]
+        if limits is not None:
+            entries.append(_Entry(f"{prefix}/limits", self._serve_limits))
         for name in commands or {"reset": None}:
             entries.append(_Entry(f"{prefix}/cmd/{name}", self._serve_command, command=name))
         self._entries: list[_Entry] = []
@@ -137,12 +144,31 @@ class QueryServer:
         except Exception as exc:  # noqa: BLE001 - the querier went away, or the session closed
             self._note_refusal(entry.key, f"reply failed: {type(exc).__name__}: {exc}")
 
-    # ---- the three kinds of query ---------------------------------------------------------
+    # ---- the kinds of query --------------------------------------------------------------
     def _serve_status(self, _query: Any, _command: str | None) -> tuple[bool, bytes]:
         return self._cached("status", STATUS_CACHE_S if self._cache_status else 0.0, self._status)
 
     def _serve_config(self, _query: Any, _command: str | None) -> tuple[bool, bytes]:
         return self._cached("config", CONFIG_CACHE_S, self._config)
+
+    def _serve_limits(self, query: Any, _command: str | None) -> tuple[bool, bytes]:
+        """No payload: every key's summary (cached); `{"key": K}`: that key's detail (not cached)."""
+        from millsense.daemon.publish.limits_args import parse_key
+
+        payload = query.payload
+        data = payload.to_bytes() if payload is not None else b""
+        if not data.strip():
+            return self._cached("limits", LIMITS_CACHE_S, lambda: self._limits(None))
+        try:
+            request = loads_object(data)
+            extra = sorted(set(request) - {"key"})
+            if extra:
+                raise ValueError(f"limits takes only \"key\" (got {', '.join(extra)})")
+            key = parse_key(request.get("key"))
+        except ValueError as exc:
+            self._note_refusal("limits", str(exc))
+            return False, dumps({"ok": False, "error": str(exc)})
+        return self._cached(f"limits {key}", 0.0, lambda: self._limits(key))
 
     def _cached(self, name: str, keep_s: float, produce: Callable[[], dict]) -> tuple[bool, bytes]:
         now = time.monotonic()

@@ -4,6 +4,9 @@ Publishing never blocks the estimator. `estimate()` and `status()` append to a
 bounded deque (the oldest entry goes when it is full, and is counted) and wake
 one publisher thread; `alarm()` goes to its own queue, which the thread always
 empties first, and is never dropped (alarms are rare: one per state change).
+`process()` (one summary per finished process: rare too) has its own bounded
+queue, served after the alarms and before the estimates; a summary is dropped
+only when `PROCESS_QUEUE` of them wait, and counted (`process_dropped`).
 Serialisation to JSON happens on the publisher thread too.
 
 Keys (interfaces.md), prefix `millsense/<machine>`:
@@ -13,14 +16,22 @@ Keys (interfaces.md), prefix `millsense/<machine>`:
 | `estimate` | publisher, CongestionControl.DROP, Priority.DATA, batched |
 | `alarm` | publisher, CongestionControl.BLOCK, Priority.REAL_TIME, express |
 | `status` | publisher (DROP) and queryable |
+| `process` | publisher, CongestionControl.BLOCK, Priority.DATA_HIGH, reliable, batched |
 | `config` | queryable: `controls.config()` |
+| `limits` | queryable, reads only: `controls.limits()`, or with `{"key": K}` `controls.limits_command({"action": "show", ...})` |
 | `cmd/reset`, `cmd/test-trip` | queryables: the challenge–response of command_auth.py, then `controls.reset(requester=...)` / `controls.test_trip(requester=...)` |
+| `cmd/limits` | queryable, the same challenge–response, args checked (limits_args.py), then `controls.limits_command(args, requester)` |
+| `context` | subscriber (when `[context] source` is auto or zenoh): `controls.on_context_payload(obj, source)` |
 | `alive` | liveliness token |
 
 The queryables take bounded ring channels, each served by its own worker thread
 (daemon/publish/queryables.py), so a query flood is dropped inside Zenoh and
-never starves the heartbeat. Whatever a query carries and whatever `controls`
-raises, the answer is a JSON reply, never an exception escaping into Zenoh.
+never starves the heartbeat. The `context` subscriber is bounded the same way
+(a ring of `RING_CAPACITY`: under a flood the oldest contexts go, the newest is
+what counts) and served by its own thread; a payload over `MAX_QUERY_BYTES` is
+refused by its length, unread, and refusals are logged at most once per 10 s
+with a count (`zenoh.context_refused`). Whatever a query carries and whatever
+`controls` raises, the answer is a JSON reply, never an exception escaping into Zenoh.
 The command policy and token come from `controls.settings.interlock` (the
 Runner's), unless `command_policy` / `command_token` are given.
 """
@@ -36,9 +47,17 @@ import zenoh
 
 from millsense.daemon.audit import AuditLog
 from millsense.daemon.publish.command_auth import CommandGate, policy_and_token
-from millsense.daemon.publish.payload import dumps
-from millsense.daemon.publish.queryables import QueryServer
+from millsense.daemon.publish.limits_args import check_args
+from millsense.daemon.publish.payload import MAX_QUERY_BYTES, dumps, loads_object
+from millsense.daemon.publish.queryables import LOG_EVERY_S, RING_CAPACITY, QueryServer
+from millsense.daemon.throttle import Throttle
 from millsense.drivers.base import name_os_thread
+
+PROCESS_QUEUE = 256  # process summaries waiting to be published; one per finished operation, so rarely > 1
+CONTEXT_SOURCES = ("auto", "zenoh")  # `[context] source` values under which the daemon listens on `context`
+# A CNC changes its context a few times a second at most; past this many in a tenth of a second the
+# thread waits for the next tenth while its ring drops the oldest, so a flood cannot take the GIL.
+CONTEXT_PER_TICK = 20
 
 
 class Controls(Protocol):
@@ -48,7 +67,9 @@ class Controls(Protocol):
     def config(self) -> dict: ...
     def reset(self, requester: str = "") -> dict: ...
     # optional: test_trip(requester="") -> dict (then `cmd/test-trip` is declared);
-    # `settings.interlock` (reset policy and token); `audit` (an AuditLog)
+    # limits() -> dict and limits_command(args, requester) -> dict (then `limits` and `cmd/limits`);
+    # on_context_payload(payload, source) -> None (then the `context` subscriber, thread-safe);
+    # `settings.interlock` (reset policy and token); `settings.context.source`; `audit` (an AuditLog)
 
 
 def _no_args(name: str, method: Any) -> Any:
@@ -60,8 +81,29 @@ def _no_args(name: str, method: Any) -> Any:
     return run
 
 
+def _limits_run(method: Any) -> Any:
+    """`cmd/limits`: args checked before the Runner sees them; the result names what was asked (audited)."""
+
+    def run(args: dict, requester: str) -> dict:
+        checked = check_args(args)  # ValueError: a signed refusal, audited with its reason
+        result = method(checked, requester)
+        if not isinstance(result, dict):
+            return result  # the gate says what is wrong with it
+        return {**checked, **result}
+
+    return run
+
+
 def key_prefix(machine: str) -> str:
     return f"millsense/{machine}"
+
+
+def _context_source(sample: Any) -> str:
+    """Who put a context, as far as Zenoh says: the publisher's Zenoh id when it sent one (unverified)."""
+    info = getattr(sample, "source_info", None)
+    source_id = getattr(info, "source_id", None) if info is not None else None
+    zid = getattr(source_id, "zid", None)
+    return f"zenoh zid:{zid} (self-declared)" if zid is not None else "zenoh"
 
 
 _ESTIMATE, _STATUS = 0, 1
@@ -102,6 +144,7 @@ class ZenohSink:
         self._queue: collections.deque[tuple[int, dict]] = collections.deque()
         self._queue_size = queue_size
         self._alarms: collections.deque[dict] = collections.deque()
+        self._processes: collections.deque[dict] = collections.deque()
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._closing = False
@@ -114,6 +157,13 @@ class ZenohSink:
         self._alarms_published = 0
         self._dropped = 0
         self._errors = 0
+        self._process_published = 0
+        self._process_dropped = 0
+        self._context_taken = 0
+        self._context_refused = 0
+        self._context_refusals = Throttle(LOG_EVERY_S)
+        self._context_sub: Any = None
+        self._context_thread: threading.Thread | None = None
         self._queries: QueryServer | None = None
         if controls is None:
             self.gate: CommandGate | None = None
@@ -152,9 +202,24 @@ class ZenohSink:
                     express=False,
                 )
             )
+            self._pub_process = self._keep(
+                session.declare_publisher(
+                    f"{self.prefix}/process",
+                    encoding=encoding,
+                    # Rare and wanted by historians: wait for the network rather than lose one.
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    priority=zenoh.Priority.DATA_HIGH,
+                    reliability=zenoh.Reliability.RELIABLE,
+                    express=False,
+                )
+            )
+            has_limits = callable(getattr(controls, "limits", None)) and callable(
+                getattr(controls, "limits_command", None))
             self._queries = QueryServer(session, self.prefix, status=self._status_answer, config=self._config_answer,
                                         commands=self._commands(controls), gate=self.gate, log=log,
-                                        cache_status=controls is not None)
+                                        cache_status=controls is not None,
+                                        limits=self._limits_answer if has_limits else None)
+            self._declare_context(controls)
             self._token = self._keep(session.liveliness().declare_token(f"{self.prefix}/alive"))
         except BaseException:
             if self._queries is not None:
@@ -186,6 +251,18 @@ class ZenohSink:
                 self._dropped += 1
             return
         self._alarms.append(dict(payload))
+        self._wake.set()
+
+    def process(self, payload: dict) -> None:
+        """One finished process's summary: its own queue, after alarms, before estimates; drops counted."""
+        with self._lock:
+            if self._closing:
+                self._process_dropped += 1
+                return
+            if len(self._processes) >= PROCESS_QUEUE:
+                self._processes.popleft()
+                self._process_dropped += 1
+            self._processes.append(dict(payload))
         self._wake.set()
 
     def _enqueue(self, kind: int, payload: dict) -> None:
@@ -220,7 +297,11 @@ class ZenohSink:
         self._closed = True
         if self._queries is not None:
             self._queries.close(self._close_timeout_s)
-        self._undeclare_all()
+        self._undeclare_all()  # the context subscriber's ring closes: its thread ends
+        if self._context_thread is not None:
+            self._context_thread.join(self._close_timeout_s)
+        with self._lock:
+            self._log_context_refused(self._context_refusals.pending())
 
     def __enter__(self) -> ZenohSink:
         return self
@@ -263,6 +344,10 @@ class ZenohSink:
             "queue_depth": len(self._queue),
             "alarm_queue_depth": len(self._alarms),
             "publish_errors": self._errors,
+            "process_published": self._process_published,
+            "process_dropped": self._process_dropped,
+            "context_taken": self._context_taken,
+            "context_refused": self._context_refused,
             **(self._queries.stats() if self._queries is not None else {}),
         }
 
@@ -270,10 +355,16 @@ class ZenohSink:
 
     def _run(self) -> None:
         name_os_thread("ms-zenoh-sink")
-        queue, alarms = self._queue, self._alarms
+        queue, alarms, processes = self._queue, self._alarms, self._processes
         while True:
             if alarms:
                 self._put(self._pub_alarm, alarms.popleft(), alarm=True)
+                continue
+            if processes:
+                with self._lock:
+                    payload = processes.popleft() if processes else None
+                if payload is not None and self._put(self._pub_process, payload):
+                    self._process_published += 1
                 continue
             if queue:
                 try:
@@ -289,17 +380,18 @@ class ZenohSink:
             # set() may have come between the emptiness checks and clear(): look again
             # before sleeping (the loop does, since it re-checks both queues first).
 
-    def _put(self, publisher: Any, payload: dict, *, alarm: bool = False) -> None:
+    def _put(self, publisher: Any, payload: dict, *, alarm: bool = False) -> bool:
         try:
             publisher.put(dumps(payload))
         except Exception as exc:  # a payload that cannot be serialised, or a closed session
             self._errors += 1
             self._warn("zenoh.publish_failed", key=str(publisher.key_expr), error=f"{type(exc).__name__}: {exc}")
-            return
+            return False
         if alarm:
             self._alarms_published += 1
         else:
             self._published += 1
+        return True
 
     # ---- what the queryables answer (called on the query worker, daemon/publish/queryables.py) ----
 
@@ -315,6 +407,74 @@ class ZenohSink:
             raise LookupError("this daemon exposes no configuration")
         return self._controls.config()
 
+    def _limits_answer(self, key: str | None) -> dict:
+        """Every key's summary, or one key's detail: reads, so no token and no audit line."""
+        if key is None:
+            return self._controls.limits()
+        result = self._controls.limits_command({"action": "show", "key": key}, "limits query (read)")
+        if isinstance(result, dict) and result.get("ok") is False:
+            raise LookupError(str(result.get("error") or f"no limits for {key}"))
+        return result
+
+    # ---- the context subscriber (its own thread, daemon/publish/queryables.py's pattern) ----------
+
+    def _declare_context(self, controls: Any) -> None:
+        handler = getattr(controls, "on_context_payload", None)
+        source = getattr(getattr(getattr(controls, "settings", None), "context", None), "source", "auto")
+        if not callable(handler) or source not in CONTEXT_SOURCES:
+            return  # "daq" or "off": nobody may tell this daemon its context over the network
+        self._context_sub = self._keep(
+            self._session.declare_subscriber(f"{self.prefix}/context", zenoh.handlers.RingChannel(RING_CAPACITY)))
+        self._context_thread = threading.Thread(target=self._context_loop, args=(self._context_sub, handler),
+                                                name=f"zenoh-context-{self.machine}", daemon=True)
+        self._context_thread.start()
+
+    def _context_loop(self, subscriber: Any, handler: Any) -> None:
+        name_os_thread("ms-zenoh-ctx")
+        tick_end, served = time.monotonic() + 0.1, 0
+        while True:
+            try:
+                sample = subscriber.handler.recv()  # blocks in Zenoh, GIL released
+            except Exception:  # noqa: BLE001 - the ring closed: the sink is closing
+                return
+            now = time.monotonic()
+            if now >= tick_end:
+                tick_end, served = now + 0.1, 0
+            elif served >= CONTEXT_PER_TICK:
+                time.sleep(tick_end - now)
+                tick_end, served = time.monotonic() + 0.1, 0
+            served += 1
+            self._take_context(sample, handler)
+
+    def _take_context(self, sample: Any, handler: Any) -> None:
+        payload = sample.payload
+        if payload is not None and len(payload) > MAX_QUERY_BYTES:
+            self._refuse_context(f"payload over {MAX_QUERY_BYTES} bytes: refused unread")
+            return
+        try:
+            obj = loads_object(payload.to_bytes() if payload is not None else b"")
+        except ValueError as exc:
+            self._refuse_context(str(exc))
+            return
+        try:
+            handler(obj, _context_source(sample))
+        except Exception as exc:  # noqa: BLE001 - a context must never kill the sink
+            self._refuse_context(f"{type(exc).__name__}: {exc}")
+            return
+        with self._lock:
+            self._context_taken += 1
+
+    def _refuse_context(self, reason: str) -> None:
+        with self._lock:
+            self._context_refused += 1
+            self._log_context_refused(self._context_refusals.note(reason))
+
+    def _log_context_refused(self, due: tuple[int, Any] | None) -> None:
+        if due is not None:
+            count, last = due
+            self._warn("zenoh.context_refused", key=f"{self.prefix}/context", count=count, last=last,
+                       every_s=LOG_EVERY_S)
+
     @staticmethod
     def _commands(controls: Any) -> dict[str, Any]:
         """`cmd/<name>` -> run(args, requester), for what `controls` can do; args are refused (none is taken)."""
@@ -325,6 +485,9 @@ class ZenohSink:
             method = getattr(controls, attr, None)
             if callable(method):
                 out[name] = _no_args(name, method)
+        method = getattr(controls, "limits_command", None)
+        if callable(method):
+            out["limits"] = _limits_run(method)
         return out
 
     # ---- teardown and logging ------------------------------------------------------

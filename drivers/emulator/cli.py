@@ -55,6 +55,46 @@ def _pin(text: str) -> tuple[str, int]:
     return name, value
 
 
+def _pair(first: str, second: str, second_type=int):
+    """FIRST:SECOND, e.g. PART:TOOL (whole numbers) or TOOL:PCT (a number after the colon)."""
+
+    def parse(text: str):
+        a, sep, b = text.partition(":")
+        try:
+            return int(a), second_type(b)
+        except ValueError:
+            pass
+        raise argparse.ArgumentTypeError(f"expected {first}:{second}, got {text!r}")
+
+    return parse
+
+
+PROGRAM_HELP = """\
+part programs (--scenario part-program):
+  A CNC makes --parts parts (default 30) of program 1001 with three tools: T11 (phi20 2-flute,
+  operation 10, 1500 rpm), T4 (phi16 4-flute, operation 20, 1200 rpm), T27 (phi8 3-flute,
+  operation 30, 2000 rpm); one slot each with a depth step, the spindle stopped for each tool
+  change, the cycle off between parts. The DAQ is protocol 2 by default and sends CONTEXT
+  (program, tool, operation; cycle|monitor while a cut is monitored, cycle off between parts)
+  just before the first sample it holds for; Modbus input registers 8-15 follow it. Parts
+  count from 1; faults apply to the part they name (in every pass, looping):
+    --wear TOOL:PCT          K_s of TOOL rises PCT % per part, compounding: x(1+PCT/100)^(part-1)
+    --broken-flute PART:TOOL a flute of TOOL breaks on the deeper floor of its slot in PART
+    --missing-part PART      no material in PART: every cut is in air
+    --wrong-tool PART:TOOL   in PART the spindle holds another cutter while the CNC reports
+                             TOOL (for T11 a phi12 2-flute, T4 phi10 2-flute, T27 phi10 4-flute)
+  --truth FILE also lists every process, one JSON line each, written when it ends:
+    {"process": n, "pass", "part", "program", "tool", "operation", "key": "1001/11/10",
+     "first_index", "last_index" (the samples with cycle and monitor set; sample indices count
+     from 0 at the first sample, as "index_end" of a revolution: add --start-index for the DAQ's),
+     "entry_index" (first sample cutting, null if none), "energy_j" (true cutting energy,
+     integral of cutting torque x omega dt over first..last), "wear_factor" (K_s multiplier),
+     "fault" (null, "broken_flute", "missing_part" or "wrong_tool"), "broken_index" (the
+     sample at which the flute broke, else null), "cutter": {"diameter_mm", "flutes"}}
+  Revolution lines have "rev", event lines "event" (tool_breakage, scenario_restart, ...).
+"""
+
+
 def _positive(text: str) -> float:
     value = float(text)
     if not value > 0:
@@ -63,6 +103,8 @@ def _positive(text: str) -> float:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = PROGRAM_HELP
     parser.add_argument("--scenario", default=None, help="scenario to play ('ramp': a synthetic test ramp)")
     parser.add_argument("--list", action="store_true", help="list the scenarios and exit")
     out = parser.add_mutually_exclusive_group()
@@ -111,13 +153,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--descriptor-rate", type=_uint(1, 65535), default=None, metavar="HZ",
                         help="the DESCRIPTOR claims HZ while the samples keep their true rate")
     # protocol version 2: the simulated CNC beside the DAQ (context, feed held, feed override)
-    parser.add_argument("--protocol", type=int, choices=(1, 2), default=1, help="DAQ protocol version (default 1)")
+    parser.add_argument("--protocol", type=int, choices=(1, 2), default=None,
+                        help="DAQ protocol version (default 1; 2 for a part program)")
     parser.add_argument("--unit", type=_uint(1, 247), default=1, help="Modbus unit id the device answers (default 1)")
-    parser.add_argument("--program", type=_uint(0, 2**32 - 1), default=0, help="protocol 2: the CNC's program number")
-    parser.add_argument("--tool", type=_uint(0, 2**32 - 1), default=0, help="protocol 2: the tool in the spindle")
-    parser.add_argument("--operation", type=_uint(0, 65535), default=0, help="protocol 2: the operation number")
+    parser.add_argument("--program", type=_uint(0, 2**32 - 1), default=None,
+                        help="protocol 2: the CNC's program number (default 0; a part program's own: 1001)")
+    parser.add_argument("--tool", type=_uint(0, 2**32 - 1), default=None,
+                        help="protocol 2: the tool in the spindle (default 0; a part program sets its own)")
+    parser.add_argument("--operation", type=_uint(0, 65535), default=None,
+                        help="protocol 2: the operation number (default 0; a part program sets its own)")
     parser.add_argument("--cnc-hold-lag-ms", type=_non_negative, default=30.0, metavar="MS",
                         help="protocol 2: how long after the feed-hold output the CNC reports the feed held (30)")
+    # the part program (drivers/sim/program.py): parts and faults; see below
+    parser.add_argument("--parts", type=_uint(1, 100_000), default=None, metavar="N",
+                        help="part program: how many parts (default 30)")
+    parser.add_argument("--wear", type=_pair("TOOL", "PCT", float), action="append", metavar="TOOL:PCT",
+                        help="part program: TOOL's K_s rises PCT %% per part, compounding (repeatable)")
+    parser.add_argument("--broken-flute", type=_pair("PART", "TOOL"), action="append", metavar="PART:TOOL",
+                        help="part program: a flute of TOOL breaks during its cut in PART (repeatable)")
+    parser.add_argument("--missing-part", type=_uint(1, 100_000), action="append", metavar="PART",
+                        help="part program: no material in PART (repeatable)")
+    parser.add_argument("--wrong-tool", type=_pair("PART", "TOOL"), action="append", metavar="PART:TOOL",
+                        help="part program: in PART the spindle holds another cutter than TOOL (repeatable)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -10,6 +10,9 @@ follows the DAQ's feed-hold output ``cnc_hold_lag_s`` later, as a real CNC
 answers its feed-hold input after its own scan time; and the feed-override
 output, which the device returns to 100.0 % when its watchdog trips. The
 plant's feed rate does not follow the override here: the value is carried only.
+A part program's plant (drivers/sim/program_plant.py) is a CNC of its own: it
+sets program, tool, operation, cycle and monitor by sample index, and the
+device passes each change on with the index of the first sample it holds for.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from millsense.drivers.protocol import (
     OUT_FEED_HOLD,
     Command,
     Context,
+    Samples,
     Status,
 )
 
@@ -114,6 +118,13 @@ class DeviceModel:
         self.operation = operation
         self.cnc_flags = CTX_CYCLE | CTX_MONITOR
         self.context_index = self.head  # the first sample index at which the context holds
+        # a part program (drivers/sim/program.py) is a CNC of its own: it sets program, tool, operation,
+        # cycle and monitor sample by sample; the device adds only "feed held"
+        self._program_source = callable(getattr(source, "drain_context", None))
+        if self._program_source:
+            self.program, self.tool, self.operation, self.cnc_flags = source.context()
+        self.context_changes: list[tuple[int, Context]] = []  # of the last produce: (offset in it, CONTEXT)
+        self._before_first_block = True
         self.cnc_hold_lag_s = max(0.0, cnc_hold_lag_ms) / 1000.0
         self._cnc_pending: collections.deque[tuple[float, bool]] = collections.deque()
         self._cnc_target = False  # what the CNC will report once the pending changes are through
@@ -121,14 +132,49 @@ class DeviceModel:
     # -- samples --------------------------------------------------------------
 
     def produce(self, n: int) -> tuple[int, np.ndarray]:
-        """The next ``n`` samples: (first index, (n, C) int16), also written to the ring."""
+        """The next ``n`` samples: (first index, (n, C) int16), also written to the ring.
+
+        A part program's context changes within them are in ``context_changes`` afterwards, as
+        (offset of the first sample it holds for, its CONTEXT), so a stream puts each CONTEXT
+        just before that sample (version 2; version 1 sends none, the context is kept all the same)."""
         first = self.head
+        source_first = self.source.index if self._program_source else 0
         counts = np.asarray(self.source.step(n), dtype=np.int16)
         keep = min(n, self.ring_depth)  # only the newest D samples survive
         pos = (first + n - keep + np.arange(keep, dtype=np.int64)) % INDEX_MOD % self.ring_depth
         self.ring[pos] = counts[n - keep :]
         self.head = (first + n) % INDEX_MOD
+        self.context_changes = []
+        if self._program_source:
+            changes = self.source.drain_context()
+            if self._before_first_block:  # the context at the very first sample leads the stream
+                self._before_first_block = False
+                ctx = self.context()
+                if ctx is not None and not (changes and changes[0][0] == source_first):
+                    self.context_changes.append((0, ctx))
+            for index, (program, tool, operation, flags) in changes:
+                offset = index - source_first
+                self.program, self.tool, self.operation = program, tool, operation
+                self.cnc_flags = flags | (self.cnc_flags & CTX_FEED_HELD)
+                self.context_index = (first + offset) % INDEX_MOD
+                ctx = self.context()
+                if ctx is not None:
+                    self.context_changes.append((offset, ctx))
         return first, counts
+
+    def stream_items(self, first: int, counts: np.ndarray) -> list:
+        """The block of the last ``produce`` as the stream carries it: ``Samples``, with each CONTEXT
+        of ``context_changes`` just before the sample it holds for (the in-process driver's frames)."""
+        items: list = []
+        done = 0
+        for offset, ctx in self.context_changes:
+            if offset > done:
+                items.append(Samples((first + done) % INDEX_MOD, counts[done:offset]))
+                done = offset
+            items.append(ctx)
+        if done < len(counts) or not items:
+            items.append(Samples((first + done) % INDEX_MOD, counts[done:]))
+        return items
 
     def ring_registers(self, offset: int, count: int) -> list[int]:
         """Registers 1000 + offset .. + count - 1 of the Modbus ring, as uint16."""

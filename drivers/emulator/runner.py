@@ -10,7 +10,7 @@ import time
 
 from millsense.drivers.emulator.device import DeviceModel, StatusLog
 from millsense.drivers.emulator.pacing import Pacer
-from millsense.drivers.emulator.source import SourceError, list_sources, make_source
+from millsense.drivers.emulator.source import SourceError, is_program, list_sources, make_source
 from millsense.drivers.emulator.wire import WireEmitter
 
 
@@ -24,7 +24,36 @@ def list_text() -> str:
     return "\n".join(f"{name:<16} {desc}" for name, desc in list_sources())
 
 
+PROGRAM_OPTIONS = ("parts", "wear", "broken_flute", "missing_part", "wrong_tool")
+
+
+def _program_options(args) -> dict | None:
+    """The part program's options (None for any other scenario, which refuses them: exit 2)."""
+    given = [name for name in PROGRAM_OPTIONS if getattr(args, name, None)]
+    if not is_program(args.scenario):
+        if given:
+            flags = ", ".join("--" + name.replace("_", "-") for name in given)
+            raise EmulatorError(f"{flags}: only for a part program (--scenario part-program), "
+                                f"not {args.scenario!r}", 2)
+        return None
+    for name in ("tool", "operation"):
+        if getattr(args, name, None) is not None:
+            raise EmulatorError(f"--{name}: the part program sets the tool and the operation itself", 2)
+    from millsense.drivers.sim.program import ProgramFaults
+
+    faults = ProgramFaults(
+        wear_pct=tuple(args.wear or ()),
+        broken_flute=tuple(args.broken_flute or ()),
+        missing_part=tuple(args.missing_part or ()),
+        wrong_tool=tuple(args.wrong_tool or ()),
+    )
+    return {"parts": args.parts, "faults": faults, "program_number": args.program}
+
+
 def serve(args) -> int:
+    program = _program_options(args)
+    if args.protocol is None:
+        args.protocol = 2 if program is not None else 1  # a part program is there for its CONTEXT
     try:
         source = make_source(
             args.scenario,
@@ -33,6 +62,7 @@ def serve(args) -> int:
             start_index=args.start_index,
             filter_cutoff_hz=args.filter_cutoff_hz,
             noise_scale=args.noise_scale,
+            program=program,
         )
     except SourceError as exc:
         raise EmulatorError(str(exc), 2) from exc
@@ -47,9 +77,9 @@ def serve(args) -> int:
         watchdog_ms=args.watchdog_ms,
         status_log=status_log,
         protocol=args.protocol,
-        program=args.program,
-        tool=args.tool,
-        operation=args.operation,
+        program=args.program or 0,
+        tool=args.tool or 0,
+        operation=args.operation or 0,
         cnc_hold_lag_ms=args.cnc_hold_lag_ms,
     )
     status_log.write("start", first_index=device.head, scenario=args.scenario, protocol=device.protocol,

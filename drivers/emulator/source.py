@@ -19,9 +19,21 @@ def list_sources() -> list[tuple[str, str]]:
             scen = sim.SCENARIOS.get(name) if hasattr(sim, "SCENARIOS") else None
             desc = getattr(scen, "description", "") if scen is not None else ""
             names.append((name, desc))
+        from millsense.drivers.sim.program import PROGRAMS
+
+        names += [(name, prog.description) for name, prog in PROGRAMS.items()]
     except (ImportError, AttributeError):
         pass
     return names
+
+
+def is_program(scenario: str) -> bool:
+    """Whether ``scenario`` is a part program (drivers/sim/program.py): its own CNC, faults, parts."""
+    try:
+        from millsense.drivers.sim.program import PROGRAMS
+    except ImportError:
+        return False
+    return scenario in PROGRAMS
 
 
 def make_source(
@@ -32,10 +44,23 @@ def make_source(
     start_index: int = 0,
     filter_cutoff_hz: float | None = None,
     noise_scale: float | None = None,
+    program: dict | None = None,
 ):
-    """Build the plant for ``scenario``; only options given are passed on."""
+    """Build the plant for ``scenario``; only options given are passed on.
+
+    ``program``: for a part program, ``parts``, ``faults`` (a ``ProgramFaults``) and ``program_number``."""
     if scenario == "ramp":
         return RampPlant(start_index=start_index)
+    if is_program(scenario):
+        from millsense.drivers.sim.program_plant import ProgramPlant
+
+        options = {k: v for k, v in (program or {}).items() if v is not None}
+        if noise_scale is not None:
+            options["noise_scale"] = noise_scale
+        try:
+            return ProgramPlant(scenario, seed=seed, loop=loop, filter_cutoff_hz=filter_cutoff_hz, **options)
+        except ValueError as exc:
+            raise SourceError(str(exc)) from exc
     try:
         from millsense.drivers.sim import SCENARIOS, Plant
     except ImportError as exc:
@@ -43,7 +68,7 @@ def make_source(
             f"cannot serve scenario {scenario!r}: the plant simulator is not available ({exc}); only 'ramp' can be"
         ) from exc
     if scenario not in SCENARIOS:
-        known = ", ".join(["ramp", *SCENARIOS])
+        known = ", ".join(name for name, _ in list_sources())
         raise SourceError(f"unknown scenario {scenario!r} (known: {known})")
     kwargs: dict = {"seed": seed}
     if loop:

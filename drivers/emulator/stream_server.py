@@ -132,11 +132,14 @@ class StreamServer:
                 n = self.pacer.due(now, self.duration_samples)
                 if not self.pacer.realtime:  # fast: periodic frames follow sample time
                     now = self.pacer.t0 + self.pacer.produced / self.pacer.rate
+                # the periodic DESCRIPTOR and CONTEXT before the block is made: its CONTEXT is the one that
+                # holds at the block's first sample, and the block's own changes follow in stream order
+                periodic = self.emitter.periodic(now)
                 if n:
                     first, counts = self.device.produce(n)
-                    self._send(self.emitter.periodic(now) + self.emitter.samples(first, counts, now))
+                    self._send(periodic + self.emitter.samples(first, counts, now, self.device.context_changes))
                 else:
-                    self._send(self.emitter.periodic(now))
+                    self._send(periodic)
                 if self.duration_samples is not None and self.pacer.produced >= self.duration_samples:
                     break
                 if self.pacer.realtime:

@@ -84,7 +84,16 @@ class WireEmitter:
                 out += self.rng.bytes(n)
         return out
 
-    def samples(self, first_index: int, counts: np.ndarray, now: float) -> bytes:
+    def samples(self, first_index: int, counts: np.ndarray, now: float, contexts=()) -> bytes:
+        """SAMPLES frames; each (offset, Context) of ``contexts`` goes just before the sample at offset."""
+        if contexts:
+            parts, done = [], 0
+            for offset, ctx in contexts:
+                parts.append(self.samples((first_index + done) % (1 << 32), counts[done:offset], now))
+                parts.append(self._maybe_corrupt(encode_context(ctx), now, "context"))
+                done = max(done, offset)
+            parts.append(self.samples((first_index + done) % (1 << 32), counts[done:], now))
+            return b"".join(parts)
         n = len(counts)
         if n == 0:
             return b""

@@ -2,6 +2,8 @@
 
 Keys follow the daemon's TOML (`interfaces.md`): ``motor``, ``gears``, ``tool``,
 ``material``, ``cut``, plus the DAQ filter and the feed drive's calibration.
+A part program (``drivers/sim/program.py``) adds ``tools`` (its magazine by the
+CNC's tool number), ``program`` (its number) and ``channels`` (the extra ones).
 """
 
 from __future__ import annotations
@@ -15,6 +17,10 @@ def _constant(profile) -> float | None:
 
 
 def machine_config(scenario: str | Scenario = "step") -> dict:
+    from millsense.drivers.sim.program import PROGRAMS, PartProgram
+
+    if isinstance(scenario, PartProgram) or (isinstance(scenario, str) and scenario in PROGRAMS):
+        return _program_config(scenario if isinstance(scenario, PartProgram) else PROGRAMS[scenario])
     sc = scenario if isinstance(scenario, Scenario) else get_scenario(scenario)
     m = sc.machine
     cut: dict = {"mode": sc.mode, "feed_mm_min": sc.feed_segments[0][1]}
@@ -42,4 +48,14 @@ def machine_config(scenario: str | Scenario = "step") -> dict:
     }
     if "ix_feed" in sc.extra_channels:
         out["feed_force"] = {"ix_feed": {"newton_per_amp": m.feed.newton_per_amp, "friction_n": m.feed.friction_n}}
+    return out
+
+
+def _program_config(program) -> dict:
+    """The part program's machine: the scenario sections of its first tool, and the whole magazine."""
+    out = machine_config(program.scenario(1))
+    out["tools"] = {number: {"diameter_mm": tool.diameter_mm, "flutes": tool.flutes, "helix_deg": tool.helix_deg}
+                    for number, tool in program.tools.items()}
+    out["program"] = program.number
+    out["channels"] = list(program.extra_channels)
     return out

@@ -125,5 +125,6 @@ MATERIALS = {
 
 TOOL_P = Tool(20.0, 2, 30.0, "phi20 2-flute flat end mill [P]")
 TOOL_D = Tool(16.0, 4, 30.0, "phi16 4-flute HSS end mill [D]")
+TOOL_F = Tool(8.0, 3, 35.0, "phi8 3-flute carbide finishing end mill")
 
 MCH10 = Machine()

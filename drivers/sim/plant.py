@@ -122,9 +122,12 @@ class Plant:
         """Plausible samples from before index 0, for an emulated device started mid-count with a
         full ring: a separate run of the same scenario (another seed), not continuous with ``step``."""
         del first_index
-        other = Plant(self.scenario, seed=self._seed + 1, extra_channels=self._extras,
-                      filter_cutoff_hz=self.filter_cutoff_hz, noise_scale=self._noise_scale, loop=True)
-        return other.step(n)
+        return self._sibling().step(n)
+
+    def _sibling(self) -> Plant:
+        """Another run of the same machine and scenario with the next seed, looping (for ``history``)."""
+        return Plant(self.scenario, seed=self._seed + 1, extra_channels=self._extras,
+                     filter_cutoff_hz=self.filter_cutoff_hz, noise_scale=self._noise_scale, loop=True)
 
     def step(self, n: int) -> np.ndarray:
         """The next n samples as (n, C) int16 raw counts, channel order of ``descriptor``."""
@@ -133,9 +136,9 @@ class Plant:
             raise ValueError("n must be >= 0")
         parts = []
         while n > 0:
-            m = min(n, MAX_BLOCK)
-            parts.append(self._produce(m))
-            n -= m
+            block = self._produce(min(n, MAX_BLOCK))  # may be shorter: see _nc
+            parts.append(block)
+            n -= len(block)
         if not parts:
             return np.zeros((0, len(self.sensors)), dtype=np.int16)
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
@@ -144,7 +147,7 @@ class Plant:
     def _init_state(self) -> None:
         g = self.gear
         mach = self.machine
-        rpm0 = float(self._sched_rpm[0])
+        rpm0 = self._initial_rpm()
         w_sp = rpm0 * TWO_PI / 60
         self._omega_m = self._ref_m = w_sp * g.ratio
         friction = g.friction_torque_nm * math.tanh(w_sp / 0.1) + g.viscous_nms * w_sp
@@ -163,6 +166,10 @@ class Plant:
         self._last_cut: tuple[float, np.ndarray] | None = None
         self._hold_seen = False
 
+    def _initial_rpm(self) -> float:
+        """The spindle's speed before index 0 (the scenario's first commanded speed, reached and steady)."""
+        return float(self._sched_rpm[0])
+
     def _feed_at(self, s_mm: float) -> float:
         return self._feed_mm_s[bisect.bisect_right(self._feed_starts, s_mm) - 1]
 
@@ -175,10 +182,9 @@ class Plant:
         if self.feed_hold != self._hold_seen:  # takes effect at the next block (the device's next sample)
             self._hold_seen = bool(self.feed_hold)
             events.append({"event": "feed_hold", "on": self._hold_seen, "index": k0, "t_s": round(t0, 6)})
-        feed = self._feed_program(n, t0, dt, events)
-        s0, s1, v0, v1, target, tprog = feed
+        s0, s1, v0, v1, target, rpm_cmd = self._nc(n, t0, dt, events)
+        n = len(s0)
         g = self.gear
-        rpm_cmd = self._sched_rpm[np.maximum(np.searchsorted(self._sched_t, np.maximum(tprog, 0.0), "right") - 1, 0)]
         # 2. load the speed loop sees: angle extrapolated at the start speed
         w_sp0 = self._omega_m / g.ratio
         t_cut_pred = self._torque_nm(self._theta + w_sp0 * dt * np.arange(n), 0.5 * (s0 + s1), 0.5 * (v0 + v1),
@@ -201,6 +207,11 @@ class Plant:
         wm_i = (w_m[:-1, None] + np.diff(w_m)[:, None] * fi).ravel()
         dt_i = dt / INTERNAL_PER_SAMPLE
         elec, self._theta_e = motor_waveforms(self.machine.motor, tq_i, wm_i, dt_i, self._theta_e)
+        drive_on = self._drive_on(n)
+        if drive_on is not None:  # a drive switched off at standstill: no voltage, no current
+            on_i = np.repeat(drive_on, INTERNAL_PER_SAMPLE).astype(float)
+            for key in ("v_uv", "v_vw", "v_wu", "i_u", "i_v", "i_w", "i_uv", "i_vw", "i_wu", "airgap_w"):
+                elec[key] = elec[key] * on_i
         t_i = t0 + np.arange(n * INTERNAL_PER_SAMPLE) * dt_i
         t_c = t0 + (np.arange(n * CUT_PER_SAMPLE) + 0.5) * (dt / CUT_PER_SAMPLE)
         counts = self._sense(n, elec, wm_i, t_i, t_c, forces, v0, v1)
@@ -209,6 +220,7 @@ class Plant:
         self._events_power(elec["airgap_w"], t_i, events)
         self._record_truth(t0, dt, theta_pts, torque_c, forces, tc_c, s_c, s0, s1, v0, v1, target, rpm_cmd,
                            w_sp, elec, events)
+        self._account(k0, n, torque_c, dtheta_c)
         # carry state
         self._theta = float(theta_pts[-1])
         turns = math.floor(self._theta / TWO_PI)
@@ -224,6 +236,21 @@ class Plant:
                 out[:, c] = counts[a]
                 a += 1
         return out
+
+    def _nc(self, n, t0, dt, events):
+        """The NC program for the next n samples: (s0, s1, v0, v1, feed target, commanded rpm), each of
+        length m <= n (a subclass may end a block early, e.g. at a tool change)."""
+        s0, s1, v0, v1, target, tprog = self._feed_program(n, t0, dt, events)
+        rpm_cmd = self._sched_rpm[np.maximum(np.searchsorted(self._sched_t, np.maximum(tprog, 0.0), "right") - 1, 0)]
+        return s0, s1, v0, v1, target, rpm_cmd
+
+    def _drive_on(self, n: int) -> np.ndarray | None:
+        """Per sample, whether the spindle drive is energised (None: always, as in every scenario)."""
+        del n
+        return None
+
+    def _account(self, k0: int, n: int, torque_c: np.ndarray, dtheta_c: np.ndarray) -> None:
+        """After a block: its cutting torque on the fine grid and the angle turned in each interval."""
 
     def _feed_program(self, n, t0, dt, events):
         """Feed servo and NC program at 1 kHz: rate-limited feed, position-based feed rate, hold, loop."""
@@ -303,9 +330,10 @@ class Plant:
     def _torque_nm(self, theta, s, v, w_sp, dtheta):
         """Mean cutting torque at the spindle (R·F_t, [P] eq. 15) while turning from θ to θ + Δθ,
         the mean forces and the feed per tooth."""
-        tc = v / (self.scenario.tool.flutes * np.maximum(w_sp, 1e-3) / TWO_PI)  # t_c = feed/(N·n)
+        tool = self.geometry.tool  # the cutter in the spindle
+        tc = v / (tool.flutes * np.maximum(w_sp, 1e-3) / TWO_PI)  # t_c = feed/(N·n)
         forces = cutting_forces(self.geometry, theta, s, tc, self._chip_factors(s), dtheta)
-        return forces["ft_n"] * (self.scenario.tool.radius_mm / 1000.0), forces, tc
+        return forces["ft_n"] * (tool.radius_mm / 1000.0), forces, tc
 
     # -- sensors --------------------------------------------------------------------
     def _sense(self, n, elec, wm_i, t_i, t_c, forces, v0, v1):
@@ -357,7 +385,7 @@ class Plant:
 
     def _record_truth(self, t0, dt, theta_pts, torque_c, forces, tc_c, s_c, s0, s1, v0, v1, target, rpm_cmd,
                       w_sp, elec, events):
-        geom, r = self.geometry, self.scenario.tool.radius_mm
+        geom, r = self.geometry, self.geometry.tool.radius_mm
         sc = self.scenario
         if sc.breakage and not self._breakage_done:
             hit = np.flatnonzero(s1 >= sc.breakage[0])

@@ -13,6 +13,8 @@ lay under the tool (centre to leading edge), the feed was within 0.5 % and the
 speed within 1 % of constant and within 0.5 % of its command, no feed hold.  A
 taper or ramp is therefore never steady.  Events (``{"event": ...}``) are
 ``crash_power``, ``tool_breakage``, ``feed_hold`` and ``scenario_restart``.
+The part program adds one ``{"process": ...}`` line per monitored process
+(``drivers/sim/program.py``); a revolution is a record with ``rev``.
 Only the last ``keep`` records are held (a looping demo runs for days).
 """
 
@@ -77,7 +79,7 @@ class TruthRecorder:
         return iter(list(self.records))
 
     def revolutions(self) -> list[dict]:
-        return [r for r in self.records if "event" not in r]
+        return [r for r in self.records if "rev" in r]
 
     def events(self) -> list[dict]:
         return [r for r in self.records if "event" in r]
@@ -93,6 +95,11 @@ class TruthRecorder:
                 fh.write(json.dumps(r) + "\n")
 
     # -- fed by the plant -------------------------------------------------------
+    def note(self, record: dict) -> None:
+        """Another kind of record (the part program's per-process lines), kept in arrival order."""
+        self.records.append(record)
+        self._pending.append(record)
+
     def start(self, t_s: float) -> None:
         """Begin recording at a revolution boundary (spindle angle 0) at time t_s."""
         self.active = True

@@ -142,7 +142,7 @@ class Subscriber:
         conf.insert_json5("scouting/multicast/enabled", "false")
         self.session = zenoh.open(conf)
         self.lock = threading.Lock()
-        self.items: dict[str, list[tuple[float, dict]]] = {"estimate": [], "alarm": [], "status": []}
+        self.items: dict[str, list[tuple[float, dict]]] = {"estimate": [], "alarm": [], "status": [], "process": []}
         self.alive: list[tuple[float, str]] = []
         self._subs = []
         if read:

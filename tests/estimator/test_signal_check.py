@@ -197,7 +197,7 @@ def test_without_pole_pairs_the_encoder_and_the_speed_channel_must_still_agree(t
     run = Run(settings(tmp_path, pole_pairs=None), cap)  # no f_e check possible: the encoder is the witness
     assert_all_invalid(run)
     reason = run.signal_fault()[1]
-    assert reason.startswith("sp_rpm: reads 300 rpm, the encoder sp_enc ") and "10 % apart" in reason, reason
+    assert reason.startswith("sp_rpm: reads 300 rpm, the encoder sp_enc ") and "10 % and 20 rpm apart" in reason, reason
 
 
 def test_the_fault_clears_after_a_second_of_good_samples(tmp_path):

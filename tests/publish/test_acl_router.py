@@ -8,7 +8,10 @@ zenoh-viewer.json5 / zenoh-operator.json5. Certificates come from the
 certificate tries what the issue's attacker did (finding 2): spoofed
 estimates, alarms and an alive token under a machine's keys, and a fake
 `cmd/reset` queryable. None of it may reach anyone, while the real daemon's
-publications reach the viewer.
+publications reach the viewer. Issue 14: the same viewer certificate can
+neither tell the daemon a context (`millsense/<m>/context`) nor reach
+`cmd/limits`, while a CNC adapter's certificate (zenoh-adapter.json5) tells
+it the context its estimates then carry, and an operator reaches `cmd/limits`.
 """
 
 from __future__ import annotations
@@ -46,7 +49,7 @@ def _example(name: str, pki: Path, port: int) -> Path:
 def _client(pki: Path, port: int, example: str, stem: str) -> zenoh.Session:
     """A client from a shipped example, presenting certificate `stem` (a viewer file with another CN...)."""
     text = _example(example, pki, port).read_text()
-    for kind in ("viewer", "operator"):
+    for kind in ("viewer", "operator", "adapter"):
         text = text.replace(f"/{kind}.key", f"/{stem}.key").replace(f"/{kind}.pem", f"/{stem}.pem")
     conf = zenoh.Config.from_json5(text)
     conf.insert_json5("transport/shared_memory/enabled", "false")
@@ -87,7 +90,7 @@ def test_router_acl_stops_spoofing_and_lets_the_daemon_through(tmp_path):
     pki_dir.mkdir()
     pki = Pki(pki_dir)
     for stem, cn in {"router": "cell-router", "daemon": MACHINE, "viewer": "hmi-01", "spoofer": "hmi-02",
-                     "operator": "operator-01", "stranger": "laptop-17"}.items():
+                     "operator": "operator-01", "stranger": "laptop-17", "adapter": "cnc-adapter-01"}.items():
         pki.issue(stem, cn)
     port = free_tcp_port()
     router = open_session(_from_file(_example("zenoh-router.json5", pki_dir, port)), retry_for_s=0)
@@ -104,7 +107,8 @@ def test_router_acl_stops_spoofing_and_lets_the_daemon_through(tmp_path):
             operator = _client(pki_dir, port, "zenoh-operator.json5", "operator")
             spoofer = _client(pki_dir, port, "zenoh-viewer.json5", "spoofer")  # a real viewer's certificate
             stranger = _client(pki_dir, port, "zenoh-viewer.json5", "stranger")  # the plant CA's, in no subject
-            sessions += [viewer, operator, spoofer, stranger]
+            adapter = _client(pki_dir, port, "zenoh-adapter.json5", "adapter")
+            sessions += [viewer, operator, spoofer, stranger, adapter]
             seen_viewer, seen_operator, seen_stranger = Seen(), Seen(), Seen()
             alive: list[str] = []
             entities += [
@@ -146,11 +150,30 @@ def test_router_acl_stops_spoofing_and_lets_the_daemon_through(tmp_path):
                 time.sleep(0.05)
             wait_for(lambda: len(seen_viewer.keys("/estimate")) >= n0 + 10, 30.0, "more real estimates after the spoofing")
 
+            # -- context (issue 14): the viewer's certificate may not tell the daemon what the machine does ...
+            spoof_context = {"program": 6666, "tool": 66, "operation": 6, "cycle": True, "monitor": True}
+            for _ in range(10):
+                spoofer.put(f"millsense/{MACHINE}/context", json.dumps(spoof_context).encode())
+                spoofer.put(f"millsense/{MACHINE}/context", json.dumps(dict(spoof_context, spoof=True)).encode())
+                time.sleep(0.05)
+            # ... the adapter's may: the router tells it the daemon listens, and the daemon's estimates carry it
+            context_pub = adapter.declare_publisher(f"millsense/{MACHINE}/context")
+            entities.append(context_pub)
+            wait_for(lambda: context_pub.matching_status.matching, 30.0, "the daemon's context subscriber, seen by the adapter")
+            good_context = {"program": 4321, "tool": 7, "operation": 2, "cycle": True, "monitor": True}
+            context_pub.put(json.dumps(good_context).encode())
+            wait_for(lambda: [e for e in seen_viewer.keys("/estimate") if isinstance(e, dict) and e.get("program") == 4321],
+                     30.0, "estimates carrying the adapter's context")
+            estimates_with_context = [e for e in seen_viewer.keys("/estimate") if isinstance(e, dict)]
+
             # -- the operator asks for a reset: only the real daemon answers (reset = "off" here: a refusal)
             status_replies = [r for r in operator.get(f"millsense/{MACHINE}/status", timeout=3.0)]
             reset_replies = [r for r in operator.get(f"millsense/{MACHINE}/cmd/reset", payload=b"{}", timeout=3.0)]
             ghost_replies = [r for r in operator.get("millsense/ghost-01/cmd/reset", payload=b"{}", timeout=1.0)]
             viewer_cmd = [r for r in viewer.get(f"millsense/{MACHINE}/cmd/reset", payload=b"{}", timeout=1.0)]
+            viewer_limits_cmd = [r for r in viewer.get(f"millsense/{MACHINE}/cmd/limits", payload=b"{}", timeout=1.0)]
+            operator_limits_cmd = [r for r in operator.get(f"millsense/{MACHINE}/cmd/limits", payload=b"{}", timeout=3.0)]
+            viewer_limits = [r for r in viewer.get(f"millsense/{MACHINE}/limits", timeout=3.0)]
             stranger_status = [r for r in stranger.get(f"millsense/{MACHINE}/status", timeout=1.0)]
             viewer_status = [r for r in viewer.get(f"millsense/{MACHINE}/status", timeout=3.0)]
             ghost_alive = [str(r.ok.key_expr) for r in viewer.liveliness().get("millsense/*/alive", timeout=2.0)
@@ -180,3 +203,13 @@ def test_router_acl_stops_spoofing_and_lets_the_daemon_through(tmp_path):
     assert viewer_cmd == []
     assert len(viewer_status) == 1 and not json.loads(viewer_status[0].ok.payload.to_bytes()).get("spoof")
     assert stranger_status == [] and seen_stranger.items == []
+    # context: only the adapter's reached the daemon; the viewer certificate's never reached anyone
+    assert not [e for e in estimates_with_context if e.get("program") == 6666]
+    assert not [b for b in seen_viewer.keys("/context") + seen_operator.keys("/context")
+                if isinstance(b, dict) and b.get("program") == 6666]
+    # cmd/limits: operators reach the daemon (reset = "off" here: its refusal), viewers nothing; limits reads
+    assert viewer_limits_cmd == []
+    assert len(operator_limits_cmd) == 1
+    body = json.loads((operator_limits_cmd[0].ok or operator_limits_cmd[0].err).payload.to_bytes())
+    assert body.get("policy") == "off" and not body.get("spoof"), body
+    assert len(viewer_limits) == 1 and json.loads(viewer_limits[0].ok.payload.to_bytes())["machine"] == MACHINE

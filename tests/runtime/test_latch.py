@@ -145,6 +145,8 @@ def test_local_reset_for_the_same_uid_refused_while_the_condition_persists(daemo
     assert r["ok"] is True and r["interlock"] == "armed"
     wait_for(lambda: not drv.device.feed_hold, 1, "released")
     assert runner.latch_store.flush(5) and runner.latch_store.load() is None
+    # the device's STATUS showing the release reaches the estimator thread a moment later (a loaded box)
+    wait_for(lambda: local_command(tmp_path / "state", "status")["interlock"] == "armed", 5, "status armed")
     st = local_command(tmp_path / "state", "status")
     assert st["ok"] is True and st["interlock"] == "armed"
     audit = [json.loads(x) for x in (tmp_path / "state" / "audit.log").read_text().splitlines()]

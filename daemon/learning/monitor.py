@@ -1,0 +1,400 @@
+"""`ProcessMonitor`: processes cut from the revolutions, envelopes learned and checked, wear. Pure.
+
+The runner (and replay) call it revolution by revolution on the estimator
+thread, like `AlarmEngine`: `on_revolution(est, ctx)` with the context that
+held at the revolution's last sample, `on_context` after the revolutions up to
+that sample were given, `on_link_lost`, `note_alarm` for each fixed-limit alarm.
+Each call returns a `MonitorStep`: the alarm events to publish (and trip on,
+`AlarmEvent.trips`), the finished processes' summaries, one-time notes to log,
+and the keys and tools whose state changed (to persist).
+
+The rules (docs/learning.md):
+- A process is the revolutions of one key while `cycle` and `monitor` are set;
+  it ends when the key changes, the cycle ends, monitor clears, the context goes
+  away (incomplete) or the link is lost (incomplete; what follows of the same
+  key with monitor still set is incomplete too). A process that cuts from its
+  first revolution began before it was seen: incomplete. A key's cycle that
+  never set `monitor` is reported at its end as "unmonitored".
+- Complete processes with an entry, no alarm and at most 10 % invalid
+  revolutions teach their key until `processes` have; then the envelope is
+  learned, active at once or (`confirm`) pending until `accept`.
+- With an active envelope, every valid revolution of a process is checked: above the band `high_revolutions` in a row → `envelope_high`, below it
+  (where the band expects cutting) `low_revolutions` in a row → `envelope_low`;
+  no entry by the learned entry + margin → `envelope_low` on "entry"; a process
+  that ran its course with its energy below the band → `envelope_low` on
+  "cutting_energy_j". At most one of each per process. One that holds the feed
+  latches until `reset()`; one that does not clears when its process ends.
+- Each good checked process adds its energy ratio to its tool's wear
+  (`wear.py`); a wear warning never holds the feed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from millsense.daemon.learning.actions import ACTIONS, run_command
+from millsense.daemon.learning.context import Ctx
+from millsense.daemon.learning.envelope import Envelope, Taught, learn, setting
+from millsense.daemon.learning.keys import KeyState, key_show, key_summary, seen_outside
+from millsense.daemon.learning.process import ProcessRun, finite
+from millsense.daemon.learning.wear import ToolWear
+from millsense.daemon.pipeline.alarms import AlarmEvent
+
+# Levels of the fixed limits that keep a process from teaching (`note_alarm`).
+_FIXED_LEVELS = frozenset({"warning", "overload", "crash", "tool_breakage", "daq_lost"})
+NO_CONTEXT = ("no context from the CNC (the DAQ's CONTEXT frames or millsense/<machine>/context): "
+              "no processes, no learned limits; the fixed [alarms] limits stay armed")
+
+
+@dataclass
+class MonitorStep:
+    """What one call produced."""
+
+    events: list[AlarmEvent] = field(default_factory=list)
+    processes: list[dict[str, Any]] = field(default_factory=list)   # `process` payloads without machine, t
+    notes: list[tuple[str, dict[str, Any]]] = field(default_factory=list)   # (log event, its fields), each once
+    changed_keys: set[str] = field(default_factory=set)
+    tools_changed: set[int] = field(default_factory=set)
+
+
+class ProcessMonitor:
+    """All learning state of one machine. Not thread-safe: one owner (the estimator thread)."""
+
+    def __init__(self, learning: Any, limits: dict[str, dict] | None = None, tools: dict | None = None,
+                 first_process: int = 1):
+        self.learning = learning
+        self.enabled = bool(setting(learning, "enabled", True))
+        self.target = int(setting(learning, "processes", 5))
+        self.confirm = bool(setting(learning, "confirm", False))
+        self.high_revolutions = max(1, int(setting(learning, "high_revolutions", 3)))
+        self.low_revolutions = max(1, int(setting(learning, "low_revolutions", 3)))
+        self.hold_high = bool(setting(learning, "hold_high", True))
+        self.hold_low = bool(setting(learning, "hold_low", True))
+        self.wear_rise_pct = float(setting(learning, "wear_rise_pct", 15.0))
+        self.wear_window = int(setting(learning, "wear_window", 3))
+        self.keys = {str(k): KeyState.from_dict(v) for k, v in (limits or {}).items()}
+        self.tools = {int(t): ToolWear.from_dict(v) for t, v in (tools or {}).items()}
+        self.proc: ProcessRun | None = None
+        self.next_process = int(first_process)   # the runner may seed it from the history (ids go on)
+        self._resume_key: str | None = None      # a link loss cut this key's process: the rest is incomplete
+        self._run_key: str | None = None         # the key whose cycle runs now (None: no cycle)
+        self._run_monitored = False              # that run had its monitored process
+        self._latched: list[AlarmEvent] = []
+        self._noted_no_context = False
+        self._changed_keys: set[str] = set()     # by commands, handed out with the next step
+        self._changed_tools: set[int] = set()
+
+    # -- inputs ---------------------------------------------------------------
+    def on_revolution(self, est: dict[str, Any], ctx: Ctx | None) -> MonitorStep:
+        """One estimate; annotated in place with program, tool, operation, process_rev, envelope_*_nm."""
+        step = self._step()
+        est["program"] = None if ctx is None else ctx.program
+        est["tool"] = None if ctx is None else ctx.tool
+        est["operation"] = None if ctx is None else ctx.operation
+        est["process_rev"] = None
+        est["envelope_low_nm"] = None
+        est["envelope_high_nm"] = None
+        if ctx is None:
+            self._context_gone(step)
+            if self.enabled and not self._noted_no_context:
+                self._noted_no_context = True
+                step.notes.append(("learning.no_context", {"reason": NO_CONTEXT}))
+            return step
+        self._noted_no_context = False   # said again if the context goes away again
+        if not self.enabled:
+            return step
+        self._boundaries(step, ctx)
+        if self._run_key is None:
+            return step   # no cycle: no process
+        proc = self.proc
+        if proc is None:
+            if ctx.monitor:
+                resumed = self._resume_key == ctx.key
+                self._resume_key = None
+                proc = self.proc = ProcessRun(self.next_process, ctx, monitored=True, resumed=resumed)
+                self.next_process += 1
+                self._run_monitored = True
+            elif self._run_monitored:
+                return step   # after its monitored process: the retract, the spindle stopping
+            else:
+                proc = self.proc = ProcessRun(0, ctx, monitored=False)   # numbered if it is reported
+        k = proc.add(est)
+        if proc.monitored:
+            est["process_rev"] = k
+            self._check(step, proc, est, k)
+        return step
+
+    def on_context(self, ctx: Ctx | None, seq: int | None = None) -> MonitorStep:
+        """The context now (after the revolutions up to `seq`): a process it ends closes without a revolution."""
+        step = self._step()
+        if ctx is None:
+            self._context_gone(step)
+        elif self.enabled:
+            self._boundaries(step, ctx)
+        return step
+
+    def _boundaries(self, step: MonitorStep, ctx: Ctx) -> None:
+        """Close what `ctx` ends: a new key or no cycle ends the key's run, monitor off ends its process.
+
+        A key's run is its revolutions while the cycle is set. Its process is the
+        part of it with `monitor` set (the CNC clears it for the spindle coming up
+        and the retract). A run that never set `monitor` is reported once, at its
+        end, as "unmonitored" (it still used its tool).
+        """
+        run_key = ctx.key if ctx.cycle else None
+        if run_key != self._run_key:
+            if self.proc is not None:
+                self._close(step)
+            if run_key != self._resume_key:
+                self._resume_key = None
+            self._run_key, self._run_monitored = run_key, False
+            return
+        proc = self.proc
+        if proc is not None and proc.monitored != ctx.monitor:
+            if proc.monitored:
+                self._close(step)
+            else:
+                self.proc = None   # the lead-in of a monitored process is not a process of its own
+        if not ctx.monitor:
+            self._resume_key = None   # monitor off seen: the next process is seen from its start
+
+    def _context_gone(self, step: MonitorStep) -> None:
+        if self.proc is not None:
+            self._close(step, incomplete=True)
+        self._run_key, self._run_monitored = None, False
+
+    def on_link_lost(self) -> MonitorStep:
+        """The DAQ link went down: the current process is incomplete, and so is the rest of it."""
+        step = self._step()
+        proc = self.proc
+        if proc is not None and proc.monitored:
+            self._resume_key = proc.key
+            self._close(step, incomplete=True)
+        else:
+            self.proc = None   # an unmonitored run cut short: nothing to report
+        return step
+
+    def note_alarm(self, ev: AlarmEvent) -> None:
+        """A fixed-limit alarm: the process it happened in does not teach."""
+        if self.proc is not None and ev.level in _FIXED_LEVELS:
+            self.proc.fixed_alarm = True
+
+    def reset(self) -> list[AlarmEvent]:
+        """Operator reset: the latched envelope alarms clear."""
+        events = [AlarmEvent("clear", ev.quantity, None, ev.limit, detail=ev.detail) for ev in self._latched]
+        self._latched = []
+        return events
+
+    # -- the checks -----------------------------------------------------------
+    def _active_envelope(self, proc: ProcessRun) -> Envelope | None:
+        ks = self.keys.get(proc.key)
+        if ks is None or ks.state != "active" or not proc.monitored or proc.resumed:
+            return None
+        return ks.envelope
+
+    def _check(self, step: MonitorStep, proc: ProcessRun, est: dict[str, Any], k: int | None) -> None:
+        env = self._active_envelope(proc)
+        if env is None:
+            return
+        if k is None:
+            if proc.revolutions >= env.entry_deadline:
+                self._raise(step, proc, "envelope_low", "entry", float(proc.revolutions),
+                            float(env.entry_deadline), None, {0: float(proc.revolutions)})
+            return
+        if k >= env.length:
+            return  # longer than learned: nothing to compare with
+        low, high = env.torque.bounds(k)
+        est["envelope_low_nm"] = None if low is None else round(low, 4)
+        est["envelope_high_nm"] = None if high is None else round(high, 4)
+        if not est.get("valid", True):
+            return  # a damaged revolution neither counts nor breaks a run
+        for quantity, band in (("torque_nm", env.torque), ("force_n", env.force)):
+            value = finite(est.get(quantity))
+            low, high = (None, None) if band is None else band.bounds(k)
+            self._judge(step, proc, "envelope_high", quantity, value, high,
+                        value is not None and high is not None and value > high, k)
+            # low only where the band expects cutting
+            self._judge(step, proc, "envelope_low", quantity, value, low,
+                        value is not None and low is not None and low > 0 and value < low, k)
+
+    def _judge(self, step: MonitorStep, proc: ProcessRun, level: str, quantity: str, value: float | None,
+               limit: float | None, outside: bool, k: int) -> None:
+        run_key = (level, quantity)
+        proc.runs[run_key] = proc.runs.get(run_key, 0) + 1 if outside else 0
+        if outside:
+            proc.outside.setdefault(f"{level}:{quantity}", {})[k] = value
+        need = self.high_revolutions if level == "envelope_high" else self.low_revolutions
+        if outside and proc.runs[run_key] >= need:
+            self._raise(step, proc, level, quantity, value, limit, k, None)
+
+    def _raise(self, step: MonitorStep, proc: ProcessRun, level: str, quantity: str, value: float | None,
+               limit: float | None, k: int | None, observed: dict[int, float] | None) -> None:
+        if level in proc.raised:
+            return  # at most one of each per process
+        hold = self.hold_high if level == "envelope_high" else self.hold_low
+        ev = AlarmEvent(level, quantity, value, limit, proc.last_rev, proc.last_seq, hold=hold,
+                        detail=proc.detail(k))
+        proc.raised[level] = ev
+        if observed is not None:
+            proc.outside[f"{level}:{quantity}"] = observed
+        if hold:
+            self._latched.append(ev)
+        step.events.append(ev)
+
+    # -- the end of a process -------------------------------------------------
+    def _close(self, step: MonitorStep, incomplete: bool = False) -> None:
+        proc, self.proc = self.proc, None
+        if not proc.monitored:
+            if incomplete:
+                return   # an unmonitored run cut short: nothing to report
+            proc.pid = self.next_process
+            self.next_process += 1
+        incomplete = incomplete or (proc.monitored and proc.resumed)
+        ks = self.keys.get(proc.key)
+        env = None if incomplete else self._active_envelope(proc)
+        if env is not None and "envelope_low" not in proc.raised and not proc.too_damaged:
+            self._end_checks(step, proc, env)
+        verdict = self._verdict(proc, ks, incomplete)
+        if verdict in ("learning", "good") and ks is None:
+            ks = self.keys[proc.key] = KeyState()
+        if verdict == "learning" and ks.state == "learning":
+            self._teach(step, proc, ks)
+        if proc.raised:
+            ks = self.keys.setdefault(proc.key, KeyState())
+            ks.last_alarms = seen_outside(proc)
+            step.changed_keys.add(proc.key)
+        for ev in proc.raised.values():
+            if not ev.hold:
+                step.events.append(AlarmEvent("clear", ev.quantity, None, ev.limit, proc.last_rev, proc.last_seq,
+                                              detail=ev.detail))
+        ratio = None
+        if not incomplete and ks is not None and ks.envelope is not None and ks.envelope.energy_mean_j > 0:
+            ratio = proc.energy_j / ks.envelope.energy_mean_j
+        wear = self._wear(step, proc, verdict, ratio)
+        summary = proc.summary(verdict)
+        summary.update({
+            "learned": 0 if ks is None else (ks.envelope.n if ks.envelope is not None else len(ks.taught)),
+            "learn_target": self.target, "envelope": "learning" if ks is None else ks.state,
+            "energy_ratio": None if ratio is None else round(ratio, 4),
+            "tool_processes": None if wear is None else wear.processes,
+            "tool_wear_pct": None if wear is None or wear.wear_pct is None else round(wear.wear_pct, 2),
+        })
+        step.processes.append(summary)
+
+    def _end_checks(self, step: MonitorStep, proc: ProcessRun, env: Envelope) -> None:
+        """No entry at all, or too little energy, in a process that ran its course."""
+        if proc.entry_rev is None:
+            if proc.revolutions >= env.entry_deadline:
+                self._raise(step, proc, "envelope_low", "entry", float(proc.revolutions),
+                            float(env.entry_deadline), None, {0: float(proc.revolutions)})
+            return
+        if len(proc.torque_nm) >= env.cut_length and proc.energy_j < env.energy_low_j:
+            self._raise(step, proc, "envelope_low", "cutting_energy_j", round(proc.energy_j, 3),
+                        round(env.energy_low_j, 3), None, {0: proc.energy_j})
+
+    @staticmethod
+    def _verdict(proc: ProcessRun, ks: KeyState | None, incomplete: bool) -> str:
+        if incomplete:
+            return "incomplete"
+        if not proc.monitored:
+            return "unmonitored"
+        for level in ("envelope_high", "envelope_low"):
+            if level in proc.raised:
+                return level
+        if proc.fixed_alarm:
+            return "alarm"
+        if ks is None or ks.state != "active":
+            return "learning"
+        return "good"
+
+    def _teach(self, step: MonitorStep, proc: ProcessRun, ks: KeyState) -> None:
+        if proc.entry_rev is None or proc.too_damaged or not proc.torque_nm:
+            return  # nothing cut, or too little seen: it would teach a wrong footprint
+        torque, force = proc.arrays()
+        ks.taught.append(Taught(torque, force, proc.entry_rev, proc.energy_j))
+        step.changed_keys.add(proc.key)
+        if len(ks.taught) >= self.target:
+            ks.envelope = learn(ks.taught, self.learning)
+            ks.taught = []   # the envelope holds what matters; the arrays would only cost memory
+            ks.state = "pending" if self.confirm else "active"
+
+    def _wear(self, step: MonitorStep, proc: ProcessRun, verdict: str, ratio: float | None) -> ToolWear | None:
+        tool = proc.ctx.tool
+        wear = self.tools.get(tool)
+        if proc.entry_rev is None:
+            return wear   # it never cut: no life used
+        if wear is None:
+            wear = self.tools[tool] = ToolWear()
+        wear.count_process()
+        step.tools_changed.add(tool)
+        if verdict == "good" and ratio is not None and wear.add_ratio(ratio, self.wear_window, self.wear_rise_pct):
+            step.events.append(AlarmEvent("wear", "cutting_energy_pct", round(wear.wear_pct, 2), self.wear_rise_pct,
+                                          proc.last_rev, proc.last_seq, hold=False, detail=proc.detail(None)))
+        return wear
+
+    # -- state for status, the limits queryable and the CLI ------------------
+    def active(self) -> dict[str, str]:
+        """Active learned-limit states by name, for status."""
+        out: dict[str, str] = {}
+        for ev in self._latched:
+            out[ev.level] = ev.level
+        if self.proc is not None:
+            for ev in self.proc.raised.values():
+                out[ev.level] = ev.level
+        for tool, wear in sorted(self.tools.items()):
+            if wear.warned:
+                out[f"wear_T{tool}"] = "wear"
+        return out
+
+    def limits_summary(self) -> dict[str, Any]:
+        """The `limits` queryable's body without machine."""
+        return {
+            "limits": [key_summary(k, self.keys[k], self.target) for k in sorted(self.keys)],
+            "tools": {str(t): {"processes": w.processes,
+                               "wear_pct": None if w.wear_pct is None else round(w.wear_pct, 2),
+                               "warned": w.warned} for t, w in sorted(self.tools.items())},
+        }
+
+    def show(self, key: str) -> dict[str, Any]:
+        """One key's summary and its band along process_rev (None where there is none)."""
+        ks = self.keys.get(key)
+        if ks is None:
+            raise KeyError(key)
+        return key_show(key, ks, self.target)
+
+    def export_limits(self, key: str) -> dict[str, Any]:
+        """One key's whole state, JSON-safe (the `limits` argument takes it back)."""
+        return self.keys[key].to_dict()
+
+    def export_tools(self) -> dict[str, Any]:
+        return {str(t): w.to_dict() for t, w in sorted(self.tools.items())}
+
+    def take_changes(self) -> tuple[set[str], set[int]]:
+        """Keys and tools changed by commands not yet handed out (`command` hands out its own)."""
+        keys, tools = self._changed_keys, self._changed_tools
+        self._changed_keys, self._changed_tools = set(), set()
+        return keys, tools
+
+    def _step(self) -> MonitorStep:
+        keys, tools = self.take_changes()
+        return MonitorStep(changed_keys=keys, tools_changed=tools)
+
+    def changed_by_command(self, keys: set[str] = frozenset(), tools: set[int] = frozenset()) -> None:
+        self._changed_keys |= set(keys)
+        self._changed_tools |= set(tools)
+
+    # -- the operator's actions (actions.py) ------------------------------------
+    def command(self, args: Any) -> dict[str, Any]:
+        """`cmd/limits` and `millsense limits`: {"action", "key"?, "pct"?, "tool"?} → {"ok", "error"?, ...}.
+
+        The reply also carries `changed_keys` and `tools_changed` (lists, empty when
+        nothing changed): what the caller persists, and pops before answering.
+        """
+        reply = run_command(self, args)
+        keys, tools = self.take_changes()
+        reply["changed_keys"], reply["tools_changed"] = sorted(keys), sorted(tools)
+        return reply
+
+
+__all__ = ["ACTIONS", "KeyState", "MonitorStep", "ProcessMonitor"]
