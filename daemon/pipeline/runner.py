@@ -127,9 +127,6 @@ class Runner:
         # The SQLite history (daemon/history): estimates, alarms, process summaries, learned limits.
         # Its writer thread takes what it is handed; a failing disk is the fault `history`, never a stop.
         self.history = history
-        if history is not None:
-            history.on_error = lambda why: self.fault("history", why)
-            history.on_ok = lambda: self.recover("history")
         self._zenoh_contexts: list[tuple[dict, str]] = []  # from Zenoh's thread, taken by the estimator's
         self._context_lock = threading.Lock()
         self._notes_said: set[str] = set()
@@ -189,6 +186,9 @@ class Runner:
         self.last_alarm: dict | None = None
         self._refused_descriptor: Any = None
         self.last_trip_ms: float | None = None
+        if history is not None:  # last: a store that could not open reports at once, into the fault path
+            history.on_error = lambda why: self.fault("history", why)
+            history.on_ok = lambda: self.recover("history")
 
     # ------------------------------------------------------------------ lifecycle
     def start(self, sink: Any) -> None:
