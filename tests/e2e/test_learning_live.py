@@ -96,3 +96,28 @@ def test_an_envelope_learned_live_holds_the_feed_and_outlives_a_restart(tmp_path
             assert entry["learned"] == 2
         finally:
             sub.close()
+
+
+def test_the_context_comes_through_modbus_registers_too(tmp_path):
+    """The same program behind a Modbus TCP DAQ: input registers 8-15 carry the context (protocol 2)."""
+    daq_port, z_port = free_tcp_port(), free_tcp_port()
+    machine = "learn-modbus"
+    cfg = _config(tmp_path / "d.toml", daq_port, z_port, machine)
+    doc = tomllib.loads(cfg.read_text())
+    doc["daq"] = {"transport": "modbus-tcp", "host": "127.0.0.1", "tcp_port": daq_port, "unit": 1, "poll_ms": 20,
+                  "filter_cutoff_hz": 200, "filter_order": 2}
+    doc["interlock"] = {"enabled": False, "reset": "open"}
+    cfg.write_text(dumps(doc))
+    with Procs(tmp_path) as procs:
+        procs.start("sim", ["sim", "--scenario", "part-program", "--parts", "1", "--modbus-tcp", f"127.0.0.1:{daq_port}",
+                            "--realtime", "--once"])
+        wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
+        procs.start("daemon", ["run", "--config", str(cfg), "--connect-timeout", "120"])
+        sub = Subscriber([tcp(z_port)], machine)
+        try:
+            first = wait_for(lambda: sub.get("process"), SLOW_S, "the first process over Modbus")[0]
+            assert (first["key"], first["verdict"], first["learned"]) == (KEY, "learning", 1)
+            cutting = [e for e in sub.get("estimate") if e.get("process_rev") is not None]
+            assert cutting and {(e["program"], e["tool"], e["operation"]) for e in cutting} == {(1001, 11, 10)}
+        finally:
+            sub.close()
