@@ -57,6 +57,14 @@ class Step:
     tools_changed: bool = False
     notes: list[tuple[str, dict]] = field(default_factory=list)
 
+    def merge(self, other: Step) -> None:
+        """What a context step decided, after this block's own items (alarms, processes, limits, notes)."""
+        self.items.extend(other.items)
+        self.trips.extend(other.trips)
+        self.changed_limits |= other.changed_limits
+        self.tools_changed = self.tools_changed or other.tools_changed
+        self.notes.extend(other.notes)
+
     def take_monitor(self, mon: Any) -> None:
         """What the process monitor decided (`learning.monitor.MonitorStep`), in publication order."""
         for ev in mon.events:
@@ -325,12 +333,7 @@ class PipelineCore:
                 self._last_rev_end = int(seq_end)
         step.items.extend(("alarm", ev) for ev in crashes)
         if self._context_change is not None:
-            settled = self._settle_context()
-            step.items.extend(settled.items)
-            step.trips.extend(settled.trips)
-            step.changed_limits |= settled.changed_limits
-            step.tools_changed = step.tools_changed or settled.tools_changed
-            step.notes.extend(settled.notes)
+            step.merge(self._settle_context())
         return step
 
 

@@ -318,7 +318,7 @@ class Runner:
             return False, True
         last = seq + len(counts) - 1
         if crash is not None:
-            self._trip(f"{crash.level} {crash.quantity} {crash.value} > {crash.limit}", last)
+            self._trip(_trip_reason(crash), last)
             self.last_trip_ms = round((time.monotonic() - t0) * 1e3, 3)  # frame decoded → output written
             return True, True
         wake_at = self._wake_at_seq
@@ -398,7 +398,7 @@ class Runner:
         self._predict_close(step)
         interlock_by_event: dict[int, str | None] = {}
         for ev in step.trips:  # feed hold first, before anything is published
-            interlock_by_event[id(ev)] = self._trip(f"{ev.level} {ev.quantity} {ev.value} > {ev.limit}")
+            interlock_by_event[id(ev)] = self._trip(_trip_reason(ev))
             self.last_trip_ms = round((time.monotonic() - now) * 1e3, 3)  # block handed over → output written
         for kind, reason in step.faults.items():  # signal plausibility: blind while it lasts
             self._signal_source(kind, "plausibility", reason)
@@ -440,8 +440,7 @@ class Runner:
         """A step that closed no revolution (a context change, a lost link): trips, alarms, processes."""
         held: dict[int, str | None] = {}
         for ev in step.trips:
-            held[id(ev)] = self._trip(f"{ev.level} {ev.quantity} {ev.value} < {ev.limit}"
-                                      if ev.level == "envelope_low" else f"{ev.level} {ev.quantity} {ev.value} > {ev.limit}")
+            held[id(ev)] = self._trip(_trip_reason(ev))
         for kind, item in step.items:
             if kind == "process":
                 self._publish_process(item)
@@ -911,6 +910,12 @@ class Runner:
         log.info("interlock.test_trip_result", requester=requester or "unknown",
                  **{k: v for k, v in result.items() if k != "interlock_detail"})
         return result
+
+
+def _trip_reason(ev: AlarmEvent) -> str:
+    """The interlock's reason for a hold: the alarm, its value and the limit it crossed (from below or above)."""
+    side = "<" if ev.level == "envelope_low" else ">"
+    return f"{ev.level} {ev.quantity} {ev.value} {side} {ev.limit}"
 
 
 def _learning_status(monitor: Any) -> dict[str, Any] | None:
