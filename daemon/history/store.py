@@ -38,6 +38,7 @@ import structlog
 
 from millsense.daemon.history import bounds, records
 from millsense.daemon.history.schema import SCHEMA_VERSION, NewerSchemaError, check_version, migrate, version_of
+from millsense.daemon.pipeline.latch_store import call_quietly
 
 log = structlog.get_logger("millsense.history")
 
@@ -461,12 +462,7 @@ class HistoryStore:
 
     @staticmethod
     def _call(fn: Callable[..., Any] | None, *args: Any) -> None:
-        if fn is None:
-            return
-        try:
-            fn(*args)
-        except Exception as exc:  # noqa: BLE001
-            log.error("history.callback_failed", error=f"{type(exc).__name__}: {exc}")
+        call_quietly(fn, "history.callback_failed", *args)
 
 
 def _size(path: Path) -> int:

@@ -211,9 +211,15 @@ class LatchStore:
 
     @staticmethod
     def _call(fn: Callable[..., Any] | None, *args: Any) -> None:
-        if fn is None:
-            return
-        try:
-            fn(*args)
-        except Exception as exc:  # noqa: BLE001
-            log.error("latch_store.callback_failed", error=f"{type(exc).__name__}: {exc}")
+        call_quietly(fn, "latch_store.callback_failed", *args)
+
+
+def call_quietly(fn: Callable[..., Any] | None, event: str, *args: Any) -> None:
+    """A store's fault callback (the runner's fault path): one that raises is logged as `event`, never
+    stops the writer that called it. Shared by the latch store and the history."""
+    if fn is None:
+        return
+    try:
+        fn(*args)
+    except Exception as exc:  # noqa: BLE001
+        log.error(event, error=f"{type(exc).__name__}: {exc}")
