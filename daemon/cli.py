@@ -32,6 +32,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "history": ("millsense.daemon.commands.history", "export the history (time range, program, tool, operation) as CSV or JSON lines"),
     "test-trip": ("millsense.daemon.commands.test_trip", "proof test: assert feed hold, time its confirmation, reset"),
     "limits": ("millsense.daemon.commands.limits", "see, accept, relearn, widen or narrow learned limits; false alarms, new tools"),
+    "afc": ("millsense.daemon.commands.afc", "adaptive feed control: on, off, or its state (authorised like reset)"),
+    "opcua": ("millsense.daemon.commands.opcua", "an OPC UA server for every machine seen on Zenoh (the opcua extra)"),
+    "dashboard": ("millsense.daemon.commands.dashboard", "a web page of every machine on Zenoh: tiles, live plots, alarms, reset"),
+    "router": ("millsense.daemon.commands.router", "Zenoh's router for the plant (TLS, access control), from pip"),
 }
 
 

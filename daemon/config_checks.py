@@ -20,7 +20,9 @@ from typing import Annotated, Any
 from pydantic import BeforeValidator, Field, ValidationError
 
 from millsense.daemon.config_errors import problems_from
-from millsense.daemon.config_models import CutSettings, DepthSettings, Settings, ToolSettings, _cf_value, _Section
+from millsense.daemon.config_models import (
+    AFC_MIN_GAIN, CutSettings, DepthSettings, Settings, ToolSettings, _cf_value, _Section,
+)
 
 # Datasheet names (architecture.md "Simulated sensors", daq-protocol.md "typical name") → kind name.
 CONVENTIONAL_KINDS = {
@@ -114,7 +116,25 @@ def cross_problems(parts: Mapping[str, Any]) -> list[str]:
             )
     if isinstance(cut, CutSettings):
         problems.extend(_listed_tool_problems(cut, parts.get("tools")))
+    problems.extend(_afc_gain_problems(parts.get("afc"), parts.get("material")))
+    afc, interlock = parts.get("afc"), parts.get("interlock")
+    if getattr(afc, "enabled", False) and interlock is not None and not getattr(interlock, "enabled", True):
+        # the heartbeat is what lets the DAQ's watchdog put the override back to 100 % if the daemon dies
+        problems.append("afc.enabled: true with the interlock off: without its heartbeat the DAQ's watchdog could not "
+                        "return the feed override to 100 % if the daemon stopped (set [interlock] enabled = true, "
+                        "or afc.enabled = false)")
     return problems
+
+
+def _afc_gain_problems(afc: Any, material: Any) -> list[str]:
+    """The controller's process gain from [material] (1 + ks_exp) must be one it can use (docs/afc.md)."""
+    if afc is None or material is None or getattr(afc, "process_gain", 0.0) > 0:
+        return []
+    gain = 1.0 + material.ks_exp
+    if gain < AFC_MIN_GAIN:
+        return [f"afc.process_gain: not set, and 1 + material.ks_exp = {gain:g} is below {AFC_MIN_GAIN:g}: the load would "
+                f"barely follow the feed (set process_gain, d ln(load) / d ln(feed), e.g. 0.56)"]
+    return []
 
 
 def _listed_tool_problems(cut: CutSettings, tools: Any) -> list[str]:

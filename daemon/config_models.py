@@ -517,6 +517,75 @@ class LogSettings(_Section):
     format: Literal["auto", "json", "console"] = "auto"
 
 
+# --------------------------------------------------------------------------- [afc]
+AFC_MIN_GAIN = 0.1  # d ln(load) / d ln(feed) below it: the load barely follows the feed, the loop gain explodes
+AFC_QUANTITIES = {"torque": "torque_nm", "force": "force_n", "power": "power_w"}  # quantity -> its target key
+
+
+def _afc_target_key(value: Any) -> Any:
+    """An `[afc.targets."T/O"]` name: tool number / operation number, or "T/*" for any operation of tool T."""
+    text = str(value)
+    tool, sep, op = text.partition("/")
+    expected = 'as "12/3" (tool 12, operation 3) or "12/*" (any operation of tool 12)'
+    if (not sep or not tool.isdigit() or int(tool) > 0xFFFFFFFF
+            or not (op == "*" or (op.isdigit() and int(op) <= 0xFFFF))):
+        raise ValueError(f"{text!r} is not TOOL/OPERATION (tool 0 … 4294967295, operation 0 … 65535 or *; {expected})")
+    return f"{int(tool)}/{op if op == '*' else int(op)}"
+
+
+AfcTargetKey = Annotated[str, BeforeValidator(_afc_target_key)]
+
+
+class AfcTargetSettings(_Section):
+    """`[afc.targets."T/O"]`: one tool's (and operation's) target, and whether AFC may run there."""
+
+    torque_nm: float | None = Field(None, gt=0)
+    force_n: float | None = Field(None, gt=0)
+    power_w: float | None = Field(None, gt=0)
+    allow: bool | None = None  # true: without the CONTEXT flag too; false: never (tapping, thread milling)
+
+
+class AfcSettings(_Section):
+    """`[afc]` (additive): adaptive feed control through the CNC's feed override (docs/afc.md).
+
+    The controller holds `quantity` at a target by moving the override within
+    `min_override_pct` … `max_override_pct`. `enabled` switches it on at start
+    (default off); `cmd/afc` switches it on and off while running, not persisted.
+    """
+
+    enabled: bool = False
+    quantity: Literal["torque", "force", "power"] = "torque"
+    min_override_pct: float = Field(50.0, gt=0, lt=100)
+    max_override_pct: float = Field(150.0, ge=100, le=200)
+    air_override_pct: float = Field(100.0, gt=0, le=200)
+    arm_pct: float = Field(30.0, ge=0, lt=100)
+    target_factor: float = Field(1.0, gt=0, le=10)
+    rate_pct_s: float = Field(600.0, gt=0, le=10000)
+    cnc_lag_ms: float = Field(40.0, ge=0, le=10000)
+    closed_loop_s: float = Field(0.0, ge=0, le=600)
+    process_gain: float = Field(0.0, ge=0, le=5)
+    allow: bool = False
+    target_torque_nm: float | None = Field(None, gt=0)
+    target_force_n: float | None = Field(None, gt=0)
+    target_power_w: float | None = Field(None, gt=0)
+    targets: dict[AfcTargetKey, AfcTargetSettings] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> AfcSettings:
+        problems = []
+        if not self.min_override_pct <= self.air_override_pct <= self.max_override_pct:
+            problems.append(("air_override_pct", f"{self.air_override_pct:g} is outside min_override_pct … "
+                                                 f"max_override_pct = {self.min_override_pct:g} … {self.max_override_pct:g} "
+                                                 "(within the bounds, 100 or below recommended)"))
+        if problems:
+            raise problems_error(problems)
+        return self
+
+    def target_key(self) -> str:
+        """The key of `quantity` in a `[afc.targets]` entry (torque_nm, force_n, power_w)."""
+        return AFC_QUANTITIES[self.quantity]
+
+
 # --------------------------------------------------------------------------- the file
 class Settings(_Section):
     """The whole configuration file. Required: machine, [daq], [channels.*], [motor], [[gears]], [tool]."""
@@ -541,3 +610,4 @@ class Settings(_Section):
     history: HistorySettings = Field(default_factory=HistorySettings)
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     log: LogSettings = Field(default_factory=LogSettings)
+    afc: AfcSettings = Field(default_factory=AfcSettings)

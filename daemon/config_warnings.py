@@ -20,6 +20,41 @@ def config_warnings(settings: Any, path: str | os.PathLike[str] | None = None) -
     out += _interlock_warnings(settings)
     out += _security_warnings(settings, Path(path) if path is not None else None)
     out += _learning_warnings(settings)
+    out += _afc_warnings(settings)
+    return out
+
+
+AFC_SLEW_MAX_S = 1.0  # the rate limit should bring the override from 100 % to the lower bound within this
+
+
+def _afc_warnings(settings: Any) -> list[str]:
+    """An `[afc]` that is valid but will not do what its author expects (docs/afc.md)."""
+    out: list[str] = []
+    afc = getattr(settings, "afc", None)
+    if afc is None:
+        return out
+    if afc.air_override_pct > 100.0:
+        out.append(
+            f"afc.air_override_pct: {afc.air_override_pct:g} % is above the programmed feed: the tool enters each "
+            "cut faster than programmed, before any estimate can slow it (100 or below)"
+        )
+    wanted = afc.target_key()
+    for key in ("torque_nm", "force_n", "power_w"):
+        if key != wanted and getattr(afc, f"target_{key}") is not None:
+            out.append(f"afc.target_{key}: set but quantity is \"{afc.quantity}\": never used (target_{wanted})")
+    for name, entry in sorted(afc.targets.items()):
+        for key in ("torque_nm", "force_n", "power_w"):
+            if key != wanted and getattr(entry, key) is not None:
+                out.append(
+                    f'afc.targets."{name}".{key}: set but quantity is "{afc.quantity}": never used ({wanted})'
+                )
+    slew_s = (100.0 - afc.min_override_pct) / afc.rate_pct_s
+    if slew_s > AFC_SLEW_MAX_S:
+        out.append(
+            f"afc.rate_pct_s: {afc.rate_pct_s:g} %/s takes {slew_s:.1f} s from 100 % down to min_override_pct = "
+            f"{afc.min_override_pct:g} %: a step into a deeper cut overloads the tool that long "
+            f"(at least {(100.0 - afc.min_override_pct) / AFC_SLEW_MAX_S:g} %/s)"
+        )
     return out
 
 

@@ -4,7 +4,11 @@ No bytes and no frames: the device model's samples are handed over directly, but
 through the same base class (queue, index tracking, outputs, watchdog), so the
 daemon cannot tell it from a real DAQ except by speed of setup. With
 ``protocol=2`` it is a version-2 DAQ with the simulated CNC: ``Context`` events,
-the feed override, the CNC's "feed held" after ``cnc_hold_lag_ms``.
+the feed override (which the simulated CNC applies through its lag,
+``cnc_override_lag_ms``, and rate limit, ``cnc_override_rate_pct_s``, and which
+drives the plant's feed), the CNC's "feed held" after ``cnc_hold_lag_ms``;
+``afc_allowed`` sets CONTEXT flag bit 2 (adaptive feed allowed) for a simple
+scenario (a part program sets it per operation).
 """
 
 from __future__ import annotations
@@ -30,6 +34,9 @@ class SimDriver(Driver):
         filter_cutoff_hz: float | None = None,
         protocol: int = 1,
         cnc_hold_lag_ms: float = 30.0,
+        cnc_override_lag_ms: float = 40.0,
+        cnc_override_rate_pct_s: float = 1000.0,
+        afc_allowed: bool = False,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
@@ -42,6 +49,12 @@ class SimDriver(Driver):
         self.filter_cutoff_hz = filter_cutoff_hz
         self.protocol = int(protocol)
         self.cnc_hold_lag_ms = float(cnc_hold_lag_ms)
+        self.cnc_override_lag_ms = float(cnc_override_lag_ms)
+        self.cnc_override_rate_pct_s = float(cnc_override_rate_pct_s)
+        self.afc_allowed = bool(afc_allowed)
+        from millsense.drivers.emulator.cnc_override import CncOverride
+
+        CncOverride(self.cnc_override_lag_ms, self.cnc_override_rate_pct_s)  # a bad value: ValueError now, not later
         self._initial_watchdog_ms = int(watchdog_ms)
         self.device = None
         self._pacer = None
@@ -56,11 +69,16 @@ class SimDriver(Driver):
         realtime: bool = True,
         filter_cutoff_hz: float | None = None,
         protocol: int = 1,
+        cnc_override_lag_ms: float = 40.0,
+        cnc_override_rate_pct_s: float = 1000.0,
+        afc_allowed: bool = False,
         **_ignored,
     ) -> SimDriver:
         """``filter_cutoff_hz`` of the [daq] section becomes the simulated DAQ's filter,
         so the demo's config and its simulated hardware agree."""
-        return cls(scenario, seed=seed, realtime=realtime, filter_cutoff_hz=filter_cutoff_hz, protocol=protocol)
+        return cls(scenario, seed=seed, realtime=realtime, filter_cutoff_hz=filter_cutoff_hz, protocol=protocol,
+                   cnc_override_lag_ms=cnc_override_lag_ms, cnc_override_rate_pct_s=cnc_override_rate_pct_s,
+                   afc_allowed=afc_allowed)
 
     @property
     def address(self) -> str:
@@ -83,9 +101,13 @@ class SimDriver(Driver):
             )
         except SourceError as exc:
             raise LinkDown(str(exc)) from exc
-        protocol = 2 if is_program(self.scenario) else self.protocol  # a part program is there for its CONTEXT
+        program = is_program(self.scenario)
+        protocol = 2 if program else self.protocol  # a part program is there for its CONTEXT
         self.device = DeviceModel(source, start_index=self.start_index, watchdog_ms=self._initial_watchdog_ms,
-                                  protocol=protocol, cnc_hold_lag_ms=self.cnc_hold_lag_ms)
+                                  protocol=protocol, cnc_hold_lag_ms=self.cnc_hold_lag_ms,
+                                  cnc_override_lag_ms=self.cnc_override_lag_ms,
+                                  cnc_override_rate_pct_s=self.cnc_override_rate_pct_s,
+                                  afc_allowed=self.afc_allowed and not program)
         self._pacer = Pacer(self.device.sample_rate_hz, realtime=self.realtime, batch_s=self.batch_s)
 
     def _disconnect(self) -> None:

@@ -110,7 +110,7 @@ class Replay:
 
     def feed(self, data: bytes) -> None:
         from millsense.drivers.base import SampleBlock
-        from millsense.drivers.protocol import Context, Descriptor, Samples
+        from millsense.drivers.protocol import Context, Descriptor, Samples, Status
 
         lines: list[bytes] = []
         for frame in self.decoder.feed(data):
@@ -124,6 +124,9 @@ class Replay:
                 if frame != self._context:
                     self._context = frame
                     self._write_items(self.core.on_context(frame).items, lines)
+                continue
+            if isinstance(frame, Status):  # the CNC's applied feed override, as the live daemon notes it
+                self.core.on_status(frame)
                 continue
             if not isinstance(frame, Samples) or self.core.estimator is None:
                 continue

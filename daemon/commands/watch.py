@@ -250,7 +250,7 @@ class _TtyView:
             + _band(e) + "  "
             f"F {_num(e.get('force_n'), '7.1f')} N  "
             f"ae {_num(e.get('radial_depth_mm'), '.2f')} ap {_num(e.get('axial_depth_mm'), '.2f')} mm "
-            f"({e.get('depth_status', '–')})" + _context(e) + _last_process(m.get("process", {}))
+            f"({e.get('depth_status', '–')})" + _override(e) + _context(e) + _last_process(m.get("process", {}))
             + f"  alarm: {alarm}  status: {s.get('state', '–')}"
             + ("  [spindle speeding up: torque holds the inertia]" if e.get("accelerating") else "")
         )
@@ -262,6 +262,20 @@ def _process_key(p: dict[str, Any]) -> str:
         return p["key"]
     parts = [p.get("program"), p.get("tool"), p.get("operation")]
     return "–" if all(v is None for v in parts) else "/".join("–" if v is None else str(v) for v in parts)
+
+
+def _override(e: dict[str, Any]) -> str:
+    """The feed override the CNC applied over the revolution, and the AFC's state and command when it is on."""
+    applied = e.get("feed_override_pct")
+    afc = e.get("afc") if isinstance(e.get("afc"), dict) else {}
+    state = afc.get("state")
+    if applied is None and state is None:
+        return ""  # a daemon before issue 15: nothing to say
+    out = f"  ovr {_num(applied, '.0f')} %"
+    if state not in (None, "off", "unavailable"):
+        target = f" → {_num(afc.get('target'), '.4g')}" if afc.get("target") is not None else ""
+        out += f" AFC {state} cmd {_num(afc.get('override_pct'), '.0f')} %{target}"
+    return out
 
 
 def _context(e: dict[str, Any]) -> str:

@@ -80,7 +80,8 @@ def seen_outside(proc: ProcessRun) -> list[dict[str, Any]]:
             if seen_level != level:
                 continue
             if quantity == "entry":  # how late it really entered (or how long it ran without)
-                late = proc.entry_rev if proc.entry_rev is not None else proc.revolutions
+                # as progress along the path, like the deadline (the plain count at 100 %)
+                late = proc.entry_progress if proc.entry_progress is not None else round(proc.progress, 2)
                 observed = {0: float(late)}
             out.append({"level": level, "quantity": quantity, "process": proc.pid, "observed": dict(observed)})
     return out

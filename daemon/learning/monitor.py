@@ -26,10 +26,17 @@ The rules (docs/learning.md):
   latches until `reset()`; one that does not clears when its process ends.
 - Each good checked process adds its energy ratio to its tool's wear
   (`wear.py`); a wear warning never holds the feed.
+- While the feed moves (the CNC's override), everything above is in terms of
+  the programmed feed (`process.py`): loads normalised by (ovr/100)^gain,
+  `process_rev` by progress along the path, energy of the same cut at the
+  programmed feed. The estimate's `envelope_*_nm` and an alarm's value and limit
+  are in the revolution's own terms (the band times its scale), so they read
+  against its torque. At 100 % nothing differs.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -40,6 +47,7 @@ from millsense.daemon.learning.keys import KeyState, key_show, key_summary, seen
 from millsense.daemon.learning.process import ProcessRun, finite
 from millsense.daemon.learning.wear import ToolWear
 from millsense.daemon.pipeline.alarms import AlarmEvent
+from millsense.daemon.pipeline.override_track import load_scale
 
 # Levels of the fixed limits that keep a process from teaching (`note_alarm`).
 _FIXED_LEVELS = frozenset({"warning", "overload", "crash", "tool_breakage", "daq_lost"})
@@ -62,8 +70,9 @@ class ProcessMonitor:
     """All learning state of one machine. Not thread-safe: one owner (the estimator thread)."""
 
     def __init__(self, learning: Any, limits: dict[str, dict] | None = None, tools: dict | None = None,
-                 first_process: int = 1):
+                 first_process: int = 1, gain: float = 1.0):
         self.learning = learning
+        self.gain = float(gain)   # load ~ feed^gain (override_track.load_gain): the programmed-feed normalisation
         self.enabled = bool(setting(learning, "enabled", True))
         self.target = int(setting(learning, "processes", 5))
         self.confirm = bool(setting(learning, "confirm", False))
@@ -112,13 +121,13 @@ class ProcessMonitor:
             if ctx.monitor:
                 resumed = self._resume_key == ctx.key
                 self._resume_key = None
-                proc = self.proc = ProcessRun(self.next_process, ctx, monitored=True, resumed=resumed)
+                proc = self.proc = ProcessRun(self.next_process, ctx, monitored=True, resumed=resumed, gain=self.gain)
                 self.next_process += 1
                 self._run_monitored = True
             elif self._run_monitored:
                 return step   # after its monitored process: the retract, the spindle stopping
             else:
-                proc = self.proc = ProcessRun(0, ctx, monitored=False)   # numbered if it is reported
+                proc = self.proc = ProcessRun(0, ctx, monitored=False, gain=self.gain)   # numbered if reported
         k = proc.add(est)
         if proc.monitored:
             est["process_rev"] = k
@@ -198,35 +207,40 @@ class ProcessMonitor:
         if env is None:
             return
         if k is None:
-            if proc.revolutions >= env.entry_deadline:
-                self._raise(step, proc, "envelope_low", "entry", float(proc.revolutions),
-                            float(env.entry_deadline), None, {0: float(proc.revolutions)})
+            # revolutions before entry counted as progress along the path (the plain count at 100 %)
+            if proc.progress >= env.entry_deadline:
+                self._raise(step, proc, "envelope_low", "entry", round(proc.progress, 2),
+                            float(env.entry_deadline), None, {0: round(proc.progress, 2)})
             return
         if k >= env.length:
             return  # longer than learned: nothing to compare with
+        # the band is at the programmed feed; published, and alarms, in this revolution's terms
+        scale = load_scale(est.get("feed_override_pct"), self.gain)
         low, high = env.torque.bounds(k)
-        est["envelope_low_nm"] = None if low is None else round(low, 4)
-        est["envelope_high_nm"] = None if high is None else round(high, 4)
+        est["envelope_low_nm"] = None if low is None else round(low * scale, 4)
+        est["envelope_high_nm"] = None if high is None else round(high * scale, 4)
         if not est.get("valid", True):
             return  # a damaged revolution neither counts nor breaks a run
         for quantity, band in (("torque_nm", env.torque), ("force_n", env.force)):
             value = finite(est.get(quantity))
+            norm = None if value is None else value / scale
             low, high = (None, None) if band is None else band.bounds(k)
-            self._judge(step, proc, "envelope_high", quantity, value, high,
-                        value is not None and high is not None and value > high, k)
+            self._judge(step, proc, "envelope_high", quantity, value, norm, high, scale,
+                        norm is not None and high is not None and norm > high, k)
             # low only where the band expects cutting
-            self._judge(step, proc, "envelope_low", quantity, value, low,
-                        value is not None and low is not None and low > 0 and value < low, k)
+            self._judge(step, proc, "envelope_low", quantity, value, norm, low, scale,
+                        norm is not None and low is not None and low > 0 and norm < low, k)
 
     def _judge(self, step: MonitorStep, proc: ProcessRun, level: str, quantity: str, value: float | None,
-               limit: float | None, outside: bool, k: int) -> None:
+               norm: float | None, limit: float | None, scale: float, outside: bool, k: int) -> None:
+        """`norm`, `limit`: at the programmed feed; `value` as cut (`scale` = (ovr/100)^gain between them)."""
         run_key = (level, quantity)
         proc.runs[run_key] = proc.runs.get(run_key, 0) + 1 if outside else 0
-        if outside:
-            proc.outside.setdefault(f"{level}:{quantity}", {})[k] = value
+        if outside:   # what `false-alarm` widens the band by: at the programmed feed, like the band
+            proc.outside.setdefault(f"{level}:{quantity}", {})[k] = norm
         need = self.high_revolutions if level == "envelope_high" else self.low_revolutions
         if outside and proc.runs[run_key] >= need:
-            self._raise(step, proc, level, quantity, value, limit, k, None)
+            self._raise(step, proc, level, quantity, value, None if limit is None else limit * scale, k, None)
 
     def _raise(self, step: MonitorStep, proc: ProcessRun, level: str, quantity: str, value: float | None,
                limit: float | None, k: int | None, observed: dict[int, float] | None) -> None:
@@ -285,9 +299,9 @@ class ProcessMonitor:
     def _end_checks(self, step: MonitorStep, proc: ProcessRun, env: Envelope) -> None:
         """No entry at all, or too little energy, in a process that ran its course."""
         if proc.entry_rev is None:
-            if proc.revolutions >= env.entry_deadline:
-                self._raise(step, proc, "envelope_low", "entry", float(proc.revolutions),
-                            float(env.entry_deadline), None, {0: float(proc.revolutions)})
+            if proc.progress >= env.entry_deadline:
+                self._raise(step, proc, "envelope_low", "entry", round(proc.progress, 2),
+                            float(env.entry_deadline), None, {0: round(proc.progress, 2)})
             return
         if len(proc.torque_nm) >= env.cut_length and proc.energy_j < env.energy_low_j:
             self._raise(step, proc, "envelope_low", "cutting_energy_j", round(proc.energy_j, 3),
@@ -312,7 +326,7 @@ class ProcessMonitor:
         if proc.entry_rev is None or proc.too_damaged or not proc.torque_nm:
             return  # nothing cut, or too little seen: it would teach a wrong footprint
         torque, force = proc.arrays()
-        ks.taught.append(Taught(torque, force, proc.entry_rev, proc.energy_j))
+        ks.taught.append(Taught(torque, force, proc.entry_progress, proc.energy_j))
         step.changed_keys.add(proc.key)
         if len(ks.taught) >= self.target:
             ks.envelope = learn(ks.taught, self.learning)
@@ -355,6 +369,24 @@ class ProcessMonitor:
                                "wear_pct": None if w.wear_pct is None else round(w.wear_pct, 2),
                                "warned": w.warned} for t, w in sorted(self.tools.items())},
         }
+
+    def learned_mean(self, key: str, quantity: str) -> float | None:
+        """The mean over the cut of `key`'s learned band mean (`torque_nm` or `force_n`), at the programmed feed.
+
+        "Over the cut": the process_rev where the torque band expects cutting (its low side above 0), so
+        neither the entry nor the exit's partial revolutions pull it down. None until an envelope is active
+        (a pending one is not trusted yet), for a quantity without a band, or when no revolution cuts.
+        """
+        ks = self.keys.get(str(key))
+        if ks is None or ks.state != "active" or ks.envelope is None:
+            return None
+        env = ks.envelope
+        band = env.force if quantity == "force_n" else env.torque if quantity == "torque_nm" else None
+        if band is None:
+            return None
+        cut = [float(band.mean[k]) for k, low in enumerate(env.torque.low_nan)
+               if low > 0 and k < len(band.mean) and math.isfinite(band.mean[k])]   # NaN > 0 is False
+        return sum(cut) / len(cut) if cut else None
 
     def show(self, key: str) -> dict[str, Any]:
         """One key's summary and its band along process_rev (None where there is none)."""

@@ -6,6 +6,18 @@ in a row with `cutting` true and the spindle not changing speed; `process_rev` c
 revolutions from there, which is what the envelope is indexed by. Its cutting
 energy is 2π · Σ torque_nm over its valid revolutions (one revolution turns
 2π rad, so Σ T·ω·Δt = 2π · Σ T).
+
+When the feed moves (the CNC's override, `feed_override_pct` = o %, u = o/100):
+- torque and force are kept normalised to the programmed feed, load / u^gain
+  (torque ~ t^(1+p), [D] eq. 8; `override_track.load_scale`);
+- `process_rev` is the progress along the programmed path, not a count: a
+  revolution at u advances the tool u programmed revolutions, and it is indexed
+  by its middle, round(Σ u before it since entry + u/2 − 1/2); skipped indices
+  (u > 1) are filled between their neighbours, repeated ones (u < 1) averaged;
+- the revolutions before entry count as Σ u too (the entry deadline);
+- the energy sums the normalised torque times u: 2π · Σ T·u^(1−gain), the
+  energy of the same cut at the programmed feed.
+At u = 1 every one of these is exactly the plain count and value.
 """
 
 from __future__ import annotations
@@ -17,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from millsense.daemon.learning.context import Ctx
+from millsense.daemon.pipeline.override_track import load_scale
 from millsense.daemon.pipeline.alarms import AlarmEvent, finite  # noqa: F401 - finite: the learning package's too
 
 MAX_INVALID_FRACTION = 0.10   # a process with more invalid revolutions than this never teaches
@@ -48,7 +61,14 @@ class ProcessRun:
     last_rev: int | None = None
     last_seq: int | None = None
     first_seq: int | None = None     # the first sample of its first revolution
-    _tentative: list[tuple[int, float | None, float | None, bool]] = field(default_factory=list)
+    gain: float = 1.0                # load ~ feed^gain: normalises torque and force to the programmed feed
+    progress: float = 0.0            # Σ override/100 over its revolutions (== revolutions at 100 %)
+    entry_progress: int | None = None   # progress from start to entry, rounded (== entry_rev at 100 %)
+    _since_entry: float = 0.0        # Σ override/100 over the revolutions from entry
+    _counts: list[int] = field(default_factory=list)   # revolutions averaged into each process_rev
+    # (index, torque, force, cutting, override/100, load scale, progress before it): revolutions that may
+    # make the entry (torque and force normalised)
+    _tentative: list[tuple[int, float | None, float | None, bool, float, float, float]] = field(default_factory=list)
 
     @property
     def key(self) -> str:
@@ -66,19 +86,27 @@ class ProcessRun:
         """One revolution; returns its process_rev (None before entry)."""
         index = self.revolutions
         self.revolutions += 1
+        pct = est.get("feed_override_pct")
+        u = 1.0 if pct is None or not pct > 0.0 else float(pct) / 100.0
+        scale = load_scale(pct, self.gain)
+        progress_before = self.progress
+        self.progress += u
         self.last_rev, self.last_seq = est.get("rev"), est.get("seq_end")
         if index == 0 and self.last_seq is not None:
             self.first_seq = int(self.last_seq) - max(int(est.get("samples") or 1), 1) + 1
         valid = bool(est.get("valid", True))
         torque = finite(est.get("torque_nm")) if valid else None
         force = finite(est.get("force_n")) if valid else None
+        if scale != 1.0:   # the load the same cut takes at the programmed feed
+            torque = None if torque is None else torque / scale
+            force = None if force is None else force / scale
         cutting = valid and bool(est.get("cutting")) and torque is not None
         # entry: not while the spindle changes speed (what the masses take is not all out of the torque then)
         entering = cutting and not est.get("accelerating")
         if not valid or torque is None:
             self.invalid += 1
         if torque is not None:
-            self.torque_sum_nm += torque  # the energy counts every valid revolution, before entry too
+            self.torque_sum_nm += torque * u  # the energy counts every valid revolution, before entry too
         if self.entry_rev is None:
             # The entry is the first of ENTRY_REVOLUTIONS entering revolutions in a row: one revolution
             # just over the cutting threshold in the air (the spindle settling after its start) would
@@ -86,29 +114,61 @@ class ProcessRun:
             if not entering:
                 self._tentative.clear()
                 return None
-            self._tentative.append((index, torque, force, cutting))
+            self._tentative.append((index, torque, force, cutting, u, scale, progress_before))
             if len(self._tentative) < ENTRY_REVOLUTIONS:
                 return None
             self.entry_rev = self._tentative[0][0]
+            self.entry_progress = int(round(self._tentative[0][6]))
             if self.entry_rev == 0:
                 self.resumed = True  # cutting from its first revolution: the approach was not seen
-            for _, t, f, c in self._tentative[:-1]:
-                self._record(t, f, c)
+            for _, t, f, c, uu, sc, _ in self._tentative[:-1]:
+                self._record(t, f, c, uu, sc)
             self._tentative.clear()
-        self._record(torque, force, cutting)
-        return index - self.entry_rev
+        return self._record(torque, force, cutting, u, scale)
 
-    def _record(self, torque: float | None, force: float | None, cutting: bool) -> None:
-        """One revolution from entry on: peaks, the cutting mean, the per-process_rev arrays."""
+    def _record(self, torque: float | None, force: float | None, cutting: bool, u: float = 1.0,
+                scale: float = 1.0) -> int:
+        """One revolution from entry on (torque and force normalised, `scale` undoes it): peaks, the cutting
+        mean (of the loads as cut: the summary's), the per-process_rev arrays (normalised); its process_rev."""
         if torque is not None:
-            self.torque_peak_nm = torque if self.torque_peak_nm is None else max(self.torque_peak_nm, torque)
+            raw = torque * scale
+            self.torque_peak_nm = raw if self.torque_peak_nm is None else max(self.torque_peak_nm, raw)
         if force is not None:
-            self.force_peak_n = force if self.force_peak_n is None else max(self.force_peak_n, force)
+            raw = force * scale
+            self.force_peak_n = raw if self.force_peak_n is None else max(self.force_peak_n, raw)
         if cutting:
             self.cutting_revolutions += 1
-            self.cutting_sum_nm += torque
-        self.torque_nm.append(math.nan if torque is None else torque)
-        self.force_n.append(math.nan if force is None else force)
+            self.cutting_sum_nm += torque * scale
+        # indexed by its middle along the programmed path: at u = 1 exactly 0, 1, 2, ...
+        k = max(int(round(self._since_entry + u / 2.0 - 0.5)), 0)
+        self._since_entry += u
+        t = math.nan if torque is None else torque
+        f = math.nan if force is None else force
+        n = len(self.torque_nm)
+        if k >= n:
+            # u > 1 skips indices: fill them on the line from the last value (a ramp stays a ramp)
+            t0 = self.torque_nm[-1] if n else t
+            f0 = self.force_n[-1] if n else f
+            gap = k - n + 1
+            for j in range(1, gap):
+                self.torque_nm.append(t0 + (t - t0) * j / gap)
+                self.force_n.append(f0 + (f - f0) * j / gap)
+                self._counts.append(1)
+            self.torque_nm.append(t)
+            self.force_n.append(f)
+            self._counts.append(1)
+            return k
+        # u < 1: a second revolution on the same index; the mean of them (NaN: an invalid one is not a value)
+        k = n - 1
+        c = self._counts[k]
+        for values, v in ((self.torque_nm, t), (self.force_n, f)):
+            old = values[k]
+            if math.isnan(old):
+                values[k] = v
+            elif not math.isnan(v):
+                values[k] = (old * c + v) / (c + 1)
+        self._counts[k] = c + 1
+        return k
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         return np.array(self.torque_nm, dtype=float), np.array(self.force_n, dtype=float)

@@ -200,11 +200,20 @@ class BreakageTrack:
     either changes torque by a step as well. Without a feed-rate channel the feed
     is the configured constant, so a programmed feed change can raise a false
     `tool_breakage`.
+
+    The CNC's feed override (the adaptive feed control moves it every revolution)
+    is not a programmed change: each revolution's torque is taken at the
+    programmed feed, torque / (ovr/100)^gain (torque ~ t^(1+p), [D] eq. 8), and
+    its feed per tooth as the programmed one, t_c / (ovr/100). A rate-limited
+    override ramp then neither looks like a drop (no false alarm) nor stops the
+    window from being steady (a flute breaking during the ramp is still seen).
+    At 100 % both are the values as they came.
     """
 
     BEFORE, TRANSITION, AFTER = 3, 1, 2
     STEADY_TOL = 0.05    # steady: every revolution within 5 % of the level before
     SPEED_TOL = 0.02     # speed and feed per tooth within 2 % across the window
+    gain = 1.0 - 0.4362  # load ~ feed^gain; the owner sets its configuration's (override_track.load_gain)
 
     def __init__(self, drop_pct: float | None, min_torque_nm: float):
         self._drop = 0.0 if drop_pct is None else min(max(drop_pct / 100.0, 0.0), 0.999)
@@ -218,8 +227,15 @@ class BreakageTrack:
         return self._drop > 0.0
 
     def update(self, torque_nm: float, cutting: bool, rev: int | None, seq: int | None,
-               spindle_rpm: float | None = None, feed_per_tooth_mm: float | None = None) -> AlarmEvent | None:
-        self._history.append((torque_nm, cutting, spindle_rpm, feed_per_tooth_mm))
+               spindle_rpm: float | None = None, feed_per_tooth_mm: float | None = None,
+               feed_override_pct: float | None = None) -> AlarmEvent | None:
+        scale = 1.0
+        if feed_override_pct is not None and feed_override_pct > 0.0 and feed_override_pct != 100.0:
+            u = feed_override_pct / 100.0
+            scale = u ** self.gain
+            if feed_per_tooth_mm is not None:
+                feed_per_tooth_mm = feed_per_tooth_mm / u   # the programmed feed per tooth
+        self._history.append((torque_nm / scale, cutting, spindle_rpm, feed_per_tooth_mm))
         del self._history[: -self._window]
         if self.latched or not self.armed or len(self._history) < self._window:
             return None
@@ -243,7 +259,7 @@ class BreakageTrack:
         if new_nm > limit:   # drops only: a rise is load, for the overload limits
             return None
         self.latched = True
-        return AlarmEvent("tool_breakage", "torque_nm", torque_nm, limit, rev, seq)
+        return AlarmEvent("tool_breakage", "torque_nm", torque_nm, limit * scale, rev, seq)
 
     def forget(self) -> None:
         """Forget the revolutions seen (after a gap in time they are not consecutive)."""
@@ -289,7 +305,8 @@ class AlarmEngine:
         torque_nm = finite(est.get("torque_nm"))
         if torque_nm is not None:
             ev = self.breakage.update(torque_nm, bool(est.get("cutting")), rev, seq,
-                                      finite(est.get("spindle_rpm")), finite(est.get("feed_per_tooth_mm")))
+                                      finite(est.get("spindle_rpm")), finite(est.get("feed_per_tooth_mm")),
+                                      finite(est.get("feed_override_pct")))
             if ev is not None:
                 events.append(ev)
         return events

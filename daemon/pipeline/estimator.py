@@ -46,6 +46,13 @@ tool number at a revolution's last sample (None: unknown); feed per tooth,
 force and depth then use that tool's `[tools.N]` geometry, `[tool]` for a tool
 the configuration does not list (`per_revolution.py`).
 
+The CNC's feed override: `Estimator.override` (an `OverrideTrack`, shared by
+the runner, which notes each STATUS's applied override in it) gives every
+revolution its time-weighted mean override, published as `feed_override_pct`
+(100.0 when the DAQ reports none, on an invalid revolution too: it is the DAQ's
+report, not a figure built from the revolution's samples). Without a feed-rate
+channel the feed per tooth and depths use the configured feed times it.
+
 Also per sample: the air-gap power and the largest line current, lightly
 smoothed, so that a crash can trip within milliseconds instead of waiting for
 the revolution to close (`safety_check.py`).
@@ -65,6 +72,7 @@ from millsense.daemon.physics.power import (
     input_power_symmetric_w,
     input_power_two_wattmeter_w,
 )
+from millsense.daemon.pipeline.override_track import OverrideTrack
 from millsense.daemon.pipeline.per_revolution import RevolutionColumns, RevolutionPhysics
 from millsense.daemon.pipeline.revolutions import STOP_RPM, EncoderAngle, RevolutionSplitter, SpeedAngle
 from millsense.daemon.pipeline.scaling import Scaler
@@ -212,6 +220,7 @@ class Estimator:
         self._prev_rev: tuple[float, float] | None = None  # (end position, spindle rpm) of the last valid revolution
         self._last_rpm: float | None = None
         self.rev = 0
+        self.override = OverrideTrack()   # the runner's track replaces it (STATUS frames go there)
 
     # --- accounting ------------------------------------------------------------------
 
@@ -350,6 +359,12 @@ class Estimator:
         count = len(batch)
         problems, saturated = self.signals.revolution_verdicts     # judged by this block's `signals.push`
         sat = saturated.tolist()
+        seq_end, samples, lost = batch.seq_end.tolist(), batch.samples.tolist(), batch.lost.tolist()
+        # the applied override per revolution: a few steps at most, never per sample
+        track = self.override
+        overrides = [track.mean(e - max(n, 1) + 1, e) for e, n in zip(seq_end, samples)]
+        if seq_end:
+            track.forget_before(seq_end[-1])   # the next revolution starts after this sample
         invalid = ["lost_samples" if dmg else "signals" if prob or s else None
                    for dmg, prob, s in zip(batch.damaged.tolist(), problems, sat)]
         c = self._cols
@@ -392,6 +407,7 @@ class Estimator:
                 motor_rpm=column("motor_rpm"), feed_rate_mm_min=column("feed_rate"),
                 feed_current_a=column("feed_current"), force_x_n=column("fx"), force_y_n=column("fy"),
                 speed_rise_rpm=rise, prev_spindle_rpm=prev,
+                feed_override_pct=None if not track.reported else np.array([overrides[i] for i in good]),
             )
             tool_at = self.tool_at
             tools = None if tool_at is None else [tool_at(s) for s in batch.seq_end[g].tolist()]
@@ -400,14 +416,14 @@ class Estimator:
             if "f_mag" in c:
                 phys["force_measured_n"] = m[:, c["f_mag"]].tolist()
 
-        seq_end, samples, lost = batch.seq_end.tolist(), batch.samples.tolist(), batch.lost.tolist()
         keys = list(phys)
         rows = iter(zip(*phys.values())) if phys else iter(())
         acc = iter(accelerating)
         out = []
         for i in range(count):
             self.rev += 1
-            base = {"rev": self.rev, "seq_end": seq_end[i], "samples": samples[i], "lost_samples": lost[i]}
+            base = {"rev": self.rev, "seq_end": seq_end[i], "samples": samples[i], "lost_samples": lost[i],
+                    "feed_override_pct": round(overrides[i], 2)}
             if invalid[i] is not None:
                 est = dict.fromkeys(NULL_FIELDS)
                 est.update(base, valid=False, invalid=invalid[i], cutting=False, accelerating=False)

@@ -8,12 +8,14 @@ peer's credentials (`SO_PEERCRED`) must be uid 0 or the daemon's own uid.
 The socket file is mode 0660 in the state directory.
 
 Protocol: one connection per request; the client sends one JSON line
-`{"command": "reset" | "test-trip" | "status" | "limits", "args": {...}}` and
+`{"command": "reset" | "test-trip" | "status" | "limits" | "afc", "args": {...}}` and
 gets one JSON line back. `reset` and `test-trip` go through `Runner.reset` /
 `Runner.test_trip`, so a reset is still refused while the condition that
 latched persists. `limits` takes the args of `cmd/limits` (publish/limits_args.py):
 `list` and `show` read (`Runner.limits()`, or the key's detail), the other
-actions change the learned limits through `Runner.limits_command`. Every command
+actions change the learned limits through `Runner.limits_command`. `afc` takes the
+args of `cmd/afc` ({"action": "on" | "off" | "status"}): `status` reads, `on` and
+`off` switch adaptive feed control through `Runner.afc_command`. Every command
 that changes something is recorded in the audit log, granted or refused, with
 the peer's uid and pid.
 
@@ -37,7 +39,7 @@ import structlog
 log = structlog.get_logger("millsense.local_control")
 
 SOCKET_NAME = "control.sock"
-COMMANDS = ("reset", "test-trip", "status", "limits")
+COMMANDS = ("reset", "test-trip", "status", "limits", "afc")
 MAX_REQUEST_BYTES = 4096
 READ_DEADLINE_S = 2.0
 SOCKET_MODE = 0o660
@@ -59,7 +61,7 @@ def socket_path(state_dir: Path) -> Path:
 # -- client ----------------------------------------------------------------------
 def local_command(state_dir: Path, command: str, timeout_s: float = CLIENT_TIMEOUT_S,
                   args: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Ask the daemon whose state directory is `state_dir`; its JSON reply. `args`: for `limits`.
+    """Ask the daemon whose state directory is `state_dir`; its JSON reply. `args`: for `limits`, `afc`.
 
     Raises `LocalControlError` with a sentence for the user when no daemon
     listens there, the socket is not ours to use, or nothing came back in time.
@@ -206,6 +208,8 @@ class LocalControl:
             reply = {"ok": True, **self.runner.status()}
         elif command == "limits":
             reply = self._limits(args, requester)
+        elif command == "afc":
+            reply = self._afc(args, requester)
         else:
             fn = self.runner.reset if command == "reset" else self.runner.test_trip
             reply = fn(requester=requester)
@@ -242,6 +246,30 @@ class LocalControl:
             # Granted as over Zenoh (cmd/limits): the operator was allowed and the Runner asked; whether it
             # could do it is in the result (a refusal line would be rate-limited, and this is no attack).
             audit.record("limits", requester, True, result=reply)
+        return reply
+
+
+    def _afc(self, args: Any, requester: str) -> dict[str, Any]:
+        """`afc` at the machine: `status` read as it is, `on` / `off` audited like a reset."""
+        from millsense.daemon.publish.sink import afc_reply, check_afc_args
+
+        audit = self.runner.audit
+        method = getattr(self.runner, "afc_command", None)
+        if not callable(method):
+            return {"ok": False, "error": "this daemon has no adaptive feed control"}
+        try:
+            checked = check_afc_args(args if args is not None else {"action": "status"})
+        except ValueError as exc:
+            audit.record("afc", requester, False, reason=str(exc))
+            return {"ok": False, "error": str(exc)}
+        try:
+            reply = afc_reply(checked, method(checked, requester))
+        except Exception as exc:  # noqa: BLE001 - said to the operator, not hung up on
+            reply = {**checked, "ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        if checked["action"] != "status":
+            # Granted as over Zenoh (cmd/afc): the operator was allowed and the Runner asked; a refusal
+            # of the Runner's own (a protocol-1 DAQ, say) is in the result.
+            audit.record("afc", requester, True, result=reply)
         return reply
 
 

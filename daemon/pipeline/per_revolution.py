@@ -68,9 +68,10 @@ class FeedCheck:
         self._last_mm_min: float | None = None
         self._events: list[tuple[str, dict]] = []
 
-    def update(self, measured_mm_min: float | None, steady_cutting: bool) -> None:
+    def update(self, measured_mm_min: float | None, steady_cutting: bool, override_pct: float = 100.0) -> None:
+        """One revolution: the measured feed against the configured one times the CNC's applied override."""
         last, self._last_mm_min = self._last_mm_min, measured_mm_min
-        configured = self.configured_mm_min
+        configured = None if self.configured_mm_min is None else self.configured_mm_min * override_pct / 100.0
         if configured is None or measured_mm_min is None or last is None or not steady_cutting:
             return
         if abs(measured_mm_min - last) > FEED_STEADY_REL * max(abs(last), 1e-9):
@@ -81,7 +82,8 @@ class FeedCheck:
                 self.warned = True
                 if len(self._events) < 16:   # nobody drains them in calibrate: bounded
                     self._events.append(("feed.mismatch", {
-                        "configured_mm_min": configured,
+                        "configured_mm_min": self.configured_mm_min,
+                        "override_pct": round(override_pct, 1),
                         "measured_mm_min": round(measured_mm_min, 1),
                         "off_pct": round(100.0 * (measured_mm_min / configured - 1.0), 1),
                         "detail": "using the measured feed for feed per tooth and depths; "
@@ -115,6 +117,7 @@ class RevolutionMeans:
     force_y_n: float | None
     speed_rise_rpm: float = 0.0      # spindle speed at the revolution's end minus at its start
     prev_spindle_rpm: float | None = None  # mean speed of the revolution just before (None: not contiguous)
+    feed_override_pct: float = 100.0      # the CNC's applied feed override, time-weighted over the revolution
 
 
 @dataclass(frozen=True)
@@ -135,6 +138,7 @@ class RevolutionColumns:
     force_y_n: np.ndarray | None
     speed_rise_rpm: np.ndarray
     prev_spindle_rpm: np.ndarray
+    feed_override_pct: np.ndarray | None = None   # applied override per revolution; None: 100 % (no report)
 
 
 @dataclass(frozen=True)
@@ -252,6 +256,7 @@ class RevolutionPhysics:
             feed_current_a=col(r.feed_current_a), force_x_n=col(r.force_x_n), force_y_n=col(r.force_y_n),
             speed_rise_rpm=np.array([r.speed_rise_rpm]),
             prev_spindle_rpm=np.array([np.nan if r.prev_spindle_rpm is None else r.prev_spindle_rpm]),
+            feed_override_pct=np.array([r.feed_override_pct]),
         )
         out = self.estimate_many(cols, None if tool is None else [tool])
         return {k: v[0] for k, v in out.items()}
@@ -300,16 +305,20 @@ class RevolutionPhysics:
         sigma_p_w = np.sqrt(var_w2 / np.maximum(c.samples, 1)) / gain                            # std. error of the mean
         sigma_nm = torque_sigma_nm(sigma_p_w, power_omega)                                      # eq. (20)
 
+        # The feed the cut ran at: the feed-rate channel when there is one, else the programmed feed times
+        # the override the CNC applied (docs/physics.md: feed per tooth t_c = f/(N·n))
+        override = c.feed_override_pct
         feed_mm_min = c.feed_rate_mm_min
         if feed_mm_min is None and self.feed_mm_min is not None:
-            feed_mm_min = np.full(count, self.feed_mm_min)
+            feed_mm_min = (np.full(count, self.feed_mm_min) if override is None
+                           else self.feed_mm_min * override / 100.0)
         force_feed_n = None
         if self.feed_force is not None and c.feed_current_a is not None:
             _, n_per_a, friction_n = self.feed_force
             force_feed_n = n_per_a * c.feed_current_a - friction_n
 
         cutting = torque_nm >= self.min_torque_nm
-        self._feed_check_many(c.feed_rate_mm_min, cutting & steady)
+        self._feed_check_many(c.feed_rate_mm_min, cutting & steady, override)
         noise_nm = self.force_noise_nm(sigma_nm)
         groups = self._tool_groups(tools, count)
         if len(groups) == 1:   # the usual block: one tool, the whole columns
@@ -419,13 +428,15 @@ class RevolutionPhysics:
     # earlier, and in a crash the speed turns within a revolution: the lagged term hands the recovering
     # revolution's load to the masses (reads low, the unsafe side). See docs for the noise (J·σ_Δω·ω̄/2π).
 
-    def _feed_check_many(self, measured_mm_min: np.ndarray | None, steady_cutting: np.ndarray) -> None:
+    def _feed_check_many(self, measured_mm_min: np.ndarray | None, steady_cutting: np.ndarray,
+                         override_pct: np.ndarray | None = None) -> None:
         if measured_mm_min is None or self.feed_check.configured_mm_min is None:
             # nothing to judge: the check only remembers the last measured feed
             self.feed_check.update(None if measured_mm_min is None else float(measured_mm_min[-1]), False)
             return
-        for measured, steady in zip(measured_mm_min.tolist(), steady_cutting.tolist()):
-            self.feed_check.update(measured, steady)
+        overrides = [100.0] * len(measured_mm_min) if override_pct is None else override_pct.tolist()
+        for measured, steady, ovr in zip(measured_mm_min.tolist(), steady_cutting.tolist(), overrides):
+            self.feed_check.update(measured, steady, ovr)
 
     def _depth_many(self, tool: ToolGeometry, torque_nm, tangential_n, force_feed_n, t_c, force_x_n, force_y_n,
                     cutting):

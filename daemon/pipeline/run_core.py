@@ -27,7 +27,10 @@ from typing import Any
 from millsense.daemon.learning.context import ContextTrack
 from millsense.daemon.learning.monitor import ProcessMonitor
 from millsense.daemon.pipeline.alarms import AlarmEngine, AlarmEvent
+from millsense.daemon.pipeline.override_track import OverrideTrack, load_gain
 from millsense.daemon.pipeline.safety_check import SafetyCheck
+
+_BEFORE_ANY = -(1 << 62)   # a STATUS before any sample: it holds from the first one on
 
 # Internal fields of the estimator's dicts that are not part of the `estimate` payload.
 _INTERNAL = ("seq_end",)
@@ -104,12 +107,16 @@ class PipelineCore:
                  limits: dict | None = None, tools: dict | None = None, first_process: int = 1):
         self.settings = settings
         self.alarms = AlarmEngine(getattr(settings, "alarms", None))
+        self.alarms.breakage.gain = load_gain(settings)   # a feed change is not a breakage (BreakageTrack)
         # What the machine is doing (the DAQ's CONTEXT or Zenoh's) and the limits learned per process.
         context = getattr(settings, "context", None)
         self.context = ContextTrack(str(getattr(context, "source", "off") or "off"))
+        # The CNC's applied feed override by sample (STATUS): kept here so that a new estimator goes on with it
+        self.override = OverrideTrack()
         learning = getattr(settings, "learning", None)
         self.monitor: ProcessMonitor | None = (
-            ProcessMonitor(learning, limits=limits, tools=tools, first_process=first_process)
+            ProcessMonitor(learning, limits=limits, tools=tools, first_process=first_process,
+                           gain=load_gain(settings))
             if learning is not None and getattr(learning, "enabled", False) else None)
         self._block_end: tuple[int, int] | None = None  # (seq, device index) one past the last block
         self._context_change: int | None = None  # a context change the process monitor has not settled yet
@@ -140,6 +147,8 @@ class PipelineCore:
         self._retire()
         self.estimator = factory(self.settings, descriptor, descriptor.sample_rate_hz)
         self.context.on_descriptor(int(getattr(descriptor, "capabilities", 0) or 0))
+        if hasattr(self.estimator, "override"):
+            self.estimator.override = self.override  # the feed the cut runs at: configured x applied override
         if hasattr(self.estimator, "tool_at"):
             self.estimator.tool_at = self.tool_at  # force and depth use the tool in the spindle
         if hasattr(self.estimator, "rev"):
@@ -182,6 +191,18 @@ class PipelineCore:
         if delta >= 1 << 31:
             delta -= 1 << 32
         return seq_end + delta
+
+    def on_status(self, status: Any) -> None:
+        """A DAQ STATUS: its applied feed override (version 2; None: not reported) holds from the next sample.
+
+        A STATUS names no sample; the next one processed is the earliest it can describe, and the CNC's
+        own lag (tens of ms) dwarfs the block's latency. Every estimate's `feed_override_pct` comes from here.
+        """
+        tenths = getattr(status, "feed_override", None)
+        if tenths is None:
+            return
+        seq = self._block_end[0] if self._block_end is not None else _BEFORE_ANY
+        self.override.note(seq, float(tenths) / 10.0)
 
     def on_context(self, ctx: Any) -> Step:
         """The DAQ's CONTEXT frame: it holds from its index on (see `_settle_context`)."""

@@ -62,6 +62,8 @@ import structlog
 
 from millsense.daemon.audit import AuditLog
 from millsense.daemon.pipeline.alarms import AlarmEvent, alarm_payload
+from millsense.daemon.pipeline.feed_control import FeedController
+from millsense.daemon.pipeline.feed_output import OverrideOutput
 from millsense.daemon.pipeline.interlock import TEST_TRIP, Interlock, ResetCheck
 from millsense.daemon.pipeline.power_check import PowerSignCheck
 from millsense.daemon.pipeline.run_core import PipelineCore, estimate_payload, process_payload
@@ -163,6 +165,14 @@ class Runner:
         self.delay = LatencyStats()    # per revolution: its frame decoded by the reader → sink (queue wait too)
         self.clock: SeqClock | None = None
         self.power_check = PowerSignCheck()
+        # Adaptive feed control (issue 15, docs/afc.md): off at every start. The controller decides per
+        # revolution on the estimator thread; any thread that sees a fault or trips sets the override to
+        # min(current, 100 %) at once (`_afc_safe`). One lock orders the controller's state and the writes.
+        self.feed = FeedController(getattr(settings, "afc", None), getattr(settings, "material", None),
+                                   batch_s=BATCH_S)
+        self.feed_out = OverrideOutput(driver)
+        self._afc_lock = threading.RLock()
+        self.applied_override_pct: float | None = None  # the DAQ's last STATUS (what the CNC applies)
 
         self.state = "starting"
         self.faults: dict[str, str] = {}
@@ -217,6 +227,7 @@ class Runner:
             self.state = "stopping"
             self._safe(lambda: self._notify(stopping=True, status="stopping"))
             log.info("daemon.stopping", interlock=self.interlock.state)
+        self._afc_safe("daemon stopping")  # the heartbeat stops too: the DAQ's watchdog would do it later
         self._stop.set()
         deadline = time.monotonic() + timeout_s
         for t in self._threads:
@@ -275,6 +286,8 @@ class Runner:
                     self._dispatch(ev, parts, now)
                 except Exception as exc:  # noqa: BLE001 - one bad block must not kill the loop
                     self.fault("estimator", f"{type(exc).__name__}: {exc}", tb=traceback.format_exc())
+            if self.feed.enabled:
+                self._safe(self._afc_idle, time.monotonic())
 
     def _dispatch(self, ev: Any, parts: list[tuple[int, int, float]] | None, now: float) -> None:
         if isinstance(ev, SampleBlock):
@@ -289,6 +302,9 @@ class Runner:
             self._publish_step(step)
         elif isinstance(ev, Status):
             self.interlock.observe_status(ev)
+            if ev.feed_override is not None:
+                self.applied_override_pct = ev.feed_override / 10.0
+            self.core.on_status(ev)  # the applied override, sample by sample, for the revolutions
             if self.interlock.device_hold and not self._check.marked:
                 with self._check_lock:  # a hold we did not set (the watchdog): judged from now on
                     self._check.mark(self._last_seq)
@@ -413,6 +429,10 @@ class Runner:
         for kind, item in step.items:
             if kind == "estimate":
                 self._check_power(item)
+                try:
+                    self._afc_revolution(item, now)
+                except Exception as exc:  # noqa: BLE001 - the controller's error must not stop the estimates
+                    self._afc_error(exc, item)
                 t = self.clock.time_of(int(item.get("seq_end", block.seq + n - 1)))
                 payload = estimate_payload(item, self.machine, t)
                 self.revolutions += 1  # counted before it is out: status never lags what subscribers got
@@ -434,6 +454,122 @@ class Runner:
             self.ready.set()
             self._safe(lambda: self._notify(ready=True, status="running: DAQ streaming, Zenoh open"))
             log.info("daemon.ready", machine=self.machine, interlock=self.interlock.state)
+
+    # ------------------------------------------------------------------ adaptive feed control (feed_control.py)
+    def _afc_apply(self, decision: Any, why: str) -> None:
+        """Write a decision's override, if it has one. A safe decision never raises what the DAQ holds."""
+        if decision is not None and decision.override_pct is not None:
+            self.feed_out.write(decision.override_pct, why, only_down=decision.state == "safe")
+
+    def _afc_safe(self, reason: str) -> None:
+        """A fault, a blind signal, a trip, a stop: the override to min(current, 100 %) at once, any thread."""
+        with self._afc_lock:
+            self._afc_apply(self.feed.safe(reason), reason)
+
+    def _afc_blocked(self) -> str | None:
+        """Why the controller may not move the feed now: a fault, a hold (the DAQ's or ours)."""
+        for kind, reason in list(self.faults.items()):
+            return f"fault: {kind}: {reason}"
+        il = self.interlock
+        if il.latched or il.device_hold:
+            return f"feed hold: {il.reason or 'held by the DAQ'}"
+        return None
+
+    def _afc_release(self) -> None:
+        """The condition is gone (a fault recovered, a reset granted): control may start again from air."""
+        with self._afc_lock:
+            if self._afc_blocked() is None:
+                self.feed.release()
+
+    def _afc_idle(self, now: float) -> None:
+        """Each estimator wake-up: no healthy revolution for too long while above 100 % -> back to 100 %."""
+        with self._afc_lock:
+            self._afc_apply(self.feed.on_idle(now), "no recent revolution")
+
+    def _afc_revolution(self, est: dict, now: float) -> None:
+        """The controller's step for one revolution, before it is published; the estimate carries its state."""
+        feed = self.feed
+        if feed.enabled:
+            seq = est.get("seq_end")
+            ctx = self.core.context.at(int(seq)) if seq is not None else None
+            tool = None if ctx is None else ctx.tool
+            operation = None if ctx is None else ctx.operation
+            learned = None
+            monitor = self.core.monitor
+            if monitor is not None and ctx is not None:
+                with self._alarm_lock:
+                    learned = monitor.learned_mean(ctx.key, feed.quantity_key)
+            with self._afc_lock:
+                blocked = self._afc_blocked()
+                if blocked is not None:
+                    decision = feed.safe(blocked)
+                else:
+                    decision = feed.on_revolution(
+                        est, target=feed.target_for(tool, operation, learned),
+                        allowed=feed.allowed(tool, operation, None if ctx is None else ctx.afc_allowed), now_s=now)
+                self._afc_apply(decision, "afc")
+        est["afc"] = {"state": feed.state, "override_pct": feed.commanded_pct, "target": feed.target}
+
+    def _afc_error(self, exc: Exception, est: dict) -> None:
+        """A bug in the controller's step: the override comes down to <= 100 % and stays there; estimates go on."""
+        reason = f"afc error: {type(exc).__name__}: {exc}"
+        if reason not in self._notes_said:  # once per distinct error: a lasting one would log every revolution
+            self._notes_said.add(reason)
+            self._safe(lambda: log.error("afc.error", reason=reason, traceback=traceback.format_exc()))
+        self._safe(self._afc_safe, reason)
+        est["afc"] = {"state": self.feed.state, "override_pct": self.feed.commanded_pct, "target": None}
+
+    def _afc_descriptor(self, desc: Any) -> None:
+        available = bool(getattr(desc, "has_feed_override", False))
+        with self._afc_lock:
+            self.feed.set_available(available)
+        if not available and "afc.unavailable" not in self._notes_said:
+            self._notes_said.add("afc.unavailable")
+            log.info("afc.unavailable", protocol_version=getattr(desc, "protocol_version", None),
+                     detail="this DAQ has no feed-override output (protocol version 1): no adaptive feed control")
+
+    def _afc_refusal(self) -> str | None:
+        """Why `afc on` cannot be granted, or None."""
+        available = self.feed_out.available
+        if available is None:
+            return "the DAQ has not described itself yet: try again once it streams"
+        if not available:
+            return ("this DAQ has no feed-override output (protocol version 1, or capabilities bit 0 clear): "
+                    "adaptive feed control needs a protocol-2 DAQ")
+        if not self.interlock.enabled:
+            return ("the interlock is disabled ([interlock] enabled = false): without its heartbeat the DAQ's "
+                    "watchdog could not return the override to 100 % if the daemon stopped")
+        return None
+
+    def _afc_status(self) -> dict[str, Any]:
+        with self._afc_lock:
+            out = dict(self.feed.status())
+        out["available"] = self.feed_out.available
+        out["applied_pct"] = self.applied_override_pct
+        out["sent_pct"] = self.feed_out.sent_pct
+        return out
+
+    def afc_command(self, args: dict, requester: str = "") -> dict[str, Any]:
+        """`cmd/afc`, `millsense afc`: switch adaptive feed control on or off (the caller authorised it)."""
+        if not isinstance(args, dict):
+            return {"ok": False, "reason": "the arguments must be a JSON object"}
+        action = args.get("action")
+        if action == "status":
+            return {"ok": True, "afc": self._afc_status()}
+        if action not in ("on", "off"):
+            return {"ok": False, "reason": f"unknown action {action!r}: on, off or status"}
+        refusal = self._afc_refusal() if action == "on" else None
+        if refusal is not None:
+            log.warning("afc.refused", requester=requester or "unknown", action=action, reason=refusal)
+            return {"ok": False, "reason": refusal, "afc": self._afc_status()}
+        with self._afc_lock:
+            self._afc_apply(self.feed.switch(action == "on", time.monotonic()), f"afc {action}")
+            blocked = self._afc_blocked() if action == "on" else None
+            if blocked is not None:  # on, but it waits: a fault or a hold keeps it safe until it is gone
+                self._afc_apply(self.feed.safe(blocked), blocked)
+        log.warning("afc.switched", requester=requester or "unknown", on=action == "on", state=self.feed.state,
+                    reason=blocked)
+        return {"ok": True, "afc": self._afc_status()}
 
     # ------------------------------------------------------------------ learned limits (daemon/learning)
     def _publish_step(self, step: Any) -> None:
@@ -581,6 +717,7 @@ class Runner:
             if self.interlock.trips != trips:  # a new latch (not one already held)
                 with self._check_lock:
                     self._check.mark(self._last_seq if last_seq is None else max(last_seq, self._last_seq or 0))
+        self._afc_safe(f"feed hold: {reason}")  # after the hold is written: it never waits for this
         return result
 
     def _check_blind(self) -> None:
@@ -616,7 +753,8 @@ class Runner:
 
     def _on_link(self, ev: Any) -> None:
         if ev.up:  # the driver logged it (`daq.link_up`, with transport and address)
-            # A DAQ that restarted forgot its watchdog and maybe the latched output.
+            # A DAQ that restarted forgot its watchdog and maybe the latched output; its override is 100 %.
+            self.feed_out.device_restarted()
             self._safe(self.interlock.start)
             self._safe(self.interlock.reassert)
         else:
@@ -636,6 +774,7 @@ class Runner:
             self.fault("descriptor", "; ".join(problems))
             return
         self._refused_descriptor = None
+        self._afc_descriptor(desc)
         self.recover("descriptor")
 
     def _check_stall(self, now: float) -> None:
@@ -652,6 +791,7 @@ class Runner:
             self.faults[kind] = reason
         if self.state in ("running", "starting") and self.ready.is_set():
             self.state = "degraded"
+        self._safe(self._afc_safe, f"fault: {kind}: {reason}")  # first: the feed never runs above programmed unseen
         self._safe(lambda: log.error("fault", kind=kind, reason=reason, dump=self._diagnostics(), traceback=tb))
         self._safe(lambda: self.interlock.beat(self.healthy(), stopping=self.state == "stopping"))
         if kind in ("daq_link", "daq_stalled"):
@@ -672,6 +812,7 @@ class Runner:
         log.info("recovered", kind=kind)
         if kind in BLIND_KINDS:
             self._safe(self._check_blind)
+        self._safe(self._afc_release)
 
     def _daq_alarm(self, ok: bool) -> None:
         with self._alarm_lock:
@@ -792,6 +933,7 @@ class Runner:
                                                  "operation": ctx.operation, "source": ctx.source},
             "processes": self.processes,
             "learning": learning,
+            "afc": self._afc_status(),
             "history": self._history_stats(),
             "daq": stats,
             "sink": self._sink_stats(),
@@ -849,6 +991,7 @@ class Runner:
                     self.frame_check.rearm()
             for ev in events:
                 self._safe(self._publish_alarm, ev, None)
+            self._safe(self._afc_release)
         result["alarm"] = self.core.summary()
         return result
 

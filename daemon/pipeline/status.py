@@ -141,8 +141,16 @@ def status_line(status: dict[str, Any]) -> str:
         f"{status.get('lost_samples')} lost, {status.get('bad_frames')} bad frames; "
         f"{status.get('revolutions')} revs, p99 {_fmt(lat.get('p99'), '.2f')} ms; "
         f"alarm {status.get('alarm')}; interlock {status.get('interlock')}"
+        + _afc_part(status.get("afc"))
         + _zenoh_part(status.get("sink"))
     )
+
+
+def _afc_part(afc: dict[str, Any] | None) -> str:
+    """Only while adaptive feed control is on: its state and the override it commands (issue 15)."""
+    if not isinstance(afc, dict) or not afc.get("enabled"):
+        return ""
+    return f"; AFC {afc.get('state')} override {_fmt(afc.get('override_pct'), '.0f')} %"
 
 
 def _zenoh_part(sink: dict[str, Any] | None) -> str:

@@ -1,4 +1,4 @@
-"""Zenoh options shared by `millsense watch`, `reset`, `test-trip` and `limits`.
+"""Zenoh options shared by `millsense watch`, `reset`, `test-trip`, `limits` and `afc`.
 
 They are short-lived tools, not the daemon: they take the session settings from
 the command line (or the operator's own Zenoh JSON5 file for TLS) and, given
@@ -275,7 +275,7 @@ def command_target(args: argparse.Namespace, prog: str, zenoh_timeout_s: float, 
     return Target(daemon, machine)
 
 
-# ---- the commands' token and session (`reset`, `test-trip`, `limits`): one copy -------------------
+# ---- the commands' token and session (`reset`, `test-trip`, `limits`, `afc`): one copy -------------------
 TOKEN_ENV = "MILLSENSE_RESET_TOKEN"
 
 

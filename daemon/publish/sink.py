@@ -21,6 +21,7 @@ Keys (interfaces.md), prefix `millsense/<machine>`:
 | `limits` | queryable, reads only: `controls.limits()`, or with `{"key": K}` `controls.limits_command({"action": "show", ...})` |
 | `cmd/reset`, `cmd/test-trip` | queryables: the challenge–response of command_auth.py, then `controls.reset(requester=...)` / `controls.test_trip(requester=...)` |
 | `cmd/limits` | queryable, the same challenge–response, args checked (limits_args.py), then `controls.limits_command(args, requester)` |
+| `cmd/afc` | queryable, the same challenge–response, args checked (`check_afc_args`), then `controls.afc_command(args, requester)` |
 | `context` | subscriber (when `[context] source` is auto or zenoh): `controls.on_context_payload(obj, source)` |
 | `alive` | liveliness token |
 
@@ -68,6 +69,7 @@ class Controls(Protocol):
     def reset(self, requester: str = "") -> dict: ...
     # optional: test_trip(requester="") -> dict (then `cmd/test-trip` is declared);
     # limits() -> dict and limits_command(args, requester) -> dict (then `limits` and `cmd/limits`);
+    # afc_command(args, requester) -> dict (then `cmd/afc`: adaptive feed control on, off, status);
     # on_context_payload(payload, source) -> None (then the `context` subscriber, thread-safe);
     # `settings.interlock` (reset policy and token); `settings.context.source`; `audit` (an AuditLog)
 
@@ -90,6 +92,43 @@ def _limits_run(method: Any) -> Any:
         if not isinstance(result, dict):
             return result  # the gate says what is wrong with it
         return {**checked, **result}
+
+    return run
+
+
+AFC_ACTIONS = ("on", "off", "status")
+
+
+def check_afc_args(args: Any) -> dict[str, str]:
+    """The args of `cmd/afc` and the local `afc`: exactly {"action": on | off | status}; ValueError otherwise."""
+    if not isinstance(args, dict):
+        raise ValueError("afc: args must be an object {\"action\": \"on\" | \"off\" | \"status\"}")
+    extra = sorted(set(args) - {"action"})
+    if extra:
+        raise ValueError(f"afc takes only \"action\" (got {', '.join(extra)})")
+    action = args.get("action")
+    if action not in AFC_ACTIONS:
+        raise ValueError(f"afc: action must be one of {', '.join(AFC_ACTIONS)}, not {action!r}")
+    return {"action": action}
+
+
+def afc_reply(checked: dict[str, str], result: Any) -> dict:
+    """The Runner's answer with the action asked; a refusal's `reason` also as `error`, which the
+    command clients print (the Runner says `reason`, every other command `error`)."""
+    if not isinstance(result, dict):
+        return {"ok": False, "error": f"the daemon returned {type(result).__name__}, expected an object", **checked}
+    out = {**checked, **result}
+    if out.get("ok") is False and "error" not in out:
+        out["error"] = str(out.get("reason") or "refused")
+    return out
+
+
+def _afc_run(method: Any) -> Any:
+    """`cmd/afc`: args checked before the Runner sees them (a bad one is a signed, audited refusal)."""
+
+    def run(args: dict, requester: str) -> dict:
+        checked = check_afc_args(args)
+        return afc_reply(checked, method(checked, requester))
 
     return run
 
@@ -488,6 +527,9 @@ class ZenohSink:
         method = getattr(controls, "limits_command", None)
         if callable(method):
             out["limits"] = _limits_run(method)
+        method = getattr(controls, "afc_command", None)
+        if callable(method):
+            out["afc"] = _afc_run(method)
         return out
 
     # ---- teardown and logging ------------------------------------------------------

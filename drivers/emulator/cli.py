@@ -146,6 +146,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     # sensor and DAQ faults (fault tests): drivers/sim/sensors.py SensorFaults
     parser.add_argument("--pin", type=_pin, action="append", metavar="CHANNEL=COUNT",
                         help="a stuck sensor: CHANNEL reads COUNT in every sample (repeatable)")
+    parser.add_argument("--faults-from-s", type=_non_negative, default=0.0, metavar="S",
+                        help="--pin, --current-gain and --clip-currents begin S seconds into the run, as a sensor "
+                             "that fails mid-cut (default 0: from the first sample)")
     parser.add_argument("--current-gain", type=_positive, default=None, metavar="K",
                         help="current sensors give K times their datasheet's counts (large K: clipped at the int16 rails)")
     parser.add_argument("--clip-currents", type=_uint(1, 32767), default=None, metavar="COUNTS",
@@ -164,6 +167,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="protocol 2: the operation number (default 0; a part program sets its own)")
     parser.add_argument("--cnc-hold-lag-ms", type=_non_negative, default=30.0, metavar="MS",
                         help="protocol 2: how long after the feed-hold output the CNC reports the feed held (30)")
+    parser.add_argument("--cnc-override-lag-ms", type=_non_negative, default=40.0, metavar="MS",
+                        help="protocol 2: the CNC's feed override follows the commanded one with this first-order "
+                             "time constant (40)")
+    parser.add_argument("--cnc-override-rate-pct-s", type=_non_negative, default=1000.0, metavar="PCT_S",
+                        help="protocol 2: the fastest the CNC's feed override moves, percent per second "
+                             "(1000; 0 = no limit)")
+    parser.add_argument("--afc-allowed", action="store_true",
+                        help="protocol 2: the CNC allows adaptive feed in this cut (CONTEXT flag bit 2); "
+                             "a part program sets it per operation")
     # the part program (drivers/sim/program.py): parts and faults; see below
     parser.add_argument("--parts", type=_uint(1, 100_000), default=None, metavar="N",
                         help="part program: how many parts (default 30)")

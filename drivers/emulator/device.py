@@ -8,8 +8,12 @@ Protocol version 2 adds a simulated CNC beside the DAQ: its context (program,
 tool, operation; cycle and monitoring on) and its "feed held" input, which
 follows the DAQ's feed-hold output ``cnc_hold_lag_s`` later, as a real CNC
 answers its feed-hold input after its own scan time; and the feed-override
-output, which the device returns to 100.0 % when its watchdog trips. The
-plant's feed rate does not follow the override here: the value is carried only.
+output, which the device returns to 100.0 % when its watchdog trips (a restarted
+device starts there too). The CNC answers the commanded override through its
+own lag and rate limit (``cnc_override.CncOverride``): per sample, the applied
+override goes to the plant (``source.feed_override_pct``) before it makes the
+samples, and STATUS / Modbus input register 6 report the applied one, the
+holding register 102 the commanded one.
 A part program's plant (drivers/sim/program_plant.py) is a CNC of its own: it
 sets program, tool, operation, cycle and monitor by sample index, and the
 device passes each change on with the index of the first sample it holds for.
@@ -25,12 +29,14 @@ from typing import IO
 
 import numpy as np
 
+from millsense.drivers.emulator.cnc_override import CncOverride
 from millsense.drivers.protocol import (
     CAP_CONTEXT,
     CAP_FEED_OVERRIDE,
     CMD_HEARTBEAT,
     CMD_SET_FEED_OVERRIDE,
     CMD_SET_OUTPUTS,
+    CTX_AFC_ALLOWED,
     CTX_CYCLE,
     CTX_FEED_HELD,
     CTX_MONITOR,
@@ -82,6 +88,9 @@ class DeviceModel:
         tool: int = 0,
         operation: int = 0,
         cnc_hold_lag_ms: float = 30.0,
+        cnc_override_lag_ms: float = 40.0,
+        cnc_override_rate_pct_s: float = 1000.0,
+        afc_allowed: bool = False,
     ) -> None:
         if protocol not in PROTOCOLS:
             raise ValueError(f"protocol version {protocol} not one of {PROTOCOLS}")
@@ -112,11 +121,15 @@ class DeviceModel:
         self._heard_heartbeat = False
         self.log = status_log or StatusLog(None)
         # version 2: the feed override and the simulated CNC's context
-        self.feed_override = FEED_OVERRIDE_NEUTRAL  # a restart starts at 100.0 %
+        # a restart starts at 100.0 %, commanded and applied alike
+        self.feed_override = FEED_OVERRIDE_NEUTRAL  # applied, in 0.1 % (what STATUS reports)
+        self.feed_override_commanded = FEED_OVERRIDE_NEUTRAL  # what the host last commanded (or the watchdog)
+        self.cnc_override = CncOverride(cnc_override_lag_ms, cnc_override_rate_pct_s,
+                                        sample_rate_hz=getattr(source, "sample_rate_hz", self.sample_rate_hz))
         self.program = program
         self.tool = tool
         self.operation = operation
-        self.cnc_flags = CTX_CYCLE | CTX_MONITOR
+        self.cnc_flags = CTX_CYCLE | CTX_MONITOR | (CTX_AFC_ALLOWED if afc_allowed else 0)
         self.context_index = self.head  # the first sample index at which the context holds
         # a part program (drivers/sim/program.py) is a CNC of its own: it sets program, tool, operation,
         # cycle and monitor sample by sample; the device adds only "feed held"
@@ -139,6 +152,8 @@ class DeviceModel:
         just before that sample (version 2; version 1 sends none, the context is kept all the same)."""
         first = self.head
         source_first = self.source.index if self._program_source else 0
+        if self.protocol >= 2:
+            self._apply_override(n)
         counts = np.asarray(self.source.step(n), dtype=np.int16)
         keep = min(n, self.ring_depth)  # only the newest D samples survive
         pos = (first + n - keep + np.arange(keep, dtype=np.int64)) % INDEX_MOD % self.ring_depth
@@ -161,6 +176,15 @@ class DeviceModel:
                 if ctx is not None:
                     self.context_changes.append((offset, ctx))
         return first, counts
+
+    def _apply_override(self, n: int) -> None:
+        """The CNC steps its override through the next n samples; the plant feeds with it."""
+        applied_pct = self.cnc_override.run(self.feed_override_commanded / 10.0, n)
+        self.source.feed_override_pct = applied_pct  # a source without feed (the ramp) ignores it
+        tenths = min(max(int(round(float(applied_pct[-1]) * 10.0)), 0), FEED_OVERRIDE_MAX) if n else None
+        if tenths is not None and tenths != self.feed_override:
+            self.feed_override = tenths
+            self.log.write("feed_override_applied", value=tenths, index=(self.head + n - 1) % INDEX_MOD)
 
     def stream_items(self, first: int, counts: np.ndarray) -> list:
         """The block of the last ``produce`` as the stream carries it: ``Samples``, with each CONTEXT
@@ -200,14 +224,18 @@ class DeviceModel:
         return bool(self.cnc_flags & CTX_FEED_HELD)
 
     def set_feed_override(self, tenths: int, now: float, cause: str = "command") -> bool:
-        """Set the override (0.1 % steps); False if out of 0..2000 (refused) or no such output."""
+        """Command the override (0.1 % steps); False if out of 0..2000 (refused) or no such output.
+
+        The CNC applies it through its lag (``produce``); ``feed_override`` follows."""
         if self.protocol < 2:
             return False
+        if cause == "command":  # every command the host sends, even one that changes nothing
+            self.log.write("feed_override_command", now, value=tenths)
         if not 0 <= tenths <= FEED_OVERRIDE_MAX:
             self.log.write("feed_override_refused", now, value=tenths, cause=cause)
             return False
-        if tenths != self.feed_override:
-            self.feed_override = tenths
+        if tenths != self.feed_override_commanded:
+            self.feed_override_commanded = tenths
             self.log.write("feed_override", now, feed_override=tenths, cause=cause)
         return True
 

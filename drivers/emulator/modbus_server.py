@@ -210,7 +210,8 @@ class ModbusDeviceServer:
                 elif a == HR_WATCHDOG:
                     registers[a - start] = dev.watchdog_ms
                 elif a == HR_FEED_OVERRIDE:
-                    registers[a - start] = dev.feed_override  # the device resets it to 1000 on a watchdog trip
+                    # what the host commanded; the device resets it to 1000 on a watchdog trip
+                    registers[a - start] = dev.feed_override_commanded
         return None
 
     def _fixed_input(self, a: int) -> int:
@@ -237,7 +238,7 @@ class ModbusDeviceServer:
         """Input registers 6-15 (version 2): override applied, capabilities, the CNC's context."""
         dev = self.device
         if a == 6:
-            return dev.feed_override
+            return dev.feed_override  # applied: the CNC's override after its lag, not the commanded one
         if a == 7:
             return dev.capabilities
         words = {

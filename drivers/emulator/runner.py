@@ -39,6 +39,8 @@ def _program_options(args) -> dict | None:
     for name in ("tool", "operation"):
         if getattr(args, name, None) is not None:
             raise EmulatorError(f"--{name}: the part program sets the tool and the operation itself", 2)
+    if getattr(args, "afc_allowed", False):
+        raise EmulatorError("--afc-allowed: the part program allows adaptive feed per operation itself", 2)
     from millsense.drivers.sim.program import ProgramFaults
 
     faults = ProgramFaults(
@@ -69,6 +71,9 @@ def serve(args) -> int:
     source = _with_sensor_faults(source, args)
     if args.ring_depth < 1:
         raise EmulatorError("--ring-depth must be at least 1", 2)
+    for name in ("cnc_override_lag_ms", "cnc_override_rate_pct_s"):
+        if not math.isfinite(getattr(args, name)):
+            raise EmulatorError(f"--{name.replace('_', '-')}: expected a finite number", 2)
     status_log = StatusLog(args.status_log)
     device = DeviceModel(
         source,
@@ -81,9 +86,14 @@ def serve(args) -> int:
         tool=args.tool or 0,
         operation=args.operation or 0,
         cnc_hold_lag_ms=args.cnc_hold_lag_ms,
+        cnc_override_lag_ms=args.cnc_override_lag_ms,
+        cnc_override_rate_pct_s=args.cnc_override_rate_pct_s,
+        afc_allowed=args.afc_allowed,
     )
     status_log.write("start", first_index=device.head, scenario=args.scenario, protocol=device.protocol,
-                     feed_override=device.feed_override if device.protocol >= 2 else None)
+                     feed_override=device.feed_override if device.protocol >= 2 else None,
+                     cnc_override_lag_ms=args.cnc_override_lag_ms,
+                     cnc_override_rate_pct_s=args.cnc_override_rate_pct_s)
     # the samples come at the source's true rate, whatever its descriptor claims (--descriptor-rate)
     device.sample_rate_hz = int(getattr(source, "sample_rate_hz", device.sample_rate_hz))
     rate = device.sample_rate_hz
@@ -109,7 +119,8 @@ def serve(args) -> int:
 
 
 def _with_sensor_faults(source, args):
-    """--pin, --current-gain, --clip-currents, --descriptor-rate: the sensors or the DAQ gone wrong."""
+    """--pin, --current-gain, --clip-currents, --descriptor-rate: the sensors or the DAQ gone wrong
+    (the sample faults from --faults-from-s on)."""
     pin = dict(getattr(args, "pin", None) or [])
     gain = getattr(args, "current_gain", None)
     clip = getattr(args, "clip_currents", None)
@@ -119,7 +130,8 @@ def _with_sensor_faults(source, args):
     from millsense.drivers.sim.sensors import SensorFaults
 
     try:
-        return SensorFaults(source, pin=pin, current_gain=gain, clip_currents=clip, descriptor_rate_hz=rate)
+        return SensorFaults(source, pin=pin, current_gain=gain, clip_currents=clip, descriptor_rate_hz=rate,
+                            from_s=float(getattr(args, "faults_from_s", 0.0) or 0.0))
     except ValueError as exc:
         raise EmulatorError(str(exc), 2) from exc
 

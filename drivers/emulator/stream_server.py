@@ -137,7 +137,10 @@ class StreamServer:
                 periodic = self.emitter.periodic(now)
                 if n:
                     first, counts = self.device.produce(n)
-                    self._send(periodic + self.emitter.samples(first, counts, now, self.device.context_changes))
+                    out = periodic + self.emitter.samples(first, counts, now, self.device.context_changes)
+                    if self.emitter.override_moved():  # the CNC's applied override moved: at most one per block
+                        out += self.emitter.status(now)
+                    self._send(out)
                 else:
                     self._send(periodic)
                 if self.duration_samples is not None and self.pacer.produced >= self.duration_samples:

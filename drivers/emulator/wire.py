@@ -43,6 +43,12 @@ class WireEmitter:
         self._next_descriptor = -1.0
         self._last_garbage_time: float | None = None
         self.corrupted_frames = 0
+        # the applied override of the last STATUS sent (at start, the device's own: nothing moved yet)
+        self._status_override: int | None = device.feed_override
+
+    def override_moved(self) -> bool:
+        """Whether the applied override moved by >= 0.1 % since the last STATUS (version 2)."""
+        return self.device.protocol >= 2 and self.device.feed_override != self._status_override
 
     def _maybe_corrupt(self, frame: bytes, now: float, kind: str, **fields) -> bytes:
         if self.corrupt_fraction <= 0 or self.rng.random() >= self.corrupt_fraction:
@@ -68,7 +74,9 @@ class WireEmitter:
         return self._maybe_corrupt(encode_context(ctx), now, "context")
 
     def status(self, now: float) -> bytes:
-        return self._maybe_corrupt(encode_status(self.device.status()), now, "status")
+        status = self.device.status()
+        self._status_override = status.feed_override
+        return self._maybe_corrupt(encode_status(status), now, "status")
 
     def periodic(self, now: float) -> bytes:
         """The once-a-second descriptor when due, and garbage for the time passed."""

@@ -3,7 +3,8 @@
 Per block of n output samples (1 kHz) the plant runs, in this order:
 
 1. the feed servo and the NC program at 1 kHz (a short sequential loop: rate-
-   limited feed, position-based feed program, feed hold, scenario loop);
+   limited feed, position-based feed program times the CNC's feed override,
+   feed hold, scenario loop);
 2. the cutting torque at 1 kHz with the spindle angle extrapolated at the block's
    start speed: the load the speed loop sees (the drive's bandwidth is a few Hz,
    so this prediction's error, a speed dip of < 0.1 % over one block, is far
@@ -63,6 +64,10 @@ class Plant:
         self.sample_rate_hz = SAMPLE_RATE_HZ
         self.duration_s = math.inf if self.loop else sc.duration_s
         self.feed_hold = False
+        # the CNC's applied feed override (percent): a float, or one value per sample of the next step(n),
+        # set by the DAQ emulator before each step (drivers/emulator/cnc_override.py)
+        self.feed_override_pct: float | np.ndarray = 100.0
+        self._override = np.full(0, 100.0)  # the rest of the current step's per-sample override
         self._seed, self._noise_scale, self._extras = int(seed), noise_scale, extra_channels
         extras = sc.extra_channels if extra_channels is None else extra_channels
         self.sensors = select_sensors(extras)
@@ -134,14 +139,32 @@ class Plant:
         n = int(n)
         if n < 0:
             raise ValueError("n must be >= 0")
+        self._override = self._override_for(n)
         parts = []
         while n > 0:
             block = self._produce(min(n, MAX_BLOCK))  # may be shorter: see _nc
             parts.append(block)
             n -= len(block)
+            self._override = self._override[len(block):]
         if not parts:
             return np.zeros((0, len(self.sensors)), dtype=np.int16)
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def _override_for(self, n: int) -> np.ndarray:
+        """``feed_override_pct`` as one value per sample of the next n."""
+        ovr = np.asarray(self.feed_override_pct, dtype=float)
+        if ovr.ndim == 0:
+            return np.full(n, float(ovr))
+        if ovr.shape != (n,):
+            raise ValueError(f"feed_override_pct has {ovr.size} values for a step of {n} samples")
+        return ovr
+
+    def _override_scale(self, n: int) -> list[float]:
+        """The feed override as a factor on the programmed feed, for the block's first n samples."""
+        ovr = self._override[:n]
+        if len(ovr) < n:  # the pre-roll, or the history's sibling: at the programmed feed
+            ovr = np.concatenate((ovr, np.full(n - len(ovr), 100.0)))
+        return (ovr / 100.0).tolist()
 
     # -- state --------------------------------------------------------------------
     def _init_state(self) -> None:
@@ -253,10 +276,12 @@ class Plant:
         """After a block: its cutting torque on the fine grid and the angle turned in each interval."""
 
     def _feed_program(self, n, t0, dt, events):
-        """Feed servo and NC program at 1 kHz: rate-limited feed, position-based feed rate, hold, loop."""
+        """Feed servo and NC program at 1 kHz: rate-limited feed, position-based feed rate times the
+        override, hold, loop."""
         s0, s1, v0, v1 = (np.empty(n) for _ in range(4))
         target, tprog = np.empty(n), np.empty(n)
         acc = self.machine.feed.accel_mm_s2 * dt
+        scale = self._override_scale(n)
         s, v = self._s, self._v
         duration = self.scenario.duration_s
         for i in range(n):
@@ -265,10 +290,10 @@ class Plant:
                 self._t_origin += duration
                 tp -= duration
                 s = self.scenario.start_mm  # the tool is back at the start, moving at the program's feed
-                v = 0.0 if self.feed_hold else self._feed_at(s)
+                v = 0.0 if self.feed_hold else self._feed_at(s) * scale[i]
                 self._breakage_done = self._crash_done = False
                 events.append({"event": "scenario_restart", "index": self._k + i, "t_s": round(t0 + i * dt, 6)})
-            tgt = 0.0 if self.feed_hold else self._feed_at(s)
+            tgt = 0.0 if self.feed_hold else self._feed_at(s) * scale[i]  # a hold wins over any override
             v_new = v + min(max(tgt - v, -acc), acc)
             s0[i], v0[i], v1[i], target[i], tprog[i] = s, v, v_new, tgt, tp
             s += 0.5 * (v + v_new) * dt
@@ -406,6 +431,8 @@ class Plant:
             "fx_n": forces["fx_n"], "fy_n": forces["fy_n"], "fz_n": forces["fz_n"], "ft_n": forces["ft_n"],
             "feed_per_tooth_mm": tc_c, "radial_depth_mm": radial, "axial_depth_mm": axial,
             "airgap_w": np.repeat(airgap, rep),
+            "feed_mm_min": np.repeat(0.5 * (v0 + v1) * 60.0, rep),
+            "feed_override_pct": np.repeat(np.asarray(self._override_scale(len(s0))) * 100.0, rep),
         }
         sm = 0.5 * (s0 + s1)
         tracked = {

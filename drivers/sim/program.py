@@ -11,8 +11,8 @@ One part, per operation (tool T, operation number O)::
 
     change     spindle stopped, drive off, T into the spindle      context (1001, T, O, cycle)
     spin-up    the drive ramps to the operation's speed, settles   (1001, T, O, cycle)
-    feed       approach in air, the slot with a depth step, exit   (1001, T, O, cycle|monitor)
-    retract    the cutter lifts out, still turning                 (1001, T, O, cycle|monitor)
+    feed       approach in air, the slot with a depth step, exit   (1001, T, O, cycle|monitor[|afc])
+    retract    the cutter lifts out, still turning                 (1001, T, O, cycle|monitor[|afc])
     spin-down  the drive ramps to a stop                           (1001, T, O, cycle)
 
 and before each part ``load`` (cycle off, operation 0, the last tool still in
@@ -20,6 +20,10 @@ the spindle).  A process, in the daemon's words, is one feed + retract: the
 samples while cycle and monitor are set.  Feed is programmed by position, so a
 feed hold stops the part where it is; the program's timers stop with it (the
 CNC's cycle is suspended), and the part resumes when the hold is released.
+The feed is the programmed one times the CNC's feed override, so a feed above
+programmed (adaptive feed control) shortens the cut and the cycle. ``afc`` is
+CONTEXT flag bit 2, set in the cuts of operations with ``afc_allowed`` (10 and 20;
+operation 30, the finishing slot, never).
 
 Faults (``ProgramFaults``), each confined to what it names:
 
@@ -75,6 +79,9 @@ class Operation:
     depths_mm: tuple[float, float]
     steady_mm: tuple[float, float]
     wrong_cutter: Tool  # in the spindle instead of ``tool`` under the wrong-tool fault
+    # the CNC sets CONTEXT flag bit 2 (adaptive feed allowed) during this cut; a tapping, thread-milling
+    # or finishing operation never does (its feed is tied to the spindle, or its finish to the feed)
+    afc_allowed: bool = False
 
     @property
     def step_mm(self) -> float:
@@ -209,14 +216,15 @@ class ProgramFaults:
 
 def _build() -> dict[str, PartProgram]:
     ss41 = MATERIALS["SS41"]
-    # three closed slots in one block, each floor stepping down once; feeds per tooth 0.2, 0.12, 0.1 mm
+    # three closed slots in one block, each floor stepping down once; feeds per tooth 0.2, 0.12, 0.1 mm;
+    # the two roughing slots allow adaptive feed, the phi8 finishing slot never does
     ops = (
         Operation(10, 11, TOOL_P, 1500.0, 600.0, (3.0, 5.0), (3.0, 5.0),
-                  Tool(12.0, 2, 30.0, "phi12 2-flute end mill (the wrong pocket)")),
+                  Tool(12.0, 2, 30.0, "phi12 2-flute end mill (the wrong pocket)"), afc_allowed=True),
         Operation(20, 4, TOOL_D, 1200.0, 576.0, (4.0, 6.0), (3.0, 5.0),
-                  Tool(10.0, 2, 30.0, "phi10 2-flute end mill (the wrong pocket)")),
+                  Tool(10.0, 2, 30.0, "phi10 2-flute end mill (the wrong pocket)"), afc_allowed=True),
         Operation(30, 27, TOOL_F, 2000.0, 600.0, (3.0, 4.0), (3.0, 5.0),
-                  Tool(10.0, 4, 35.0, "phi10 4-flute end mill (the wrong pocket)")),
+                  Tool(10.0, 4, 35.0, "phi10 4-flute end mill (the wrong pocket)"), afc_allowed=False),
     )
     prog = PartProgram(
         "part-program",

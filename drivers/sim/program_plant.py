@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from millsense.drivers.protocol import CTX_CYCLE, CTX_MONITOR
+from millsense.drivers.protocol import CTX_AFC_ALLOWED, CTX_CYCLE, CTX_MONITOR
 from millsense.drivers.sim.cutting import CutGeometry, tooth_chip_factors
 from millsense.drivers.sim.machine import Tool
 from millsense.drivers.sim.plant import CUT_PER_SAMPLE, SAMPLE_RATE_HZ, Plant
@@ -183,6 +183,7 @@ class ProgramPlant(Plant):
         drive = np.empty(n, dtype=bool)
         acc = self.machine.feed.accel_mm_s2 * dt
         held = bool(self.feed_hold)
+        scale = self._override_scale(n)
         s, v = self._s, self._v
         m = n
         for i in range(n):
@@ -199,7 +200,9 @@ class ProgramPlant(Plant):
                     break
             op = self._op()
             phase = self._phase
-            tgt = op.feed_mm_min / 60.0 if phase == "feed" and not held else 0.0
+            # the programmed feed times the CNC's override; a hold wins (program time runs by position,
+            # so a feed above programmed makes the cut, and the cycle, shorter)
+            tgt = op.feed_mm_min / 60.0 * scale[i] if phase == "feed" and not held else 0.0
             v_new = v + min(max(tgt - v, -acc), acc)
             s0[i], v0[i], v1[i], target[i] = s, v, v_new, tgt
             s += 0.5 * (v + v_new) * dt
@@ -297,7 +300,8 @@ class ProgramPlant(Plant):
         if phase in ("load", "end"):
             ctx = (prog.number, op.tool_number, 0, 0)
         elif phase in ("feed", "retract"):
-            ctx = (prog.number, op.tool_number, op.number, CTX_CYCLE | CTX_MONITOR)
+            afc = CTX_AFC_ALLOWED if op.afc_allowed else 0
+            ctx = (prog.number, op.tool_number, op.number, CTX_CYCLE | CTX_MONITOR | afc)
         else:
             ctx = (prog.number, op.tool_number, op.number, CTX_CYCLE)
         if ctx != self._ctx:

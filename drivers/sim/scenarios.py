@@ -108,6 +108,29 @@ def _speed_sweep(material) -> list[Scenario]:
     return out
 
 
+# Adaptive feed control (issue 15): depth steps 2 -> 3 -> 2.5 mm, 25 mm each, the load a controller
+# holding a target through the feed override must follow; the programmed feed per tooth is about the
+# same at every speed of a material (0.2 mm at 300 rpm keeps the pass under a minute). One gear per
+# scenario: 300 and 600 rpm in the low-speed gear, 1500 and 3000 rpm in the high-speed one (top 4500 rpm).
+AFC_STEP_MM = (2.0, 3.0, 2.5)
+AFC_STEP_LEN_MM = 25.0
+
+
+def _afc(sm45c, ss41) -> list[Scenario]:
+    steps = _steps([AFC_STEP_LEN_MM * i for i in range(len(AFC_STEP_MM) + 1)], list(AFC_STEP_MM))
+    end = AFC_STEP_LEN_MM * len(AFC_STEP_MM)
+    out = []
+    for name, material, rpm, feed in (("afc-step-300", sm45c, 300, 120.0), ("afc-step", sm45c, 600, 200.0),
+                                      ("afc-step-1500", ss41, 1500, 300.0), ("afc-step-3000", ss41, 3000, 600.0)):
+        out.append(_cut(name, f"AFC depth steps: [P] slot, {material.name}, {rpm} rpm, {feed:g} mm/min, "
+                        "d.o.c. 2->3->2.5 mm, 25 mm each (adaptive feed control)",
+                        TOOL_P, material, rpm, ((-math.inf, feed),), steps, part_end=end))
+    out.append(_cut("afc-taper", "AFC taper: [P] slot, SM45C, 600 rpm, 200 mm/min, d.o.c. 1->3 mm over 75 mm "
+                    "(cycle time at constant load)", TOOL_P, sm45c, 600, ((-math.inf, 200.0),),
+                    ((0.0, 1.0), (75.0, 3.0)), part_end=75))
+    return out
+
+
 def _build() -> dict[str, Scenario]:
     sm45c, ss41, sb40 = MATERIALS["SM45C"], MATERIALS["SS41"], MATERIALS["SB40"]
     step3 = _steps([0, 25, 50, 75], [1.0, 2.0, 3.0])
@@ -151,6 +174,7 @@ def _build() -> dict[str, Scenario]:
         _aircut("aircut-high", "air cut, high-speed gear, 1000/1375/1750/2125/2500 rpm, 3 s each "
                 "(friction calibration)", [1000, 1375, 1750, 2125, 2500], 3.0),
         *_speed_sweep(sm45c),
+        *_afc(sm45c, ss41),
     ]
     for s in out:
         _ = s.gear  # one gear per scenario, checked at import

@@ -144,13 +144,16 @@ class SensorFaults:
       clip the currents);
     - `clip_currents` C: hall sensors saturating at ±C counts;
     - `descriptor_rate_hz`: a DAQ that announces another rate than it samples at
-      (the samples keep coming at the true rate).
+      (the samples keep coming at the true rate);
+    - `from_s`: the sample faults (pin, gain, clip) begin this far into the run, as a
+      sensor that fails mid-cut (a cable torn off, a connector shaken loose).
 
     Everything else (feed hold, truth, history, duration) is the source's.
     """
 
     def __init__(self, source, *, pin: dict[str, int] | None = None, current_gain: float | None = None,
-                 clip_currents: int | None = None, descriptor_rate_hz: int | None = None) -> None:
+                 clip_currents: int | None = None, descriptor_rate_hz: int | None = None,
+                 from_s: float = 0.0) -> None:
         object.__setattr__(self, "_source", source)
         desc = source.descriptor
         names = [ch.name for ch in desc.channels]
@@ -173,12 +176,21 @@ class SensorFaults:
             "_clip": None if clip_currents is None else int(clip_currents),
             "descriptor": desc if descriptor_rate_hz is None else replace(desc, sample_rate_hz=int(descriptor_rate_hz)),
             "sample_rate_hz": desc.sample_rate_hz,   # the rate the samples really come at
+            "_from_sample": max(0, round(float(from_s) * desc.sample_rate_hz)),
+            "_produced": 0,
         }
         for key, value in state.items():
             object.__setattr__(self, key, value)
 
     def step(self, n: int) -> np.ndarray:
         counts = np.array(self._source.step(n), dtype=np.int16)
+        first = self._produced
+        object.__setattr__(self, "_produced", first + n)
+        skip = min(n, max(0, self._from_sample - first))  # samples before the fault begins stay sound
+        self._spoil(counts[skip:])
+        return counts
+
+    def _spoil(self, counts: np.ndarray) -> None:
         cur = self._currents
         if len(cur) and (self._gain is not None or self._clip is not None):
             x = counts[:, cur].astype(np.float64)
@@ -189,7 +201,6 @@ class SensorFaults:
             counts[:, cur] = np.clip(x, bottom, top).astype(np.int16)
         for col, count in self._pin:
             counts[:, col] = count
-        return counts
 
     def __getattr__(self, name):
         return getattr(self._source, name)

@@ -36,6 +36,8 @@ MEAN_FIELDS = (
     ("radial_depth_mm", "radial_depth_mm"),
     ("axial_depth_mm", "axial_depth_mm"),
     ("airgap_power_w", "airgap_w"),
+    ("feed_mm_min", "feed_mm_min"),  # the feed the machine really moved at (the override's effect)
+    ("feed_override_pct", "feed_override_pct"),  # the CNC's applied feed override
 )
 CUTTING_MIN_N = 0.01  # "cutting" = some tangential force above this (grazing edges leave numerical dust)
 # quantities that must not change over a revolution and the one before for it to be steady:

@@ -58,11 +58,13 @@ def test_the_cnc_reports_feed_held_after_its_lag_and_follows_each_change():
 def test_feed_override_is_set_refused_out_of_range_and_reset_by_the_watchdog():
     dev = _device(watchdog_ms=100)
     dev.apply_command(Command(CMD_SET_FEED_OVERRIDE, 850), now=1.0)
+    dev.produce(1000)  # the CNC applies it through its lag (test_cnc_override.py)
     assert dev.status().feed_override == 850
     assert not dev.set_feed_override(2001, now=1.1)
     assert dev.status().feed_override == 850  # a bad value changes nothing
     dev.apply_command(Command(CMD_HEARTBEAT, 1), now=2.0)
     assert dev.check_watchdog(2.1)
+    dev.produce(1000)
     st = dev.status()
     assert st.watchdog_tripped and st.feed_hold and st.feed_override == 1000
     # and the CNC follows the watchdog's feed hold too

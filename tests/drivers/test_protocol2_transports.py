@@ -17,8 +17,10 @@ from millsense.drivers.protocol import Context, Descriptor, Status
 from tests.drivers.emulator_proc import Emulator
 from tests.drivers.test_contract import check_every_sample_once, open_transport
 
+# the CNC applies the override at once here (its lag and rate limit: test_cnc_override.py), so the
+# 200 ms watchdog cannot take it back to 100 % before it is reported
 CNC_ARGS = ("--protocol", "2", "--program", "70000", "--tool", "123456", "--operation", "7",
-            "--cnc-hold-lag-ms", "30")
+            "--cnc-hold-lag-ms", "30", "--cnc-override-lag-ms", "0", "--cnc-override-rate-pct-s", "0")
 
 
 class Events:
@@ -182,8 +184,13 @@ def test_modbus_tcp_answers_its_unit_its_map_and_its_quantities(protocol, tmp_pa
             assert rr.isError() and rr.exception_code == 0x03
             assert not client.write_register(102, 1234, device_id=3).isError()
             regs = client.read_input_registers(0, count=16, device_id=3).registers
-            assert regs[6] == 1234 and regs[7] == 0b11 and regs[13] == 0b0011
+            assert regs[7] == 0b11 and regs[13] == 0b0011
             assert client.read_holding_registers(102, count=1, device_id=3).registers == [1234]
+            # input register 6 is the override applied: the CNC gets there through its lag
+            deadline = time.monotonic() + 5.0
+            while client.read_input_registers(6, count=1, device_id=3).registers != [1234]:
+                assert time.monotonic() < deadline, "input register 6 never reached the commanded override"
+                time.sleep(0.01)
         # a quantity over 125 registers or 2000 bits: exception 0x03, by hand
         with socket.create_connection(("127.0.0.1", port), timeout=2) as sock:
             assert _raw_read(sock, 3, 4, 1000, 126, 1) == bytes([0x84, 0x03])

@@ -239,3 +239,18 @@ def test_normal_scenarios_raise_no_signal_fault(tmp_path, scenario, seed):
     else:
         assert not invalid, [(e["rev"], e["invalid"]) for e in invalid][:5]
     assert len(run.valid) > 50
+
+
+def test_a_sensor_that_fails_mid_run_spoils_only_the_samples_from_then_on():
+    """`millsense sim --faults-from-s`: the pin begins at its sample, wherever the blocks fall."""
+    import numpy as np
+
+    from millsense.drivers.sim.plant import Plant
+    from millsense.drivers.sim.sensors import SensorFaults
+
+    sound = Plant("step", seed=3).step(1000)
+    faulty = SensorFaults(Plant("step", seed=3), pin={"i_u": 7}, from_s=0.45)
+    got = np.concatenate([faulty.step(n) for n in (300, 100, 17, 583)])
+    col = [ch.name for ch in faulty.descriptor.channels].index("i_u")
+    assert (got[:450] == sound[:450]).all()
+    assert (got[450:, col] == 7).all() and (got[450:, :col] == sound[450:, :col]).all()

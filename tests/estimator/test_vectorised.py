@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings as hyp_settings, strategies as st
+from hypothesis import HealthCheck, assume, given, settings as hyp_settings, strategies as st
 
 from millsense.daemon.physics.force import resultant_force_magnitude_n, resultant_force_magnitudes_n
 from millsense.daemon.physics.torque import select_gear, select_gears
@@ -140,7 +140,9 @@ def test_screen_never_passes_a_faulty_range(tmp_path: Path, seed: int, size: int
     b = np.append(np.minimum(w, a[:-1] + rng.integers(1, 40, 200)), w)
     screened = check._problems_many(a, b)
     exact = [check._problems(int(x), int(y)) for x, y in zip(a, b)]
-    assert any(found[0] for found in exact), "the faults made here must show"
+    # the comparison below is the test; it means something only where the window holds a fault (one seed in
+    # thousands puts every fault made here outside the check's window: hypothesis found 4618596, size 50)
+    assume(any(found[0] for found in exact))
     assert screened == exact
 
 

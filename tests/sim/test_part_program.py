@@ -13,7 +13,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from millsense.drivers.protocol import CTX_CYCLE, CTX_MONITOR
+from millsense.drivers.protocol import CTX_AFC_ALLOWED, CTX_CYCLE, CTX_MONITOR
 from millsense.drivers.sim.machine import MATERIALS
 from millsense.drivers.sim.program import PART_GAP_S, PROGRAMS, ProgramFaults
 from millsense.drivers.sim.program_plant import ProgramPlant
@@ -61,7 +61,8 @@ def test_the_context_walks_through_each_part_op_by_op(good):
     for _ in range(2):
         for op in OPS:
             expected += [(prog, op.tool_number, op.number, CTX_CYCLE),  # the tool change
-                         (prog, op.tool_number, op.number, CTX_CYCLE | CTX_MONITOR),  # the cut
+                         (prog, op.tool_number, op.number,
+                          CTX_CYCLE | CTX_MONITOR | (CTX_AFC_ALLOWED if op.afc_allowed else 0)),  # the cut
                          (prog, op.tool_number, op.number, CTX_CYCLE)]  # spindle stops
         expected.append((prog, OPS[-1].tool_number, 0, 0))  # cycle off: the part is swapped
     plant = good["plant"]

@@ -41,7 +41,7 @@ def test_catalogue():
     assert cfg["feed_force"]["ix_feed"] == {"newton_per_amp": 950.0, "friction_n": 120.0}
 
 
-RAMPS = ("taper", "taper-1200", "taper-1800", "diagonal-taper", "fig5", "fig7")
+RAMPS = ("taper", "taper-1200", "taper-1800", "diagonal-taper", "fig5", "fig7", "afc-taper")
 
 
 def _inside_ramp(sc, revs):

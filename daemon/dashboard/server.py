@@ -1,0 +1,192 @@
+"""The dashboard's HTTP side: the page from `static/`, a snapshot, live updates, the reset relay.
+
+Standard library only (`http.server.ThreadingHTTPServer`): one thread per
+connection is plenty for the few screens of a shop floor (`book.MAX_CLIENTS`).
+
+- `GET /` and `/static/<file>`: the page, its script and style, from the package;
+- `GET /events`: Server-Sent Events; the first event is the whole snapshot, then
+  batches of updates (one event holds every update waiting, so 20 machines at
+  10 revolutions a second cost a few writes a second, not 200);
+- `POST /api/reset/<machine>`: one step of the reset exchange, relayed
+  (zenoh_side.py). It needs the header `X-Millsense: reset`, which a form on
+  another site cannot send without a CORS preflight this server never grants.
+
+The reset is offered (`reset_offered` in `/api/info`) only where a browser gives
+the page WebCrypto: over HTTPS, or on a loopback address.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import threading
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from typing import Any
+
+from millsense.daemon.dashboard.book import Book
+from millsense.daemon.dashboard.zenoh_side import RelayRefused
+
+STATIC = {"app.js": "text/javascript; charset=utf-8", "app.css": "text/css; charset=utf-8",
+          "index.html": "text/html; charset=utf-8"}
+MAX_BODY_BYTES = 4096
+KEEPALIVE_S = 10.0
+# Updates are held this long at most before they go out, so one write carries many.
+BATCH_S = 0.05
+SECURITY_HEADERS = {
+    # Nothing from elsewhere: no CDN, no inline script, no framing by another site.
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; frame-ancestors 'none'",
+    "X-Content-Type-Options": "nosniff",
+    "Referrer-Policy": "no-referrer",
+    "Cache-Control": "no-store",
+}
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def _static(name: str) -> bytes:
+    return resources.files("millsense.daemon.dashboard").joinpath("static", name).read_bytes()
+
+
+class DashboardServer(ThreadingHTTPServer):
+    daemon_threads = True  # an open event stream must not keep the process alive at shutdown
+
+    def __init__(self, address: tuple[str, int], book: Book, relay: Any, https: bool):
+        self.book, self.relay, self.https = book, relay, https
+        self.loopback = is_loopback(address[0])
+        self.reset_offered = https or self.loopback
+        self.stopping = threading.Event()
+        self.files = {name: _static(name) for name in STATIC}
+        if ":" in address[0]:
+            import socket
+
+            self.address_family = socket.AF_INET6
+        super().__init__(address, Handler)
+
+
+class Handler(BaseHTTPRequestHandler):
+    server: DashboardServer
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - http.server's name
+        pass  # a request per page load is not worth a log line; the command's own events say what matters
+
+    def _send(self, status: int, body: bytes, content_type: str) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", content_type)
+        self.send_header("Content-Length", str(len(body)))
+        for k, v in SECURITY_HEADERS.items():
+            self.send_header(k, v)
+        self.end_headers()
+        self.wfile.write(body)
+
+    def _json(self, status: int, value: Any) -> None:
+        self._send(status, json.dumps(value, allow_nan=False, default=str).encode(), "application/json")
+
+    def _host_refused(self) -> bool:
+        """On a loopback address, only a loopback Host: a web site whose name an attacker re-points at
+        127.0.0.1 (DNS rebinding) would otherwise read the page's data as its own origin."""
+        if not self.server.loopback:
+            return False
+        host = (self.headers.get("Host") or "").strip()
+        name = host.rsplit(":", 1)[0] if not host.endswith("]") else host
+        if is_loopback(name.strip("[]")):
+            return False
+        self._json(421, {"ok": False, "error": "a dashboard on a loopback address answers only to localhost"})
+        return True
+
+    def do_GET(self) -> None:  # noqa: N802 - http.server's name
+        if self._host_refused():
+            return
+        path = self.path.split("?", 1)[0]
+        if path in ("/", "/index.html"):
+            self._send(200, self.server.files["index.html"], STATIC["index.html"])
+        elif path.startswith("/static/") and path[len("/static/"):] in STATIC:
+            name = path[len("/static/"):]
+            self._send(200, self.server.files[name], STATIC[name])
+        elif path == "/api/info":
+            self._json(200, {"reset_offered": self.server.reset_offered, "https": self.server.https})
+        elif path == "/api/snapshot":
+            self._json(200, self.server.book.snapshot())
+        elif path == "/events":
+            self._events()
+        else:
+            self._json(404, {"ok": False, "error": "not found"})
+
+    def do_POST(self) -> None:  # noqa: N802
+        if self._host_refused():
+            return
+        path = self.path.split("?", 1)[0]
+        prefix = "/api/reset/"
+        if not path.startswith(prefix):
+            self._json(404, {"ok": False, "error": "not found"})
+            return
+        if not self.server.reset_offered:
+            self._json(403, {"ok": False, "error": "the reset is offered only over HTTPS (--cert, --key) or on "
+                                                   "localhost"})
+            return
+        if self.headers.get("X-Millsense") != "reset":
+            self._json(403, {"ok": False, "error": "missing header X-Millsense: reset"})
+            return
+        try:
+            length = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            length = -1
+        if not 0 < length <= MAX_BODY_BYTES:
+            self.close_connection = True
+            self._json(413, {"ok": False, "error": f"a body of 1 to {MAX_BODY_BYTES} bytes is required"})
+            return
+        try:
+            request = json.loads(self.rfile.read(length))
+            replies = self.server.relay.relay_reset(path[len(prefix):], request)
+        except (UnicodeDecodeError, ValueError) as exc:  # RelayRefused is a ValueError too
+            reason = str(exc) if isinstance(exc, RelayRefused) else "the body is not JSON"
+            self._json(400, {"ok": False, "error": reason})
+            return
+        except Exception as exc:  # noqa: BLE001 - Zenoh closing or refusing: an answer, not a traceback
+            self._json(502, {"ok": False, "error": f"relay failed: {type(exc).__name__}"})
+            return
+        self._json(200, {"ok": True, "replies": replies})
+
+    def _events(self) -> None:
+        book = self.server.book
+        client = book.subscribe()
+        if client is None:
+            self._json(503, {"ok": False, "error": "too many pages open"})
+            return
+        try:
+            self.send_response(200)
+            self.send_header("Content-Type", "text/event-stream")
+            self.send_header("Cache-Control", "no-store")
+            self.send_header("X-Content-Type-Options", "nosniff")
+            self.end_headers()
+            self.close_connection = True
+            self._event({"kind": "snapshot", **book.snapshot()})
+            while not self.server.stopping.is_set():
+                updates = client.take(KEEPALIVE_S)
+                if client.closed:
+                    break
+                if not updates:
+                    self.wfile.write(b": keep-alive\n\n")
+                    self.wfile.flush()
+                    continue
+                self.server.stopping.wait(BATCH_S)
+                updates += client.take(0)
+                self._event({"kind": "batch", "updates": updates, "dropped": client.dropped})
+        except (BrokenPipeError, ConnectionResetError, TimeoutError, OSError):
+            pass  # the page went away
+        finally:
+            book.unsubscribe(client)
+
+    def _event(self, value: dict) -> None:
+        data = json.dumps(value, allow_nan=False, default=str, separators=(",", ":"))
+        self.wfile.write(f"data: {data}\n\n".encode())
+        self.wfile.flush()

@@ -1,0 +1,15 @@
+"""`millsense opcua`: an OPC UA server that shows every machine seen on Zenoh (the `opcua` extra).
+
+The modules, in the order a sample travels:
+
+- `inbox.py`: the Zenoh side. Subscribes to `millsense/*/{estimate,alarm,status,process}` and the
+  liveliness tokens `millsense/*/alive`; hands each payload over one bounded, coalescing inbox.
+- `fields.py`: which payload field becomes which OPC UA variable (pure: no asyncua, no Zenoh).
+- `machine_nodes.py`: one machine's part of the address space, its tool life (OPC 40501 names) and
+  its alarm events (an AlarmConditionType subtype).
+- `security.py`: the server certificate, the trust list of client certificates, who may open a session.
+- `server.py`: the asyncua Server and the loop that drains the inbox into the address space.
+
+Nothing here is imported by the live daemon: asyncua is imported only by `millsense opcua`.
+See docs/opcua.md.
+"""

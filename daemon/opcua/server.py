@@ -1,0 +1,165 @@
+"""The asyncua server of `millsense opcua` and the loop that feeds it from Zenoh.
+
+One asyncio loop owns the address space. Zenoh's callbacks fill `Inbox` and wake the loop; the
+loop drains it at most every `MIN_UPDATE_S`, so however fast the daemons publish, each machine's
+variables are written at most 1 / MIN_UPDATE_S times a second and the loop never falls behind
+(an estimate newer than the last drain replaces the older one in the inbox).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+from urllib.parse import urlparse
+
+import structlog
+from asyncua import Server, ua
+
+from millsense.daemon.opcua.inbox import Inbox, subscribe
+from millsense.daemon.opcua.machine_nodes import MachineNodes, Namespaces
+from millsense.daemon.opcua.security import (
+    OpcuaSetupError,
+    ServerIdentity,
+    SessionUsers,
+    TrustList,
+    client_validator,
+    identity_tokens,
+)
+
+log = structlog.get_logger("millsense.opcua")
+
+MIN_UPDATE_S = 0.05
+MAX_MACHINES = 256
+DEFAULT_PORT = 4840
+
+
+@dataclass
+class Options:
+    endpoint: str
+    identity: ServerIdentity
+    trust: TrustList
+    allow_anonymous: bool = False
+    machine: str = "*"
+    refused: list[str] = field(default_factory=list)  # client refusals, newest last (tests and the status line)
+
+
+def parse_endpoint(text: str) -> tuple[str, int]:
+    """(host, port) of `opc.tcp://HOST:PORT`; ValueError with the reason otherwise."""
+    url = urlparse(text)
+    if url.scheme != "opc.tcp":
+        raise ValueError(f"{text!r} is not opc.tcp://HOST:PORT")
+    try:
+        port = url.port
+    except ValueError:
+        raise ValueError(f"{text!r}: the port is not a number 1-65535") from None
+    if not url.hostname:
+        raise ValueError(f"{text!r} names no host (opc.tcp://127.0.0.1:{DEFAULT_PORT})")
+    if url.path not in ("", "/") or url.query:
+        raise ValueError(f"{text!r}: give only opc.tcp://HOST:PORT")
+    return url.hostname, port or DEFAULT_PORT
+
+
+async def build_server(options: Options) -> tuple[Server, Namespaces, Any]:
+    server = Server(user_manager=SessionUsers(options.trust))
+    await server.init()
+    server.set_endpoint(options.endpoint)
+    server.set_server_name("millsense")
+    await server.set_application_uri(options.identity.application_uri)
+    server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+    server.set_identity_tokens(identity_tokens(options.allow_anonymous))
+    await server.load_certificate(options.identity.certificate_der, format="der")
+    await server.load_private_key(options.identity.private_key_pem, format="pem")
+    server.set_certificate_validator(client_validator(options.trust, options.refused))
+    ns = await Namespaces.register(server)
+    root = await server.nodes.objects.add_folder(ua.NodeId("millsense", ns.ms), ua.QualifiedName("millsense", ns.ms))
+    await root.set_event_notifier([ua.EventNotifier.SubscribeToEvents])
+    await server.nodes.server.add_reference(root.nodeid, ua.ObjectIds.HasNotifier)
+    return server, ns, root
+
+
+class Feeder:
+    """Drains the inbox into the address space; one MachineNodes per machine seen (at most MAX_MACHINES)."""
+
+    def __init__(self, server: Server, ns: Namespaces, root: Any) -> None:
+        self.server, self.ns, self.root = server, ns, root
+        self.machines: dict[str, MachineNodes] = {}
+        self.errors = 0
+        self._full_logged = False
+
+    async def machine(self, name: str) -> MachineNodes | None:
+        if name in self.machines:
+            return self.machines[name]
+        if len(self.machines) >= MAX_MACHINES:
+            if not self._full_logged:
+                self._full_logged = True
+                log.warning("opcua.machines_full", max_machines=MAX_MACHINES, refused=name)
+            return None
+        nodes = await MachineNodes(self.server, self.ns, name).create(self.root)
+        self.machines[name] = nodes
+        log.info("opcua.machine_added", machine=name)
+        return nodes
+
+    async def apply(self, items: list[tuple[str, str, dict[str, Any]]]) -> None:
+        for machine, kind, payload in items:
+            try:
+                nodes = await self.machine(machine)
+                if nodes is None:
+                    continue
+                if kind in ("alive", "gone"):
+                    await nodes.set_alive(kind == "alive")
+                    log.info("opcua.machine_" + kind, machine=machine)
+                else:
+                    await nodes.apply(kind, payload)
+            except Exception as exc:  # noqa: BLE001 - one bad payload must not stop the others
+                self.errors += 1
+                if self.errors <= 10 or self.errors % 1000 == 0:
+                    log.warning("opcua.payload_error", machine=machine, kind=kind, error=f"{type(exc).__name__}: {exc}",
+                                count=self.errors)
+
+
+async def serve(options: Options, session: Any, stop: asyncio.Event, on_ready: Any = None) -> None:
+    """Run until `stop` is set. Raises OpcuaSetupError when the endpoint cannot be served."""
+    host, port = parse_endpoint(options.endpoint)
+    # asyncua logs a traceback for every refused client and chats at INFO: our own lines say what matters.
+    logging.getLogger("asyncua").setLevel(logging.CRITICAL)
+    server, ns, root = await build_server(options)
+    try:
+        await server.start()
+    except OSError as exc:
+        raise OpcuaSetupError(f"--endpoint {options.endpoint}: cannot listen on {host}:{port}: "
+                              f"{exc.strerror or exc}") from None
+    loop = asyncio.get_running_loop()
+    wake = asyncio.Event()
+
+    def wake_soon() -> None:
+        try:
+            loop.call_soon_threadsafe(wake.set)
+        except RuntimeError:
+            pass  # the loop closed while Zenoh still delivered: nothing left to feed
+
+    inbox = Inbox(wake_soon)
+    feeder = Feeder(server, ns, root)
+    entities = subscribe(session, inbox, options.machine)
+    log.info("opcua.listening", endpoint=options.endpoint, application_uri=options.identity.application_uri,
+             trusted_clients=len(options.trust.trusted()), allow_anonymous=options.allow_anonymous)
+    if on_ready is not None:
+        on_ready()
+    try:
+        while not stop.is_set():
+            stopper = asyncio.ensure_future(stop.wait())
+            waker = asyncio.ensure_future(wake.wait())
+            await asyncio.wait({stopper, waker}, timeout=1.0, return_when=asyncio.FIRST_COMPLETED)
+            stopper.cancel()
+            waker.cancel()
+            wake.clear()
+            await feeder.apply(inbox.take())
+            await asyncio.sleep(MIN_UPDATE_S)
+    finally:
+        for e in entities:
+            try:
+                e.undeclare()
+            except Exception:  # noqa: BLE001 - closing anyway
+                pass
+        await server.stop()

@@ -1,0 +1,238 @@
+"""Issue 15's closed loop through real processes: the emulator's plant and CNC, the daemon's controller.
+
+`millsense sim` plays a scenario in real time over TCP (protocol 2: the CNC
+follows the feed override through its own lag and rate limit, and the plant's
+feed follows the CNC); `millsense run` estimates each revolution and, with
+`[afc] enabled = true`, commands the override. The subscriber keeps every
+estimate the daemon published; the plant's truth says where each depth step
+really lies. `step_outcomes()` reads one run against its steps: how many
+revolutions after the first revolution past each step the torque stays within
+±5 % of the target, the overshoot from that revolution on, and the spread at
+the end of each level. Shared by the test (tests/e2e/test_afc_closed_loop.py)
+and the report (bench/validate_afc.py).
+
+Estimates and truth are paired by time: the emulator's status log has the
+wall time of its first sample (`start`), the truth the plant time of each
+revolution's end, and an estimate's `t` is the wall time of its last sample.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from tests.conftest import free_tcp_port
+from tests.e2e.helpers import CMD, Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
+
+SETTLE_BAND = 0.05        # the issue's ±5 % of the target
+OVERSHOOT_MAX = 0.15      # the issue's 15 %
+CNC_LAG_MS = 40.0         # the emulator's override response (its default), which the acceptance scales with
+
+
+@dataclass
+class Loop:
+    scenario: str
+    estimates: list[dict]        # as the daemon published them
+    truth: list[dict]            # the plant's revolutions ({"rev": ...} records)
+    log: list[dict]              # the emulator's status log
+    start_wall: float            # wall time of the emulator's first sample
+    daemon_log: str
+
+    def plant_time(self, est: dict) -> float:
+        return float(est["t"]) - self.start_wall
+
+    def cutting(self) -> list[dict]:
+        return [e for e in self.estimates if e.get("valid", True) and e.get("cutting")]
+
+
+def daemon_config(path: Path, *, machine: str, daq_port: int, z_port: int, feed_mm_min: float,
+                  afc: dict | None) -> Path:
+    """The simulated machine's config with `[afc]` (None: no [afc] section, the controller off)."""
+    extra = f"\n[cut]\nmode = \"slot\"\nfeed_mm_min = {feed_mm_min}\n"
+    if afc is not None:
+        extra += "\n[afc]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in afc.items())
+    return write_config(path, machine=machine, daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}',
+                        zenoh_listen=[tcp(z_port)], interlock="enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 1000",
+                        extra=extra)
+
+
+def run_loop(tmp: Path, scenario: str, *, feed_mm_min: float, afc: dict | None, sim_args: tuple[str, ...] = (),
+             timeout_s: float = 180.0) -> Loop:
+    """One real-time pass of `scenario` with the daemon closing the loop; returns what both sides saw."""
+    tmp.mkdir(parents=True, exist_ok=True)
+    daq_port, z_port = free_tcp_port(), free_tcp_port()
+    machine = f"afc-{scenario}".replace(".", "-")
+    cfg = daemon_config(tmp / "daemon.toml", machine=machine, daq_port=daq_port, z_port=z_port,
+                        feed_mm_min=feed_mm_min, afc=afc)
+    status_log, truth = tmp / "status.jsonl", tmp / "truth.jsonl"
+    for old in (status_log, truth):  # the emulator appends to its status log
+        old.unlink(missing_ok=True)
+    with Procs(tmp) as procs:
+        # the daemon first: it waits for the DAQ, so it sees the plant from its first sample
+        daemon = procs.start("daemon", ["run", "--config", str(cfg), "--connect-timeout", "120"])
+        sub = Subscriber([tcp(z_port)], machine)
+        try:
+            sim = procs.start("sim", ["sim", "--scenario", scenario, "--protocol", "2", "--tcp",
+                                      f"127.0.0.1:{daq_port}", "--realtime", "--once", "--watchdog-ms", "1000",
+                                      "--status-log", str(status_log), "--truth", str(truth), *sim_args])
+            try:
+                sim.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                raise AssertionError(f"{scenario}: the emulator did not finish in {timeout_s} s") from None
+            assert sim.returncode == 0, procs.text("sim")
+            wait_for(lambda: truth.exists(), 10.0, "the plant's truth file")
+        finally:
+            sub.close()
+            if daemon.poll() is None:
+                daemon.send_signal(signal.SIGTERM)
+                try:
+                    daemon.wait(30)
+                except subprocess.TimeoutExpired:
+                    pass
+        log = read_jsonl(status_log)
+        start = next((e for e in log if e.get("event") == "start"), None)
+        assert start is not None, "the emulator's status log has no start event"
+        return Loop(scenario, sub.get("estimate"), [r for r in read_jsonl(truth) if "rev" in r], log,
+                    float(start["wall"]), procs.text("daemon"))
+
+
+# ----------------------------------------------------------------------------- reading a run
+@dataclass
+class StepOutcome:
+    level_mm: float              # the depth beyond the step
+    first_rev_t: float           # plant time the first revolution after the step ends
+    revolutions: int             # estimates from that revolution until the next step (or the exit) reaches the tool
+    settle_revs: int | None      # revolutions after the first until the load stays within the band
+    allowed_revs: int            # max(5, 3 × the CNC lag in revolutions)
+    overshoot: float             # beyond the target, on the side opposite the first error, / target
+    final_spread: float          # max |load/target − 1| over the level's last half
+    override_pct: tuple[float, float]  # the commanded override's range over the level's last half
+
+
+def walls(scenario: str) -> tuple[list[tuple[float, float]], float, float, float]:
+    """The scenario's depth steps as (x of the wall, depth beyond it), the part's end, the tool's radius, and
+    where the tool's centre starts (the plant's own geometry, drivers/sim/scenarios.py)."""
+    from millsense.drivers.sim.scenarios import get_scenario
+
+    sc = get_scenario(scenario)
+    pts = list(sc.axial_profile)
+    steps = [(x1, d1) for (x0, d0), (x1, d1) in zip(pts, pts[1:]) if d1 != d0 and x1 - x0 < 1.0]
+    return steps, pts[-1][0], sc.tool.radius_mm, sc.start_mm
+
+
+def leading_edge(loop: Loop) -> list[tuple[float, float, float]]:
+    """(plant time the revolution ends, leading edge at its start, at its end) per truth revolution, from the
+    plant's own feed integrated from where the scenario starts the tool."""
+    _, _, radius, start = walls(loop.scenario)
+    out, s, t_prev = [], start, 0.0
+    for r in loop.truth:
+        t = float(r["t_end_s"])
+        s_end = s + float(r.get("feed_mm_min") or 0.0) / 60.0 * (t - t_prev)
+        out.append((t, s + radius, s_end + radius))
+        s, t_prev = s_end, t
+    return out
+
+
+def step_outcomes(loop: Loop, target: float, quantity: str = "torque_nm") -> list[StepOutcome]:
+    """Each depth step as the tool meets it: its leading edge reaches the wall, and the load changes from there
+    (a slot's edges near the leading side take most of the chip). The first revolution after the step is the
+    first that starts with the leading edge past the wall; the level lasts until the next wall (or the part's
+    end) reaches the leading edge."""
+    steps, part_end, _, _ = walls(loop.scenario)
+    edge = leading_edge(loop)
+    bounds = [w for w, _ in steps] + [part_end]
+    est = sorted(loop.cutting(), key=lambda e: e["t"])
+    outcomes = []
+    for (wall, depth), until in zip(steps, bounds[1:]):
+        first = next((t for t, lead0, _ in edge if lead0 >= wall), None)
+        last = next((t for t, lead0, lead1 in edge if lead1 >= until), None)
+        if first is None or last is None:
+            continue
+        seg = [e for e in est if first - 0.5 * _rev_s(e) <= loop.plant_time(e) <= last - 0.5 * _rev_s(e)]
+        if len(seg) < 3:
+            continue
+        allowed = max(5, math.ceil(3 * CNC_LAG_MS / 1000.0 / _rev_s(seg[0])))
+        ratio = [float(e[quantity]) / target - 1.0 for e in seg]
+        settle = next((k for k in range(len(ratio)) if all(abs(x) <= SETTLE_BAND for x in ratio[k:])), None)
+        # an overshoot lies beyond the target on the side opposite the step's own push: below it after a step
+        # into a deeper cut (the load jumps up), above it after a step to a shallower one
+        deeper = depth > depth_before(loop.scenario, wall)
+        overshoot = max([0.0, *((-x if deeper else x) for x in ratio)])
+        half = ratio[len(ratio) // 2:]
+        ovr = [float(e["afc"]["override_pct"]) for e in seg[len(seg) // 2:] if e.get("afc")]
+        outcomes.append(StepOutcome(depth, first, len(seg), settle, allowed, overshoot, max(abs(x) for x in half),
+                                    (min(ovr, default=math.nan), max(ovr, default=math.nan))))
+    return outcomes
+
+
+def depth_before(scenario: str, wall: float) -> float:
+    """The scenario's programmed depth just before `wall`."""
+    from millsense.drivers.sim.scenarios import get_scenario
+
+    return [d for x, d in get_scenario(scenario).axial_profile if x < wall][-1]
+
+
+def _rev_s(est: dict) -> float:
+    rpm = float(est.get("spindle_rpm") or 0.0)
+    return 60.0 / rpm if rpm > 0 else 0.1
+
+
+def cycle_s(loop: Loop) -> float:
+    """The cut's length in plant time: first to last truth revolution that cut."""
+    cut = [float(r["t_end_s"]) for r in loop.truth if r.get("cutting")]
+    return cut[-1] - cut[0] if cut else math.nan
+
+
+def peak(loop: Loop, quantity: str = "torque_nm", top: int = 5) -> float:
+    """The mean of the `top` largest values of the daemon's estimates (one revolution's noise is not the peak)."""
+    values = sorted(float(e[quantity]) for e in loop.cutting() if e.get(quantity) is not None)
+    return sum(values[-top:]) / len(values[-top:]) if values else math.nan
+
+
+def torque_at_depth(scenario: str, depth_mm: float, feed_mm_min: float, tmp: Path | None = None) -> float:
+    """The daemon's torque at `depth_mm` with the programmed feed, from a fast capture replayed offline."""
+    tmp = Path(tempfile.mkdtemp()) if tmp is None else tmp
+    cap, truth = tmp / "prog.bin", tmp / "prog-truth.jsonl"
+    subprocess.run(CMD + ["sim", "--scenario", scenario, "--capture", str(cap), "--truth", str(truth), "--fast"],
+                   check=True, capture_output=True, timeout=300)
+    cfg = daemon_config(tmp / "replay.toml", machine="afc-ref", daq_port=1, z_port=free_tcp_port(),
+                        feed_mm_min=feed_mm_min, afc=None)
+    out = subprocess.run(CMD + ["replay", str(cap), "--config", str(cfg)], capture_output=True, text=True,
+                         timeout=300, check=True)
+    est = [json.loads(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    est = [e for e in est if e.get("type") == "estimate" and e.get("cutting") and e.get("valid", True)]
+    # the revolutions with the whole tool inside the level: its centre past the wall before it, and its leading
+    # edge not yet at the next one
+    steps, part_end, radius, start = walls(scenario)
+    bounds = [0.0] + [w for w, _ in steps] + [part_end]
+    depths = [d for _, d in steps]
+    k = next(k for k, d in enumerate([None, *depths]) if d is not None and abs(d - depth_mm) < 1e-6)
+    x0, x1 = bounds[k] + radius, bounds[k + 1]
+    probe = Loop(scenario, [], [r for r in read_jsonl(truth) if "rev" in r], [], 0.0, "")
+    times = [t for t, lead0, lead1 in leading_edge(probe) if lead0 - radius >= bounds[k] + 1.0 and lead1 < x1]
+    assert times and x0 < x1, f"{scenario} has no flat level at {depth_mm} mm"
+    t0, t1 = times[0], times[-1]
+    # replay's `t` is the revolution's last sample over the sample rate: plant time, as the truth's
+    values = [float(e["torque_nm"]) for e in est if e.get("t") is not None and t0 <= float(e["t"]) <= t1 + 1e-3]
+    assert len(values) >= 5, f"too few revolutions at {depth_mm} mm in {scenario}"
+    values.sort()
+    return values[len(values) // 2]
+
+
+def main() -> int:  # a quick look by hand: python -m tests.e2e.afc_run SCENARIO FEED TARGET
+    scenario, feed, target = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
+    loop = run_loop(Path(tempfile.mkdtemp()), scenario, feed_mm_min=feed,
+                    afc={"enabled": True, "allow": True, "target_torque_nm": target})
+    for o in step_outcomes(loop, target):
+        print(o)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

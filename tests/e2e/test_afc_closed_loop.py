@@ -1,0 +1,105 @@
+"""Adaptive feed control, closed through the real emulator (issue 15's acceptance, outcomes).
+
+Each test plays a scenario in real time: the plant's feed follows the CNC's
+override with the CNC's lag and rate limit, the daemon estimates each
+revolution and commands the override. The target is measured, not typed: the
+daemon's own torque at one depth with the programmed feed, from a fast capture
+of the same scenario replayed offline (`afc_run.torque_at_depth`). The figures
+behind these outcomes are in bench/validate_afc.py and docs/validation.md.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from millsense.drivers.sim.scenarios import get_scenario
+from tests.e2e.afc_run import OVERSHOOT_MAX, cycle_s, peak, run_loop, step_outcomes, torque_at_depth
+
+STEPS_MM = (3.0, 2.5)  # the depths beyond the steps of the afc-step scenarios (2 -> 3 -> 2.5 mm)
+
+
+def _feed(scenario: str) -> float:
+    return float(get_scenario(scenario).feed_segments[0][1])
+
+
+def _afc(target_nm: float, **more) -> dict:
+    return {"enabled": True, "allow": True, "target_torque_nm": round(target_nm, 3), **more}
+
+
+def _steps(tmp_path, scenario: str):
+    feed = _feed(scenario)
+    target = torque_at_depth(scenario, 2.5, feed, tmp_path)
+    loop = run_loop(tmp_path / "loop", scenario, feed_mm_min=feed, afc=_afc(target))
+    outcomes = step_outcomes(loop, target)
+    assert [round(o.level_mm, 3) for o in outcomes] == list(STEPS_MM), (outcomes, loop.daemon_log[-3000:])
+    return loop, target, outcomes
+
+
+@pytest.mark.parametrize("scenario", ["afc-step", "afc-step-1500"])
+def test_depth_steps_settle_at_the_target_without_overshoot(tmp_path, scenario):
+    loop, target, outcomes = _steps(tmp_path, scenario)
+    for o in outcomes:
+        assert o.settle_revs is not None and o.settle_revs <= o.allowed_revs, (scenario, o)
+        assert o.overshoot <= OVERSHOOT_MAX, (scenario, o)
+    # the controller did the work: above the programmed feed where the cut is light (2 mm, before the first
+    # step), below it where heavy (3 mm)
+    light = [e["afc"]["override_pct"] for e in loop.cutting() if loop.plant_time(e) < outcomes[0].first_rev_t - 1.0]
+    assert light and max(light) > 110.0, light
+    assert outcomes[0].override_pct[1] < 90.0, outcomes[0]
+    states = {e["afc"]["state"] for e in loop.cutting()}
+    assert "armed" in states, states
+
+
+@pytest.mark.parametrize("scenario", ["afc-step-300", "afc-step-3000"])
+def test_no_sustained_oscillation_at_the_ends_of_the_speed_range(tmp_path, scenario):
+    _, _, outcomes = _steps(tmp_path, scenario)
+    for o in outcomes:
+        assert o.settle_revs is not None, (scenario, o)  # it stays within ±5 % until the level ends
+        assert o.final_spread <= 0.05, (scenario, o)
+
+
+def test_a_target_beyond_reach_sits_at_the_bound_and_says_saturated(tmp_path):
+    scenario = "afc-step"
+    feed = _feed(scenario)
+    unreachable = 2.0 * torque_at_depth(scenario, 3.0, feed, tmp_path)  # twice the deepest level's torque
+    loop = run_loop(tmp_path / "loop", scenario, feed_mm_min=feed, afc=_afc(unreachable),
+                    sim_args=("--duration-s", "16"))
+    cutting = loop.cutting()
+    saturated = [e for e in cutting if e["afc"]["state"] == "saturated"]
+    assert saturated, {e["afc"]["state"] for e in cutting}
+    assert {e["afc"]["override_pct"] for e in saturated[3:]} == {150.0}, saturated[:5]
+    assert max(e["feed_override_pct"] for e in saturated[5:]) > 145.0  # the CNC applied it
+
+
+def test_a_taper_is_cut_faster_at_the_same_peak_torque(tmp_path):
+    scenario = "afc-taper"
+    feed = _feed(scenario)
+    programmed = run_loop(tmp_path / "programmed", scenario, feed_mm_min=feed, afc=None)
+    target = peak(programmed)
+    adaptive = run_loop(tmp_path / "adaptive", scenario, feed_mm_min=feed, afc=_afc(target))
+    shorter = 1.0 - cycle_s(adaptive) / cycle_s(programmed)
+    assert shorter >= 0.15, (cycle_s(adaptive), cycle_s(programmed))
+    assert abs(peak(adaptive) / target - 1.0) <= 0.05, (peak(adaptive), target)
+
+
+def test_a_fault_mid_cut_brings_the_override_to_100_in_the_next_command(tmp_path):
+    """A current sensor torn off mid-cut, while the controller holds the feed above programmed: the daemon is
+    blind; the override comes down to <= 100 % before the feed hold goes out, and never rises again."""
+    scenario = "afc-step"
+    feed = _feed(scenario)
+    target = torque_at_depth(scenario, 2.5, feed, tmp_path)
+    onset_s = 9.0  # plant time: in the 2 mm level, where the controller runs above 100 %
+    loop = run_loop(tmp_path / "loop", scenario, feed_mm_min=feed, afc=_afc(target),
+                    sim_args=("--pin", "i_u=0", "--faults-from-s", str(onset_s), "--duration-s", "14"))
+    start_mono = next(e["mono"] for e in loop.log if e.get("event") == "start")
+    onset = start_mono + onset_s
+    commands = [e for e in loop.log if e.get("event") == "feed_override_command"]
+    before = [c["value"] for c in commands if c["mono"] < onset]
+    assert before and max(before) > 1000, "the controller was not above 100 % when the fault came"
+    after = [c for c in commands if c["mono"] >= onset]
+    first_safe = next((k for k, c in enumerate(after) if c["value"] <= 1000), None)
+    assert first_safe is not None, after[:5]
+    assert all(c["value"] <= 1000 for c in after[first_safe:]), after
+    hold = next((e for e in loop.log if e.get("event") == "outputs" and e.get("feed_hold") and e["mono"] >= onset), None)
+    assert hold is not None, "the blind daemon did not hold the feed"
+    assert after[first_safe]["mono"] <= hold["mono"], (after[first_safe], hold)
