@@ -19,138 +19,38 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-import time
 from typing import Any
 
-from millsense.daemon.pipeline.local_control import CLIENT_TIMEOUT_S
-from millsense.daemon.publish.cli_args import (
-    DaemonConfig,
-    add_config_argument,
-    add_token_arguments,
-    add_zenoh_arguments,
-    command_error_text,
-    command_target,
-    open_machine_session,
-    read_token,
-)
+from millsense.daemon.publish.operator_command import OperatorCommand, Read
 
-PROG = "millsense afc"
+COMMAND = OperatorCommand("millsense afc", "afc")
+PROG = COMMAND.prog
 ACTIONS = ("on", "off", "status")
-ZENOH_TIMEOUT_S = 2.0
-LOCAL_TIMEOUT_S = CLIENT_TIMEOUT_S
-HINT_MORE = ("a longer --timeout", "at the machine: millsense afc --local")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("action", choices=list(ACTIONS), help="on, off, or status")
-    parser.add_argument("--json", action="store_true", help="print the daemon's answer as one JSON object")
-    parser.add_argument("--machine", "-m", metavar="ID", default=None,
-                        help="the machine id of the daemon (default: the only one alive)")
-    parser.add_argument("--local", action="store_true",
-                        help="ask through the daemon's control socket at the machine (root or the daemon's user)")
-    add_config_argument(parser, "its machine id and where to connect")
-    add_zenoh_arguments(parser, listen=False)
-    add_token_arguments(parser)
-    parser.add_argument("--timeout", type=float, default=None, metavar="S",
-                        help=f"how long to wait for a reply (default {ZENOH_TIMEOUT_S:g} s; "
-                             f"{LOCAL_TIMEOUT_S:g} s with --local)")
+    COMMAND.add_arguments(parser)
     parser.epilog = __doc__.split("\n\n")[1]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
 
 
 def _fail(message: str, code: int = 1) -> int:
-    print(f"{PROG}: {message}", file=sys.stderr)
-    return code
+    return COMMAND.fail(message, code)
 
 
 def run(args: argparse.Namespace) -> int:
     request = {"action": args.action}
-    target = command_target(args, PROG, ZENOH_TIMEOUT_S, LOCAL_TIMEOUT_S)
-    if isinstance(target, int):
-        return target
-    if args.local:
-        return _local(target.machine, request, args)
-    token = None
-    if args.action != "status":
-        try:
-            token = read_token(args)
-        except ValueError as exc:
-            return _fail(f"error: {exc}")
-    return _over_zenoh(args, target.machine, target.daemon, request, token)
+    # status: the `status` queryable's `afc`, no token (as `limits list` reads `limits`)
+    read = Read("status", None, _status_afc) if args.action == "status" else None
+    return COMMAND.run(args, request, read, lambda machine, reply: _report(machine, args.action, reply, args.json))
 
 
-def _local(machine: str, request: dict[str, str], args: argparse.Namespace) -> int:
-    from millsense.daemon.pipeline.latch_store import daemon_state_dir
-    from millsense.daemon.pipeline.local_control import LocalControlError, local_command
-
-    try:
-        reply = local_command(daemon_state_dir(machine), "afc", args.timeout, args=request)
-    except LocalControlError as exc:
-        return _fail(f"error: {exc}")
-    return _report(machine, request["action"], reply, args.json)
-
-
-def _over_zenoh(args: argparse.Namespace, machine: str | None, daemon: DaemonConfig | None,
-                request: dict[str, str], token: str | None) -> int:
-    from millsense.daemon.publish.command_auth import CommandError, exchange
-
-    opened = open_machine_session(args, daemon, machine, PROG, *HINT_MORE)
-    if isinstance(opened, int):
-        return opened
-    machine, session = opened.machine, opened.session
-    try:
-        left = max(0.2, opened.deadline - time.monotonic())
-        if request["action"] == "status":
-            try:
-                reply = _read_status(session, machine, left)
-            except LookupError:
-                return _fail(f"no daemon answered on millsense/{machine}/status within {args.timeout:g} s\n"
-                             f"{opened.no_daemon_hint}")
-            return _report(machine, "status", reply, args.json)
-        try:
-            outcome = exchange(session, machine, "afc", token, args=request, timeout_s=left)
-        except CommandError as exc:
-            if exc.result is not None and args.json:
-                print(json.dumps(exc.result))
-            return _fail(command_error_text(exc, opened, "afc", args, daemon, token))
-        if not outcome.verified:
-            print(f'{PROG}: note: {machine} takes commands from anyone (reset = "open"): this answer cannot be '
-                  "verified", file=sys.stderr)
-        return _report(machine, request["action"], outcome.result, args.json)
-    finally:
-        session.close()
-
-
-def _read_status(session: Any, machine: str, timeout_s: float) -> dict[str, Any]:
-    """`{"ok", "afc"}` from the `status` queryable; LookupError when none came in time."""
-    where = f"millsense/{machine}/status"
-    deadline = time.monotonic() + timeout_s
-    querier = session.declare_querier(where, timeout=max(0.1, timeout_s))
-    try:
-        while not querier.matching_status.matching:  # a fresh session learns remote queryables a moment later
-            if time.monotonic() >= deadline:
-                raise LookupError(where)
-            time.sleep(0.01)
-        for reply in querier.get():
-            sample = reply.ok if reply.ok is not None else reply.err
-            try:
-                body = json.loads(sample.payload.to_bytes())
-            except (UnicodeDecodeError, ValueError):
-                continue
-            if not isinstance(body, dict):
-                continue
-            if reply.ok is None:
-                return {"ok": False, "error": body.get("error") or body}
-            if not isinstance(body.get("afc"), dict):
-                return {"ok": False, "error": "its status carries no \"afc\": a daemon without adaptive feed control"}
-            return {"ok": True, "action": "status", "afc": body["afc"]}
-        raise LookupError(where)
-    finally:
-        try:
-            querier.undeclare()
-        except Exception:  # noqa: BLE001 - the session may be closing
-            pass
+def _status_afc(body: dict[str, Any]) -> dict[str, Any]:
+    """The status payload's `afc` as the command's reply."""
+    if not isinstance(body.get("afc"), dict):
+        return {"ok": False, "error": "its status carries no \"afc\": a daemon without adaptive feed control"}
+    return {"ok": True, "action": "status", "afc": body["afc"]}
 
 
 # ---- what the user reads ----------------------------------------------------------------------

@@ -13,23 +13,20 @@ page can be loaded; SIGTERM or Ctrl-C stops it (exit 0).
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 import threading
 from typing import Any
 
 from millsense.daemon.publish.cli_args import (
-    EXIT_CONFIG,
     EXIT_USAGE,
     CliUsageError,
-    DaemonConfigError,
     add_config_argument,
     add_zenoh_arguments,
+    client_settings,
     hint,
-    read_daemon_config,
-    session_settings,
     strip_rust,
 )
+from millsense.daemon.stop_signals import stop_on_signals
 
 PROG = "millsense dashboard"
 DEFAULT_LISTEN = "127.0.0.1:8470"
@@ -79,20 +76,13 @@ def run(args: argparse.Namespace) -> int:
     except CliUsageError as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    try:
-        daemon = read_daemon_config(args.config) if args.config else None
-    except DaemonConfigError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return EXIT_CONFIG
-    try:
-        settings = session_settings(args, daemon)
-    except CliUsageError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+    connection = client_settings(args, PROG)
+    if isinstance(connection, int):
+        return connection
+    daemon, settings = connection
 
     stop = threading.Event()
-    for signum in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(signum, lambda _s, _f: stop.set())
+    stop_on_signals(stop)
     try:
         session = open_session(settings, retry_for_s=None, stop=stop, on_waiting=lambda event, f: print(
             f"{PROG}: waiting for a Zenoh router at {', '.join(f['connect']) or '(scouting)'} ({f['error']})",

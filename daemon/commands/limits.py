@@ -23,28 +23,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-import time
 from typing import Any
 
-from millsense.daemon.pipeline.local_control import CLIENT_TIMEOUT_S
-from millsense.daemon.publish.cli_args import (
-    EXIT_USAGE,
-    DaemonConfig,
-    add_config_argument,
-    add_token_arguments,
-    add_zenoh_arguments,
-    command_error_text,
-    command_target,
-    open_machine_session,
-    read_token,
-)
+from millsense.daemon.publish.cli_args import EXIT_USAGE
 from millsense.daemon.publish.limits_args import READS, check_args
+from millsense.daemon.publish.operator_command import OperatorCommand, Read
 
-PROG = "millsense limits"
-ZENOH_TIMEOUT_S = 2.0
-LOCAL_TIMEOUT_S = CLIENT_TIMEOUT_S
-HINT_MORE = ("a longer --timeout", "at the machine: millsense limits --local")
+COMMAND = OperatorCommand("millsense limits", "limits")
+PROG = COMMAND.prog
 # The CLI's words (hyphens, as the other subcommands) -> the action of cmd/limits.
 ACTIONS = {"list": "list", "show": "show", "accept": "accept", "relearn": "relearn", "widen": "widen",
            "narrow": "narrow", "false-alarm": "false_alarm", "new-tool": "new_tool"}
@@ -56,24 +42,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the process key program/tool/operation (e.g. 1234/12/3); for new-tool the tool number")
     parser.add_argument("--pct", type=int, default=None, metavar="N",
                         help="widen / narrow: by how many whole percent of the band")
-    parser.add_argument("--json", action="store_true", help="print the daemon's answer as one JSON object")
-    parser.add_argument("--machine", "-m", metavar="ID", default=None,
-                        help="the machine id of the daemon (default: the only one alive)")
-    parser.add_argument("--local", action="store_true",
-                        help="ask through the daemon's control socket at the machine (root or the daemon's user)")
-    add_config_argument(parser, "its machine id and where to connect")
-    add_zenoh_arguments(parser, listen=False)
-    add_token_arguments(parser)
-    parser.add_argument("--timeout", type=float, default=None, metavar="S",
-                        help=f"how long to wait for a reply (default {ZENOH_TIMEOUT_S:g} s; "
-                             f"{LOCAL_TIMEOUT_S:g} s with --local)")
+    COMMAND.add_arguments(parser)
     parser.epilog = __doc__.split("\n\n")[1]
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
 
 
 def _fail(message: str, code: int = 1) -> int:
-    print(f"{PROG}: {message}", file=sys.stderr)
-    return code
+    return COMMAND.fail(message, code)
 
 
 def request_args(action_word: str, target: str | None, pct: int | None) -> dict[str, Any]:
@@ -104,93 +79,10 @@ def run(args: argparse.Namespace) -> int:
         request = request_args(args.action, args.target, args.pct)
     except ValueError as exc:
         return _fail(f"error: {exc}", EXIT_USAGE)
-    target = command_target(args, PROG, ZENOH_TIMEOUT_S, LOCAL_TIMEOUT_S)
-    if isinstance(target, int):
-        return target
-    if args.local:
-        return _local(target.machine, request, args)
-    token = None
-    if request["action"] not in READS:
-        try:
-            token = read_token(args)
-        except ValueError as exc:
-            return _fail(f"error: {exc}")
-    return _over_zenoh(args, target.machine, target.daemon, request, token)
-
-
-def _local(machine: str, request: dict[str, Any], args: argparse.Namespace) -> int:
-    from millsense.daemon.pipeline.latch_store import daemon_state_dir
-    from millsense.daemon.pipeline.local_control import LocalControlError, local_command
-
-    try:
-        reply = local_command(daemon_state_dir(machine), "limits", args.timeout, args=request)
-    except LocalControlError as exc:
-        return _fail(f"error: {exc}")
-    return _report(machine, request, reply, args.json)
-
-
-def _over_zenoh(args: argparse.Namespace, machine: str | None, daemon: DaemonConfig | None,
-                request: dict[str, Any], token: str | None) -> int:
-    from millsense.daemon.publish.command_auth import CommandError, exchange
-
-    opened = open_machine_session(args, daemon, machine, PROG, *HINT_MORE)
-    if isinstance(opened, int):
-        return opened
-    machine, session, no_daemon_hint = opened.machine, opened.session, opened.no_daemon_hint
-    try:
-        left = max(0.2, opened.deadline - time.monotonic())
-        if request["action"] in READS:
-            try:
-                reply = _read(session, machine, request.get("key"), left)
-            except LookupError:
-                return _fail(f"no daemon answered on millsense/{machine}/limits within {args.timeout:g} s\n"
-                             f"{no_daemon_hint}")
-            return _report(machine, request, reply, args.json)
-        try:
-            outcome = exchange(session, machine, "limits", token, args=request, timeout_s=left)
-        except CommandError as exc:
-            if exc.result is not None and args.json:
-                print(json.dumps(exc.result))
-            return _fail(command_error_text(exc, opened, "limits", args, daemon, token))
-        if not outcome.verified:
-            print(f'{PROG}: note: {machine} takes commands from anyone (reset = "open"): this answer cannot be '
-                  "verified", file=sys.stderr)
-        return _report(machine, request, outcome.result, args.json)
-    finally:
-        session.close()
-
-
-def _read(session: Any, machine: str, key: str | None, timeout_s: float) -> dict[str, Any]:
-    """The `limits` queryable's answer (`{"key": K}` for one key). LookupError: none came; the daemon's
-    error reply comes back as `{"ok": false, "error": ...}`."""
-    import zenoh
-
-    where = f"millsense/{machine}/limits"
-    deadline = time.monotonic() + timeout_s
-    querier = session.declare_querier(where, timeout=max(0.1, timeout_s))
-    try:
-        while not querier.matching_status.matching:  # a fresh session learns remote queryables a moment later
-            if time.monotonic() >= deadline:
-                raise LookupError(f"no daemon answered on {where} within {timeout_s:g} s")
-            time.sleep(0.01)
-        payload = json.dumps({"key": key}).encode() if key is not None else None
-        for reply in querier.get(payload=payload, encoding=zenoh.Encoding.APPLICATION_JSON):
-            sample = reply.ok if reply.ok is not None else reply.err
-            try:
-                body = json.loads(sample.payload.to_bytes())
-            except (UnicodeDecodeError, ValueError):
-                continue
-            if not isinstance(body, dict):
-                continue
-            if reply.ok is None:
-                body = {"ok": False, "error": body.get("error") or body}
-            return body
-        raise LookupError(f"no daemon answered on {where} within {timeout_s:g} s")
-    finally:
-        try:
-            querier.undeclare()
-        except Exception:  # noqa: BLE001 - the session may be closing
-            pass
+    read = None
+    if request["action"] in READS:  # the `limits` queryable, `{"key": K}` for one key: no token
+        read = Read("limits", {"key": request["key"]} if request.get("key") is not None else None)
+    return COMMAND.run(args, request, read, lambda machine, reply: _report(machine, request, reply, args.json))
 
 
 # ---- what the user reads ----------------------------------------------------------------------

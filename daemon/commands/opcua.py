@@ -19,14 +19,11 @@ from pathlib import Path
 from millsense.daemon.publish.cli_args import (
     EXIT_CONFIG,
     EXIT_USAGE,
-    CliUsageError,
-    DaemonConfigError,
     add_config_argument,
     add_zenoh_arguments,
     check_machine,
+    client_settings,
     hint,
-    read_daemon_config,
-    session_settings,
     strip_rust,
 )
 
@@ -86,14 +83,10 @@ def run(args: argparse.Namespace) -> int:
         trusted = trust.check()
     except OpcuaSetupError as exc:
         return _fail(str(exc), EXIT_CONFIG)
-    try:
-        daemon = read_daemon_config(args.config) if args.config else None
-    except DaemonConfigError as exc:
-        return _fail(str(exc), EXIT_CONFIG)
-    try:
-        settings = session_settings(args, daemon)
-    except CliUsageError as exc:
-        return _fail(str(exc), EXIT_USAGE)
+    connection = client_settings(args, PROG)
+    if isinstance(connection, int):
+        return connection
+    daemon, settings = connection
 
     from millsense.daemon.logging_setup import configure_logging
 

@@ -18,13 +18,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 import threading
 from pathlib import Path
 from typing import Any
 
 from millsense.daemon.publish.cli_args import CliUsageError, checked_endpoints, strip_rust
+from millsense.daemon.stop_signals import stop_on_signals
 
 PROG = "millsense router"
 EXIT_UNAVAILABLE = 69
@@ -153,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
     log = structlog.get_logger("millsense.router")
     fields = describe(conf, args.config)
     stop = threading.Event()
-    _install_signal_handlers(stop)
+    stop_on_signals(stop, hangup=True)
 
     import zenoh
 
@@ -187,14 +187,3 @@ def _serve(session: Any, stop: threading.Event, log: Any, fields: dict[str, Any]
         pass
     sdnotify.notify(stopping=True)
     log.info("router.stopping")
-
-
-def _install_signal_handlers(stop: threading.Event) -> None:
-    def handler(_signum: int, _frame: Any) -> None:
-        stop.set()
-
-    for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
-        try:
-            signal.signal(sig, handler)
-        except (ValueError, OSError):  # not the main thread (embedded use)
-            pass

@@ -31,11 +31,12 @@ left exactly as it was (a stop is not a reset).
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 import threading
 import time
 from typing import Any
+
+from millsense.daemon.stop_signals import stop_on_signals
 
 CONNECT_WINDOW_S = 10.0
 DESCRIPTOR_WAIT_S = 3.0
@@ -81,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
             structlog.get_logger("millsense.run").warning("config.warning", detail=warning)
 
     stop = threading.Event()
-    _install_signal_handlers(stop)
+    stop_on_signals(stop, hangup=True)
 
     from millsense.drivers import DriverError, create_driver
 
@@ -274,17 +275,6 @@ def _wait(done: Any, timeout_s: float, stop: threading.Event) -> bool:
         if time.monotonic() >= deadline:
             return False
     return False
-
-
-def _install_signal_handlers(stop: threading.Event) -> None:
-    def handler(_signum: int, _frame: Any) -> None:
-        stop.set()
-
-    for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
-        try:
-            signal.signal(sig, handler)
-        except (ValueError, OSError):  # not the main thread (embedded use)
-            pass
 
 
 def _live_line(demo: bool) -> Any:

@@ -17,25 +17,21 @@ import argparse
 import json
 import math
 import queue
-import signal
 import sys
 import threading
 import time
 from typing import Any
 
 from millsense.daemon.publish.cli_args import (
-    EXIT_CONFIG,
     EXIT_USAGE,
-    CliUsageError,
-    DaemonConfigError,
     add_config_argument,
     add_zenoh_arguments,
     check_machine,
+    client_settings,
     hint,
-    read_daemon_config,
-    session_settings,
     strip_rust,
 )
+from millsense.daemon.stop_signals import stop_on_signals
 
 KINDS = ("estimate", "alarm", "process", "status")
 PROG = "millsense watch"
@@ -59,19 +55,13 @@ def run(args: argparse.Namespace) -> int:
     if args.seconds is not None and not (args.seconds > 0 and math.isfinite(args.seconds)):
         print(f"{PROG}: error: --seconds must be a positive number", file=sys.stderr)
         return EXIT_USAGE
-    try:
-        daemon = read_daemon_config(args.config) if args.config else None
-    except DaemonConfigError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return EXIT_CONFIG
-    try:
-        settings = session_settings(args, daemon)
-    except CliUsageError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+    connection = client_settings(args, PROG)
+    if isinstance(connection, int):
+        return connection
+    daemon, settings = connection
 
     stop = threading.Event()
-    _install_signal_handlers(stop)
+    stop_on_signals(stop)
     try:
         session = open_session(
             settings,
@@ -133,15 +123,6 @@ def run(args: argparse.Namespace) -> int:
                 pass
         session.close()
     return 0
-
-
-def _install_signal_handlers(stop: threading.Event) -> None:
-    def handler(_signum: int, _frame: Any) -> None:
-        stop.set()
-
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, handler)
-        signal.signal(signal.SIGINT, handler)
 
 
 def _decode(sample: Any) -> Any:

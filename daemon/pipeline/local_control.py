@@ -248,7 +248,6 @@ class LocalControl:
             audit.record("limits", requester, True, result=reply)
         return reply
 
-
     def _afc(self, args: Any, requester: str) -> dict[str, Any]:
         """`afc` at the machine: `status` read as it is, `on` / `off` audited like a reset."""
         from millsense.daemon.publish.sink import afc_reply, check_afc_args

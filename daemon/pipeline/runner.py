@@ -173,6 +173,9 @@ class Runner:
         self.feed_out = OverrideOutput(driver)
         self._afc_lock = threading.RLock()
         self.applied_override_pct: float | None = None  # the DAQ's last STATUS (what the CNC applies)
+        # The override on the DAQ is set once to what this daemon holds at the first STATUS after each connection:
+        # a daemon restarted faster than the watchdog would otherwise leave the last run's override in place.
+        self._afc_resync = True
 
         self.state = "starting"
         self.faults: dict[str, str] = {}
@@ -304,6 +307,9 @@ class Runner:
             self.interlock.observe_status(ev)
             if ev.feed_override is not None:
                 self.applied_override_pct = ev.feed_override / 10.0
+                if self._afc_resync:
+                    self._afc_resync = False
+                    self._safe(self._afc_resync_now)
             self.core.on_status(ev)  # the applied override, sample by sample, for the revolutions
             if self.interlock.device_hold and not self._check.marked:
                 with self._check_lock:  # a hold we did not set (the watchdog): judged from now on
@@ -518,6 +524,11 @@ class Runner:
             self._safe(lambda: log.error("afc.error", reason=reason, traceback=traceback.format_exc()))
         self._safe(self._afc_safe, reason)
         est["afc"] = {"state": self.feed.state, "override_pct": self.feed.commanded_pct, "target": None}
+
+    def _afc_resync_now(self) -> None:
+        """Write what the controller holds (100 % unless it is controlling) to a DAQ just (re)connected."""
+        with self._afc_lock:
+            self.feed_out.write(self.feed.commanded_pct, "the DAQ connected: its override set to this daemon's")
 
     def _afc_descriptor(self, desc: Any) -> None:
         available = bool(getattr(desc, "has_feed_override", False))
@@ -753,8 +764,10 @@ class Runner:
 
     def _on_link(self, ev: Any) -> None:
         if ev.up:  # the driver logged it (`daq.link_up`, with transport and address)
-            # A DAQ that restarted forgot its watchdog and maybe the latched output; its override is 100 %.
+            # A DAQ that restarted forgot its watchdog and maybe the latched output; its override is 100 %, or
+            # (a link that only dropped) still what it was: set again at its first STATUS.
             self.feed_out.device_restarted()
+            self._afc_resync = True
             self._safe(self.interlock.start)
             self._safe(self.interlock.reassert)
         else:

@@ -204,6 +204,21 @@ def session_settings(args: argparse.Namespace, daemon: DaemonConfig | None) -> S
     return zs
 
 
+def client_settings(args: argparse.Namespace, prog: str) -> tuple[DaemonConfig | None, SimpleNamespace] | int:
+    """A reading client's connection (`watch`, `dashboard`, `opcua`): the daemon's config (`--config`) under the
+    Zenoh options; or the exit code, said on stderr, when they make none (78: the config; 2: the options)."""
+    try:
+        daemon = read_daemon_config(args.config) if args.config else None
+    except DaemonConfigError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
+    try:
+        return daemon, session_settings(args, daemon)
+    except CliUsageError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+
+
 def hint(settings: Any, daemon: DaemonConfig | None, *extra: str) -> str:
     """One `try:` line for "found nothing": what to give next, with the endpoints tried."""
     tried = ", ".join(getattr(settings, "connect", []) or []) or None

@@ -24,7 +24,7 @@ import signal
 import subprocess
 import sys
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from tests.conftest import free_tcp_port
@@ -33,6 +33,9 @@ from tests.e2e.helpers import CMD, Procs, Subscriber, read_jsonl, tcp, wait_for,
 SETTLE_BAND = 0.05        # the issue's ±5 % of the target
 OVERSHOOT_MAX = 0.15      # the issue's 15 %
 CNC_LAG_MS = 40.0         # the emulator's override response (its default), which the acceptance scales with
+# The example configs' breakage check (config/mch10-spindle-power.toml: a 2-flute cutter loses ~25 % with a flute):
+# armed in every closed-loop run, so that a feed that moves must not look like a broken tool
+ALARMS = "breakage_drop_pct = 20"
 
 
 @dataclass
@@ -43,6 +46,8 @@ class Loop:
     log: list[dict]              # the emulator's status log
     start_wall: float            # wall time of the emulator's first sample
     daemon_log: str
+    alarms: list[dict] = field(default_factory=list)  # as the daemon published them
+    events: list[dict] = field(default_factory=list)  # the plant's truth events (tool_breakage, feed_hold, ...)
 
     def plant_time(self, est: dict) -> float:
         return float(est["t"]) - self.start_wall
@@ -59,7 +64,7 @@ def daemon_config(path: Path, *, machine: str, daq_port: int, z_port: int, feed_
         extra += "\n[afc]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in afc.items())
     return write_config(path, machine=machine, daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}',
                         zenoh_listen=[tcp(z_port)], interlock="enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 1000",
-                        extra=extra)
+                        alarms=ALARMS, extra=extra)
 
 
 def run_loop(tmp: Path, scenario: str, *, feed_mm_min: float, afc: dict | None, sim_args: tuple[str, ...] = (),
@@ -99,7 +104,8 @@ def run_loop(tmp: Path, scenario: str, *, feed_mm_min: float, afc: dict | None, 
         start = next((e for e in log if e.get("event") == "start"), None)
         assert start is not None, "the emulator's status log has no start event"
         return Loop(scenario, sub.get("estimate"), [r for r in read_jsonl(truth) if "rev" in r], log,
-                    float(start["wall"]), procs.text("daemon"))
+                    float(start["wall"]), procs.text("daemon"), sub.get("alarm"),
+                    [r for r in read_jsonl(truth) if "event" in r])
 
 
 # ----------------------------------------------------------------------------- reading a run
@@ -169,6 +175,25 @@ def step_outcomes(loop: Loop, target: float, quantity: str = "torque_nm") -> lis
         outcomes.append(StepOutcome(depth, first, len(seg), settle, allowed, overshoot, max(abs(x) for x in half),
                                     (min(ovr, default=math.nan), max(ovr, default=math.nan))))
     return outcomes
+
+
+def level_ratios(loop: Loop, target: float, quantity: str = "torque_nm") -> list[tuple[float, list[float]]]:
+    """Each depth step's level as `step_outcomes` reads it (from the first revolution past the wall until the
+    next wall reaches the leading edge): (depth beyond the step, load / target − 1 of each estimate). For a run
+    at the programmed feed, this is how far the cut alone stays from the target."""
+    steps, part_end, _, _ = walls(loop.scenario)
+    edge = leading_edge(loop)
+    bounds = [w for w, _ in steps] + [part_end]
+    est = sorted(loop.cutting(), key=lambda e: e["t"])
+    out = []
+    for (wall, depth), until in zip(steps, bounds[1:]):
+        first = next((t for t, lead0, _ in edge if lead0 >= wall), None)
+        last = next((t for t, lead0, lead1 in edge if lead1 >= until), None)
+        if first is None or last is None:
+            continue
+        seg = [e for e in est if first - 0.5 * _rev_s(e) <= loop.plant_time(e) <= last - 0.5 * _rev_s(e)]
+        out.append((depth, [float(e[quantity]) / target - 1.0 for e in seg]))
+    return out
 
 
 def depth_before(scenario: str, wall: float) -> float:

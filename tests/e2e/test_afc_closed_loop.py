@@ -48,6 +48,8 @@ def test_depth_steps_settle_at_the_target_without_overshoot(tmp_path, scenario):
     assert outcomes[0].override_pct[1] < 90.0, outcomes[0]
     states = {e["afc"]["state"] for e in loop.cutting()}
     assert "armed" in states, states
+    # the feed moved by up to half of it within a few revolutions, with the breakage check armed: no false break
+    assert not [a for a in loop.alarms if a["level"] != "warning"], loop.alarms
 
 
 @pytest.mark.parametrize("scenario", ["afc-step-300", "afc-step-3000"])
@@ -103,3 +105,46 @@ def test_a_fault_mid_cut_brings_the_override_to_100_in_the_next_command(tmp_path
     hold = next((e for e in loop.log if e.get("event") == "outputs" and e.get("feed_hold") and e["mono"] >= onset), None)
     assert hold is not None, "the blind daemon did not hold the feed"
     assert after[first_safe]["mono"] <= hold["mono"], (after[first_safe], hold)
+
+
+def test_a_flute_that_breaks_while_the_feed_moves_is_still_caught(tmp_path):
+    """[P]'s breakage cut (steps 1 -> 2 -> 3 mm; flute 1 breaks at 60 mm, in the 3 mm step) with the controller
+    holding the torque of 2 mm: at the break the feed is below 100 % and the controller would raise it to make up
+    for the lost flute. The breakage check judges the torque at the programmed feed, so it still sees the drop."""
+    scenario = "breakage"
+    feed = _feed(scenario)
+    target = torque_at_depth(scenario, 2.0, feed, tmp_path)
+    loop = run_loop(tmp_path / "loop", scenario, feed_mm_min=feed, afc=_afc(target))
+    broke_s = next(e["t_s"] for e in loop.events if e.get("event") == "tool_breakage")
+    before = [e for e in loop.cutting() if broke_s - 1.0 < loop.plant_time(e) < broke_s]
+    assert before and max(e["afc"]["override_pct"] for e in before) < 95.0, before[-3:]  # the controller at work
+    trips = [a for a in loop.alarms if a["level"] in ("tool_breakage", "overload", "crash")]
+    assert trips and trips[0]["level"] == "tool_breakage" and trips[0]["interlock"] == "feed_hold", loop.alarms
+    caught_s = float(trips[0]["t"]) - loop.start_wall
+    assert broke_s <= caught_s <= broke_s + 1.0, (broke_s, caught_s)  # within a few revolutions of the break
+    start_mono = next(e["mono"] for e in loop.log if e.get("event") == "start")
+    after = [c["value"] for c in loop.log if c.get("event") == "feed_override_command"
+             and c["mono"] >= start_mono + caught_s + 0.05]
+    assert all(v <= 1000 for v in after), after
+
+
+@pytest.mark.parametrize("cnc_allows", [True, False])
+def test_the_cncs_context_flag_decides_where_afc_may_act(tmp_path, cnc_allows):
+    """`[afc] allow` left false: only the CNC's CONTEXT flag (bit 2, adaptive feed allowed in this operation)
+    lets the controller act; without it the cut runs at the programmed feed and the estimates say why."""
+    scenario = "afc-step"
+    feed = _feed(scenario)
+    target = torque_at_depth(scenario, 2.5, feed, tmp_path)
+    loop = run_loop(tmp_path / "loop", scenario, feed_mm_min=feed,
+                    afc={"enabled": True, "target_torque_nm": round(target, 3)},
+                    sim_args=("--duration-s", "8", *(("--afc-allowed",) if cnc_allows else ())))
+    cutting = loop.cutting()[5:]
+    assert cutting
+    states = {e["afc"]["state"] for e in cutting}
+    if cnc_allows:
+        assert states & {"armed", "saturated"}, states
+        assert max(e["afc"]["override_pct"] for e in cutting) > 110.0
+    else:
+        assert states == {"idle"}, states
+        assert {e["afc"]["override_pct"] for e in cutting} == {100.0}
+        assert all(c["value"] == 1000 for c in loop.log if c.get("event") == "feed_override_command")

@@ -264,14 +264,14 @@ def test_cmd_reset_fuzzed_on_a_real_daemon_holds_the_feed_and_stays_small(tmp_pa
             wait_status(sub, machine, lambda s: s["interlock"] == "held_by_device", 5.0, "held")
             reset_key = f"millsense/{machine}/cmd/reset"
 
-            # -- the whole command surface: six queryables, no subscriber but `context` (issue 14)
-            # (a query with no payload is no challenge: the three cmd/* queryables answer it with an error,
-            # which carries no key)
+            # -- the whole command surface: seven queryables, no subscriber but `context` (issues 14, 15)
+            # (a query with no payload is no challenge: the four cmd/* queryables (reset, test-trip, limits,
+            # afc) answer it with an error, which carries no key)
             replies = list(sub.session.get(f"millsense/{machine}/**", timeout=2.0))
             answered = sorted(str(r.ok.key_expr) for r in replies if r.ok is not None)
             assert answered == sorted(f"millsense/{machine}/{k}" for k in ("status", "config", "limits")), answered
             errors_ = [json.loads(r.err.payload.to_bytes()) for r in replies if r.ok is None]
-            assert len(errors_) == 3 and all(e["ok"] is False for e in errors_), errors_
+            assert len(errors_) == 4 and all(e["ok"] is False for e in errors_), errors_
             assert sub.query(f"millsense/{machine}/cmd/other", b"{}", timeout=1.0) == []
             for key in ("cmd/reset", "cmd/clear", "estimate", "status", "config", "alive", "alarm", "interlock"):
                 for body in (b"{}", json.dumps({"token": TOKEN}).encode(), b"\x00garbage"):
