@@ -9,7 +9,7 @@ reads `limits`; `on` and `off` are commands on `cmd/afc`, authorised and
 audited exactly like `millsense reset` (the challenge–response of
 docs/zenoh.md; the token from `--token-file`, `--token` or
 MILLSENSE_RESET_TOKEN), or through the daemon's control socket with `--local`.
-AFC is off at every start of the daemon. `--machine`, `--config`, `--connect`,
+AFC starts as `[afc] enabled` says (default off). `--machine`, `--config`, `--connect`,
 `--timeout` find the daemon as `reset` does. Human lines by default, one JSON
 object with `--json`. Exit 0 when done, 1 when refused or unanswered, 2 for a
 bad argument, 78 for an unreadable --config.

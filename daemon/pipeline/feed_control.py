@@ -21,6 +21,7 @@ wrong `gain` (docs/afc.md, "The tuning").
 
 from __future__ import annotations
 
+import collections
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -40,6 +41,12 @@ MIN_REV_S = 0.001            # a revolution's duration is bounded: a glitched sp
 MAX_REV_S = 1.0
 STALE_REVOLUTIONS = 3.0
 STALE_MIN_S = 0.3
+# A sensor that fails mid-cut reads a lighter load for a revolution or two before the daemon declares the
+# fault (docs/afc.md, "The safety path"). So a sudden drop is confirmed before the feed rises for it, and the
+# fault path takes back what was raised within that window.
+DROP_CONFIRM = 0.8           # the load at the programmed feed below 80 % of the revolution before's: confirm first
+SUSPECT_REVOLUTIONS = 3.0    # safe() goes to the lowest command of the last 3 revolutions ...
+SUSPECT_MIN_S = 0.3          # ... or 0.3 s
 ESTIMATE_KEYS = {"torque": "torque_nm", "force": "force_n", "power": "p_gap_w"}
 TARGET_KEYS = {"torque": "torque_nm", "force": "force_n", "power": "power_w"}
 
@@ -108,6 +115,8 @@ class FeedController:
         self._latched = False        # safe() until release()
         self._last_rev_s = 0.1
         self._last_now: float | None = None
+        self._recent: collections.deque[tuple[float, float]] = collections.deque(maxlen=64)  # (now_s, commanded)
+        self._last_load_ln: float | None = None  # ln(load at the programmed feed) of the revolution before
 
     # ----------------------------------------------------------------- what the DAQ holds
     @property
@@ -119,6 +128,7 @@ class FeedController:
         """What the DAQ holds, set from outside (a DAQ that restarted is back at 100 %): the integrator follows."""
         self._commanded = float(pct)
         self._xi = math.log(max(self._commanded, WIRE_STEP_PCT) / NEUTRAL_PCT)  # a DAQ reporting 0 % must not raise
+        self._recent.clear()
 
     def _lag_s(self) -> float:
         return self.settings.cnc_lag_ms / 1000.0
@@ -147,6 +157,8 @@ class FeedController:
     def switch(self, on: bool, now_s: float) -> Decision:
         """On: armed from the next cut. Off: the programmed feed at once."""
         self.enabled = on
+        self._recent.clear()  # what was commanded before a switch is no suspect of what comes after
+        self._last_load_ln = None
         if not self.available:
             return Decision(None, "unavailable", self.reason)
         if not on:
@@ -168,7 +180,10 @@ class FeedController:
         return self._to_safe(reason)
 
     def _to_safe(self, reason: str) -> Decision:
-        new = min(self._commanded, NEUTRAL_PCT)
+        """min(commanded, 100 %, the lowest command of the last few revolutions): what a failing sensor made the
+        controller raise before the fault was seen is taken back too."""
+        new = min(self._commanded, NEUTRAL_PCT, self._lowest_recent())
+        self._last_load_ln = None
         self._xi = math.log(new / NEUTRAL_PCT)
         if not self.available:
             self.reason = reason
@@ -179,10 +194,17 @@ class FeedController:
         self.state, self.reason = "safe", reason
         return Decision(self._command(new), "safe", reason)
 
+    def _lowest_recent(self) -> float:
+        if self._last_now is None or not self._recent:
+            return self._commanded
+        window_s = max(SUSPECT_REVOLUTIONS * self._last_rev_s, SUSPECT_MIN_S)
+        return min([self._commanded, *(pct for t, pct in self._recent if t >= self._last_now - window_s)])
+
     def release(self) -> None:
         """The condition is gone: the next revolution starts from air (at most where safe() left it)."""
         self._latched = False
         self._xi = math.log(self._commanded / NEUTRAL_PCT)
+        self._recent.clear()
         if self.available and self.state == "safe":
             self.state, self.reason = ("air" if self.enabled else "off"), None
 
@@ -250,16 +272,29 @@ class FeedController:
             return self._coast("idle", dt_s, "no target" if target is None else "not allowed")
         load = est.get(self.quantity_key)
         if not est.get("cutting") or load is None or load <= 0 or load < s.arm_pct / 100.0 * target:
-            return self._coast("air", dt_s)
+            self._last_load_ln = None
+            return self._remember(now_s, self._coast("air", dt_s))
         self.tuning = tune(dt_s, batch_s=self.batch_s, cnc_lag_s=self._lag_s(), gain=self.gain,
                            closed_loop_s=s.closed_loop_s)
         error = math.log(target / load)
         applied = est.get("feed_override_pct")
+        load_ln = math.log(load)
         if applied is not None and applied > 0:
             # the predictor: this revolution ran at `applied`; the override commanded now gives the load
             # × (commanded / applied)^gain once the CNC has followed (what the delay still hides)
             error -= self.gain * math.log(self._commanded / float(applied))
-        return self._pi(error, dt_s)
+            load_ln -= self.gain * math.log(float(applied) / NEUTRAL_PCT)  # the load at the programmed feed
+        dropped = self._last_load_ln is not None and load_ln < self._last_load_ln + math.log(DROP_CONFIRM)
+        self._last_load_ln = load_ln
+        if dropped and error > 0:
+            # a sudden drop (a sensor failing, a flute breaking, not a cut's floor): no more feed for it until
+            # the next revolution confirms it; the fault or the breakage check has that long to see it
+            return self._remember(now_s, self._decide("armed", self._commanded, "confirming a drop"))
+        return self._remember(now_s, self._pi(error, dt_s))
+
+    def _remember(self, now_s: float, decision: Decision) -> Decision:
+        self._recent.append((now_s, self._commanded))
+        return decision
 
     def _coast(self, state: str, dt_s: float, reason: str | None = None) -> Decision:
         """Not controlling: toward the air override, rate limited; the integrator follows the command."""

@@ -165,7 +165,7 @@ class Runner:
         self.delay = LatencyStats()    # per revolution: its frame decoded by the reader → sink (queue wait too)
         self.clock: SeqClock | None = None
         self.power_check = PowerSignCheck()
-        # Adaptive feed control (issue 15, docs/afc.md): off at every start. The controller decides per
+        # Adaptive feed control (issue 15, docs/afc.md): off at start unless [afc] enabled. The controller decides per
         # revolution on the estimator thread; any thread that sees a fault or trips sets the override to
         # min(current, 100 %) at once (`_afc_safe`). One lock orders the controller's state and the writes.
         self.feed = FeedController(getattr(settings, "afc", None), getattr(settings, "material", None),
