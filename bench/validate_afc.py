@@ -33,6 +33,7 @@ REPO = HERE.parent
 sys.path.insert(0, str(REPO))
 
 from tests.e2e import afc_run as ar  # noqa: E402
+from doc_section import write_section  # noqa: E402
 
 BEGIN, END = "<!-- afc:begin -->", "<!-- afc:end -->"
 FIGURE = "validation/afc-steps.png"
@@ -374,17 +375,6 @@ def print_table(steps: list[StepRun], sat: Saturated, taper: Taper, fault: Fault
     print(f"fault: {fault}")
 
 
-def write_section(text: str, doc: Path) -> None:
-    old = doc.read_text() if doc.exists() else ""
-    if BEGIN in old and END in old:
-        head, rest = old.split(BEGIN, 1)
-        tail = rest.split(END, 1)[1].lstrip("\n")
-        new = head + text + ("\n" + tail if tail else "")
-    else:
-        new = old.rstrip("\n") + "\n\n" + text
-    doc.write_text(new)
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=REPO / "docs", help="folder of validation.md")
@@ -410,7 +400,7 @@ def main() -> int:
     print_table(steps, sat, taper, fault)
     draw(next(r for r in steps if r.scenario == "afc-step"), args.out / FIGURE)
     text = section(steps, sat, taper, fault, elapsed_s=elapsed, date=date)
-    write_section(text, args.out / "validation.md")
+    write_section(text, args.out / "validation.md", BEGIN, END)
     print(text)
     return 0
 

@@ -26,6 +26,7 @@ REPO = HERE.parent
 sys.path.insert(0, str(REPO))
 
 from tests.e2e import learning_run as lr  # noqa: E402
+from doc_section import write_section  # noqa: E402
 
 BEGIN, END = "<!-- learned-limits:begin -->", "<!-- learned-limits:end -->"
 FIGURE = "validation/learning-envelope.png"
@@ -161,17 +162,6 @@ def _caught(alarm: dict | None) -> str:
     return f"{alarm['level']} ({alarm['quantity']}) at process_rev {alarm.get('process_rev')}"
 
 
-def write_section(text: str, doc: Path) -> None:
-    old = doc.read_text() if doc.exists() else ""
-    if BEGIN in old and END in old:
-        head, rest = old.split(BEGIN, 1)
-        tail = rest.split(END, 1)[1].lstrip("\n")
-        new = head + text + ("\n" + tail if tail else "")
-    else:
-        new = old.rstrip("\n") + "\n\n" + text
-    doc.write_text(new)
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seed", type=int, default=3)
@@ -189,7 +179,7 @@ def main() -> int:
     elapsed = time.perf_counter() - start
     draw(run, out, args.out / FIGURE)
     text = section(run, out, args.seed, elapsed)
-    write_section(text, args.out / "validation.md")
+    write_section(text, args.out / "validation.md", BEGIN, END)
     print(text)
     return 0
 

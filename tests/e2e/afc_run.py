@@ -145,22 +145,31 @@ def leading_edge(loop: Loop) -> list[tuple[float, float, float]]:
     return out
 
 
-def step_outcomes(loop: Loop, target: float, quantity: str = "torque_nm") -> list[StepOutcome]:
-    """Each depth step as the tool meets it: its leading edge reaches the wall, and the load changes from there
-    (a slot's edges near the leading side take most of the chip). The first revolution after the step is the
-    first that starts with the leading edge past the wall; the level lasts until the next wall (or the part's
+def levels(loop: Loop) -> list[tuple[float, float, float, list[dict]]]:
+    """Each depth step as the tool meets it: (x of the wall, depth beyond it, plant time of the first revolution
+    after it, the estimates of its level). The leading edge reaching the wall is the step: the load changes from
+    there (a slot's edges near the leading side take most of the chip). The first revolution after the step is
+    the first that starts with the leading edge past the wall; the level lasts until the next wall (or the part's
     end) reaches the leading edge."""
     steps, part_end, _, _ = walls(loop.scenario)
     edge = leading_edge(loop)
     bounds = [w for w, _ in steps] + [part_end]
     est = sorted(loop.cutting(), key=lambda e: e["t"])
-    outcomes = []
+    out = []
     for (wall, depth), until in zip(steps, bounds[1:]):
         first = next((t for t, lead0, _ in edge if lead0 >= wall), None)
         last = next((t for t, lead0, lead1 in edge if lead1 >= until), None)
         if first is None or last is None:
             continue
         seg = [e for e in est if first - 0.5 * _rev_s(e) <= loop.plant_time(e) <= last - 0.5 * _rev_s(e)]
+        out.append((wall, depth, first, seg))
+    return out
+
+
+def step_outcomes(loop: Loop, target: float, quantity: str = "torque_nm") -> list[StepOutcome]:
+    """Each level of `levels()` against the target: settle, overshoot, the spread at its end."""
+    outcomes = []
+    for wall, depth, first, seg in levels(loop):
         if len(seg) < 3:
             continue
         allowed = max(5, math.ceil(3 * CNC_LAG_MS / 1000.0 / _rev_s(seg[0])))
@@ -178,22 +187,9 @@ def step_outcomes(loop: Loop, target: float, quantity: str = "torque_nm") -> lis
 
 
 def level_ratios(loop: Loop, target: float, quantity: str = "torque_nm") -> list[tuple[float, list[float]]]:
-    """Each depth step's level as `step_outcomes` reads it (from the first revolution past the wall until the
-    next wall reaches the leading edge): (depth beyond the step, load / target − 1 of each estimate). For a run
-    at the programmed feed, this is how far the cut alone stays from the target."""
-    steps, part_end, _, _ = walls(loop.scenario)
-    edge = leading_edge(loop)
-    bounds = [w for w, _ in steps] + [part_end]
-    est = sorted(loop.cutting(), key=lambda e: e["t"])
-    out = []
-    for (wall, depth), until in zip(steps, bounds[1:]):
-        first = next((t for t, lead0, _ in edge if lead0 >= wall), None)
-        last = next((t for t, lead0, lead1 in edge if lead1 >= until), None)
-        if first is None or last is None:
-            continue
-        seg = [e for e in est if first - 0.5 * _rev_s(e) <= loop.plant_time(e) <= last - 0.5 * _rev_s(e)]
-        out.append((depth, [float(e[quantity]) / target - 1.0 for e in seg]))
-    return out
+    """Each level of `levels()` as (depth beyond the step, load / target − 1 of each estimate): for a run at the
+    programmed feed, how far the cut alone stays from the target."""
+    return [(depth, [float(e[quantity]) / target - 1.0 for e in seg]) for _, depth, _, seg in levels(loop)]
 
 
 def depth_before(scenario: str, wall: float) -> float:
