@@ -5,7 +5,9 @@ Simulates every scenario of the two papers, replays each capture through
 estimate with the simulator's truth revolution, and writes docs/validation.md
 with PNG figures in docs/validation/. Then a sensitivity study: the same
 replays with one user input wrong at a time. Every number and figure in the
-report comes from this run; the report is regenerated from scratch each time.
+report comes from this run; the report is regenerated from scratch each time, except
+the sections other benches write between their markers (learned limits: validate_learning.py; adaptive feed
+control: validate_afc.py), which are carried over as they are, with their figures.
 
     .venv/bin/python bench/validate.py [--seed 11] [--jobs 2] [--out docs]
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import validate_cases as vc
+from doc_section import stale_figures, with_marked_sections
 import validate_figures as vf
 import validate_runs as vr
 import validate_sensitivity as vs
@@ -314,8 +315,10 @@ def header(meta: dict, elapsed: float, timings: dict) -> str:
 def write(raw: dict, out: Path, meta: dict, start: float) -> float:
     """Figures and docs/validation.md; returns the elapsed time written into it."""
     (out / FIG_DIR).mkdir(parents=True, exist_ok=True)
-    for old in (out / FIG_DIR).glob("*.png"):
-        old.unlink()                                  # from scratch: no figure of an older run survives
+    # from scratch: no figure of an older run survives, except those of the other benches' sections (learned
+    # limits, AFC), which are carried over as they are
+    for old in stale_figures(out / "validation.md", out / FIG_DIR):
+        old.unlink()
     run = Run(raw)
     t3 = table3_numbers(run)
     vf.table3_figure(out / FIG_DIR / "table3.png", t3["grid"],
@@ -358,5 +361,5 @@ def write(raw: dict, out: Path, meta: dict, start: float) -> float:
     ]
     elapsed = time.perf_counter() - start
     text = header(meta, elapsed, raw["timings"]) + "\n".join(body)
-    (out / "validation.md").write_text(text)
+    (out / "validation.md").write_text(with_marked_sections(out / "validation.md", text))
     return elapsed
