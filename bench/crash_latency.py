@@ -105,7 +105,7 @@ class Emulator:
     def __init__(self, transport: str, where: str | tuple[str, int]):
         self.source = PulseSource()
         self.device = DeviceModel(self.source)
-        self.server = StreamServer(self.device, WireEmitter(self.device, per_frame=10), Pacer(1000, realtime=True))
+        self.server = StreamServer(self.device, WireEmitter(self.device, per_frame=10), Pacer(1000, realtime=True, quantum=10))
         self.sent_mono: float | None = None
         send = self.server._send
 

@@ -150,7 +150,7 @@ class Replay:
             if kind == "estimate":
                 if verdict := self.power_check.update(item):
                     self.warnings.append(f"from rev {item.get('rev')}: {verdict}")
-                payload = {"type": "estimate", **estimate_payload(item, self.machine, self._t(item.get("seq_end")))}
+                payload = estimate_payload(item, self.machine, self._t(item.get("seq_end")), kind="estimate")
                 self.counts["estimates"] += 1
                 self.counts["invalid_estimates"] += int(not item.get("valid", True))
             elif kind == "process":

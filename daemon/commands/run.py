@@ -31,6 +31,8 @@ left exactly as it was (a stop is not a reset).
 from __future__ import annotations
 
 import argparse
+import importlib
+import os
 import sys
 import threading
 import time
@@ -43,6 +45,9 @@ DESCRIPTOR_WAIT_S = 3.0
 ZENOH_RETRY_S = 30.0
 PROG = "millsense run"
 EXIT_UNAVAILABLE = 69
+# glibc's mallopt() parameter number for the arena limit (<malloc.h>), and the limit the daemon sets.
+M_ARENA_MAX = -8
+MALLOC_ARENAS = 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -62,7 +67,50 @@ def _fail(message: str, code: int) -> int:
     return code
 
 
+def bound_native_memory() -> bool:
+    """Bound what native libraries hold on to; called first in `run`, while the daemon has one thread
+    and numpy is not imported yet (issue 13: the daemon's RSS budget). Returns whether the C library
+    accepted the malloc arena limit (glibc does; elsewhere nothing is bounded and nothing breaks).
+
+    - OpenBLAS starts a worker thread per extra core when numpy is imported; the daemon's arrays are
+      far too small for BLAS to split, so the workers only sleep. OpenBLAS reads the variable once,
+      at numpy's import. A value set by the operator wins.
+    - glibc gives each new thread that allocates an arena of its own, up to 8 a core, and an arena
+      keeps what was freed in it. The daemon runs ~20 threads (its own, Zenoh's runtimes). Two, not
+      one, so that the reader and the estimator need not queue on one lock. Arenas are made when
+      threads first allocate, so the limit must be set before any thread starts.
+    """
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    libc = _libc()
+    try:
+        return libc is not None and libc.mallopt(M_ARENA_MAX, MALLOC_ARENAS) == 1
+    except AttributeError:  # a C library without mallopt
+        return False
+
+
+def release_free_heap() -> None:
+    """Give the pages that start-up freed (parsed config, import-time temporaries) back to the system:
+    glibc keeps them mapped otherwise. Called once, before the DAQ streams, so no thread on the sample
+    path ever waits on the arena locks `malloc_trim` takes while it walks the heap."""
+    libc = _libc()
+    try:
+        if libc is not None:
+            libc.malloc_trim(0)
+    except AttributeError:  # not glibc
+        pass
+
+
+def _libc() -> Any:
+    import ctypes
+
+    try:
+        return ctypes.CDLL(None)  # the C library the interpreter is linked against
+    except OSError:
+        return None
+
+
 def run(args: argparse.Namespace) -> int:
+    bound_native_memory()
     from millsense.daemon.config import ConfigError, check_against_descriptor, demo_config, load_config
 
     if args.seconds is not None and not 0 < args.seconds < float("inf"):  # nan and inf too
@@ -99,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         daemon = _Daemon(settings, driver, session, demo)
         try:
+            release_free_heap()
             driver.start()
             if not _wait(lambda: driver.wait_connected(0.1), args.connect_timeout, stop):
                 if stop.is_set():
@@ -156,7 +205,7 @@ class _Daemon:
         from millsense.daemon import sdnotify
         from millsense.daemon.cli import _version
         from millsense.daemon.config import effective_config_dict
-        from millsense.daemon.pipeline import estimator  # noqa: F401 - import numpy/scipy now, not on the first block
+        importlib.import_module("millsense.daemon.pipeline.estimator")  # numpy now, not on the first block
         from millsense.daemon.pipeline.runner import Runner
         from millsense.daemon.publish.sink import ZenohSink
 

@@ -50,6 +50,10 @@ REOPEN_S = 5.0               # after a failed open, the writer tries again this 
 MAINTENANCE_S = 60.0         # retention runs this often (by the store's clock)
 OTHER_RETENTION_FACTOR = 10  # processes and alarms are kept this many times retention_days
 WAL_LIMIT_BYTES = 4 << 20    # the -wal file is truncated to this after a checkpoint
+# The writer's page cache. SQLite's default (2000 KiB) fills at open on any history past 2 MB, as
+# `quick_check` reads every page, and stays resident (issue 13: RSS). The writer appends at the
+# right edge of a few b-trees and deletes by time once a minute: 512 KiB holds that working set.
+CACHE_KIB = 512
 
 _WAKE = object()             # ends the batch being gathered now (limits to save, close)
 
@@ -285,6 +289,7 @@ class HistoryStore:
             if str(mode).lower() != "wal":
                 raise sqlite3.OperationalError(f"journal_mode WAL refused (got {mode})")
             conn.execute("PRAGMA synchronous = FULL")
+            conn.execute(f"PRAGMA cache_size = {-CACHE_KIB}")  # negative: KiB, not pages
             conn.execute(f"PRAGMA journal_size_limit = {WAL_LIMIT_BYTES}")
             check = conn.execute("PRAGMA quick_check").fetchone()[0]
             if check != "ok":

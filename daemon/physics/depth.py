@@ -34,6 +34,9 @@ from millsense.daemon.physics.milling import (
     NP,
     SCALAR,
     Material,
+    _chip_xp,
+    _engagement_xp,
+    _integrals_xp,
     _ratios_xp,
     _tangential_per_axial_ratio_xp,
     average_forces_n,
@@ -59,7 +62,8 @@ MAX_RADIAL_RATIO = 2.0
 
 # Grid for locating extrema: log-spaced at the small end, dense again near 2,
 # where up milling's exit angle arccos(1 − R_r) has an infinite slope.
-_GRID = np.unique(
+# (sorted and de-duplicated by hand: np.unique imports numpy.ma, 0.3 MB of the daemon's memory)
+_GRID = np.sort(
     np.concatenate(
         [
             np.geomspace(MIN_RADIAL_RATIO, 1.0, 60),
@@ -68,6 +72,7 @@ _GRID = np.unique(
         ]
     )
 )
+_GRID = _GRID[np.concatenate(([True], _GRID[1:] != _GRID[:-1]))]
 
 
 class DepthResult(NamedTuple):
@@ -307,9 +312,21 @@ def depths_from_forces(
 
 
 def _unit_forces(r_r, t_c, radius_mm, flutes, material, mode) -> tuple[float, float, float]:
-    """(F_at, F_ax, F_ay) at R_a = 1, N, as Python floats (eq. 7)."""
-    f = average_forces_n(r_r, 1.0, t_c, radius_mm, flutes, material, mode)
-    return float(f.tangential_n), float(f.x_n), float(f.y_n)
+    """(F_at, F_ax, F_ay) at R_a = 1, N, as Python floats: `average_forces_n`'s eq. (7) on the ``SCALAR``
+    kernels (one revolution's call on numpy scalars cost more than its root). nan where the model has
+    no value (a radial ratio outside (0, 2], no chip)."""
+    r_r = MAX_RADIAL_RATIO if mode == "slot" else float(r_r)
+    t_c = float(t_c)
+    if not (0.0 < r_r <= MAX_RADIAL_RATIO and t_c > 0.0):
+        return math.nan, math.nan, math.nan
+    entry, exit_ = _engagement_xp(SCALAR, r_r, mode)
+    a, b, c = _integrals_xp(SCALAR, entry, exit_)
+    t_a = _chip_xp(SCALAR, t_c, entry, exit_)                                   # eq. (8)
+    if not (t_a > 0.0 and math.isfinite(t_a)):
+        return math.nan, math.nan, math.nan
+    ks, r1 = material.ks * t_a**material.ks_exp, material.r1 * t_a**material.r1_exp   # eq. (9)
+    scale_n = flutes / (2.0 * math.pi) * ks * t_c * radius_mm                   # R_a = 1: d_a = R
+    return scale_n * c, scale_n * (a + r1 * b), scale_n * (-b + r1 * a)
 
 
 def depth_from_torque(
@@ -351,3 +368,60 @@ def depth_from_torque(
     r_a = known_axial_mm / tool_radius_mm
     r_r, status = _solve("ft", tangential_n / r_a, t_c, material, mode, float(tool_radius_mm), float(flutes))
     return _result(r_r, r_a, tool_radius_mm, status)
+
+
+def depth_from_torque_many(
+    torque_nm,
+    feed_per_tooth_mm,
+    tool_radius_mm: float,
+    flutes: int,
+    material: Material,
+    mode: str,
+    known_radial_mm: float | None = None,
+    known_axial_mm: float | None = None,
+    min_torque_nm: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """``depth_from_torque`` over arrays of revolutions: (radial mm, axial mm, statuses), nan where none.
+
+    Known radial depth (or slot) is closed-form, R_a = F_at / F_at(R_a = 1) ([D] eqs. 7, 13), so it runs
+    once over the columns (a block of revolutions costs about what one did on numpy scalars). Known
+    axial depth needs a root per revolution (eq. 7 inverted in R_r): those go one by one. Argument
+    errors raise as in ``depth_from_torque``, but only where it would: after the air-cut test.
+    """
+    check_mode(mode)
+    _check_tool(tool_radius_mm, flutes)
+    if known_radial_mm is not None and known_axial_mm is not None:
+        raise ValueError("depth_from_torque: give one known depth (radial or axial), not both")
+    torque = np.asarray(torque_nm, dtype=float)
+    t_c = np.asarray(feed_per_tooth_mm, dtype=float)
+    count = len(torque)
+    radial, axial = np.full(count, np.nan), np.full(count, np.nan)
+    cutting = torque > min_torque_nm
+    status = np.where(cutting, OK, AIR_CUT).tolist()
+    if not cutting.any():
+        return radial, axial, status
+    if mode != "slot" and known_radial_mm is None:
+        if known_axial_mm is None:
+            return radial, axial, [NO_SECOND_FORCE if c else AIR_CUT for c in cutting.tolist()]
+        for i in np.flatnonzero(cutting).tolist():   # a root each: see above
+            d = depth_from_torque(float(torque[i]), float(t_c[i]), tool_radius_mm, flutes, material, mode,
+                                  known_axial_mm=known_axial_mm, min_torque_nm=min_torque_nm)
+            status[i] = d.status
+            if d.status == OK:
+                radial[i], axial[i] = d.radial_depth_mm, d.axial_depth_mm
+        return radial, axial, status
+    r_r = MAX_RADIAL_RATIO if mode == "slot" else known_radial_mm / tool_radius_mm
+    if not 0.0 < r_r <= MAX_RADIAL_RATIO:
+        raise ValueError(f"known radial depth {known_radial_mm} mm is outside (0, tool diameter]")
+    tangential_n = torque / (tool_radius_mm * 1e-3)                  # F_at = T_c/R, R in m ([P] eq. 16)
+    usable = cutting & np.isfinite(t_c) & (t_c > 0.0)
+    unit_n = average_forces_n(r_r, 1.0, np.where(usable, t_c, 1.0), tool_radius_mm, flutes,
+                              material, mode).tangential_n           # F_at at R_a = 1 (eq. 7)
+    usable &= np.isfinite(unit_n) & (unit_n > 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r_a = tangential_n / unit_n                                  # eq. (13)
+    radial[usable] = r_r * tool_radius_mm
+    axial[usable] = r_a[usable] * tool_radius_mm
+    for i in np.flatnonzero(cutting & ~usable).tolist():
+        status[i] = OUT_OF_RANGE
+    return radial, axial, status

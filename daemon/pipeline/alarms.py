@@ -136,6 +136,10 @@ class ThresholdTrack:
         self.rank = 0
         self._above = {r: 0 for r in self._limits}
         self._below = 0
+        # Below every level with nothing held or counting, a revolution under the lowest limit changes
+        # nothing: `update` returns at once (most revolutions; the full rule is ~10 Python calls).
+        self._lowest = min(self._limits.values(), default=math.inf)
+        self._quiet = True
 
     @property
     def armed(self) -> bool:
@@ -153,6 +157,8 @@ class ThresholdTrack:
 
     def update(self, value: float | None, rev: int | None, seq: int | None) -> AlarmEvent | None:
         """One revolution's value; None: the sensors saturated, over every armed level."""
+        if self._quiet and value is not None and value <= self._lowest:
+            return None   # candidate 0 at rank 0 with no counts: the rule below would change nothing
         if not self._limits:
             return None
         cand = max(self._limits) if value is None else self._candidate(value)
@@ -165,8 +171,10 @@ class ThresholdTrack:
         elif self._below >= self._n:
             new = cand
         else:
+            self._quiet = self.rank == 0 and not any(self._above.values())
             return None
         old, self.rank, self._below = self.rank, new, 0
+        self._quiet = new == 0 and not any(self._above.values())
         if new == 0:
             return AlarmEvent("clear", self.quantity, value, self._limits[old], rev, seq)
         return AlarmEvent(_RANK_NAMES[new], self.quantity, value, self._limits[new], rev, seq)
@@ -177,6 +185,7 @@ class ThresholdTrack:
         old = self.rank
         self.rank, self._below = 0, 0
         self._above = {r: 0 for r in self._limits}
+        self._quiet = True
         return AlarmEvent("clear", self.quantity, None, self._limits[old]) if old else None
 
 
@@ -281,6 +290,7 @@ class AlarmEngine:
             _setting(alarms, "breakage_drop_pct"),
             _setting(alarms, "breakage_min_torque_nm", DEFAULT_BREAKAGE_MIN_TORQUE_NM),
         )
+        self._armed = [t for t in self.tracks if t.armed]   # a track with no limit decides nothing
         self.crash_power_w = _setting(alarms, "crash_power_w")
         self.crash_latched = False
         self.daq_lost = False
@@ -293,16 +303,20 @@ class AlarmEngine:
             return []
         rev, seq = est.get("rev"), est.get("seq_end")
         events: list[AlarmEvent] = []
-        for track in self.tracks:
-            value = None if saturated else _load_value(est, track.quantity)
-            if saturated or value is not None:
-                ev = track.update(value, rev, seq)
-                if ev is not None:
-                    events.append(ev)
+        for track in self._armed:
+            if saturated:
+                value = None
+            else:
+                value = _load_value(est, track.quantity)
+                if value is None or (track._quiet and value <= track._lowest):
+                    continue   # nothing to judge, or the track's quiet shortcut (`update`) without the call
+            ev = track.update(value, rev, seq)
+            if ev is not None:
+                events.append(ev)
         if saturated:
             self.breakage.forget()   # no torque known: the window is not steady
             return events
-        torque_nm = finite(est.get("torque_nm"))
+        torque_nm = finite(est.get("torque_nm")) if self.breakage.armed else None  # unarmed: no window kept
         if torque_nm is not None:
             ev = self.breakage.update(torque_nm, bool(est.get("cutting")), rev, seq,
                                       finite(est.get("spindle_rpm")), finite(est.get("feed_per_tooth_mm")),

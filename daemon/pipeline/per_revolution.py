@@ -448,6 +448,9 @@ class RevolutionPhysics:
             return radial, axial, [None] * count
         status = np.where(cutting, depth_mod.OUT_OF_RANGE, depth_mod.AIR_CUT).tolist()
         todo = np.flatnonzero(cutting & (t_c > 0))
+        if len(todo) and self.method == "torque-only" and self._torque_only_many(tool, torque_nm, t_c, todo,
+                                                                                 radial, axial, status):
+            return radial, axial, status
         if len(todo):
             fx = force_x_n.tolist() if force_x_n is not None else None
             fy = force_y_n.tolist() if force_y_n is not None else None
@@ -462,6 +465,25 @@ class RevolutionPhysics:
                 if d.axial_depth_mm is not None:
                     axial[i] = d.axial_depth_mm
         return radial, axial, status
+
+    def _torque_only_many(self, tool: ToolGeometry, torque_nm, t_c, todo, radial, axial, status) -> bool:
+        """Torque-only depths of the `todo` revolutions in one pass over their columns
+        (`depth.depth_from_torque_many`), written into radial, axial, status. False (nothing written):
+        the configuration is refused (a known depth outside the tool): the revolution-by-revolution
+        path words it, as before."""
+        known_radial = self.known_radial_mm
+        known_axial = self.known_axial_mm if known_radial is None else None
+        try:
+            r, a, st = depth_mod.depth_from_torque_many(
+                torque_nm[todo], t_c[todo], tool.radius_mm, tool.flutes, self.material, self.mode,
+                known_radial_mm=known_radial, known_axial_mm=known_axial)
+        except ValueError:
+            return False
+        radial[todo] = r
+        axial[todo] = a
+        for i, s in zip(todo.tolist(), st):
+            status[i] = s
+        return True
 
     def _depth(self, tool: ToolGeometry, torque_nm: float, tangential_n: float, force_feed_n: float | None,
                t_c: float, force_x_n: float | None, force_y_n: float | None) -> depth_mod.DepthResult:

@@ -80,12 +80,17 @@ class Step:
         self.notes.extend(mon.notes)
 
 
-def estimate_payload(est: dict[str, Any], machine: str, t: float | None) -> dict[str, Any]:
-    """interfaces.md `estimate`: machine, rev, t first, then the estimator's fields."""
-    out: dict[str, Any] = {"machine": machine, "rev": est.get("rev"), "t": t}
-    for key, value in est.items():
-        if key not in out and key not in _INTERNAL:
-            out[key] = value
+def estimate_payload(est: dict[str, Any], machine: str, t: float | None, kind: str | None = None) -> dict[str, Any]:
+    """interfaces.md `estimate`: machine, rev, t first, then the estimator's fields; `kind`: a leading
+    `"type"` (replay's JSON lines), without a second copy of the dict (one per revolution)."""
+    out: dict[str, Any] = {} if kind is None else {"type": kind}
+    out.update(machine=machine, rev=est.get("rev"), t=t)
+    out.update(est)   # a key already there keeps its place: the head stays first
+    out["machine"], out["t"] = machine, t   # (the estimator has neither; the head wins, as documented)
+    if kind is not None:
+        out["type"] = kind
+    for key in _INTERNAL:
+        out.pop(key, None)
     return out
 
 

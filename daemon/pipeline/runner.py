@@ -88,8 +88,6 @@ BATCH_S = 0.05  # the estimator thread's longest sleep: frames are processed in 
 # ... and while the spindle turns with a revolution's close predicted: that close wakes the estimator
 # anyway (every 100 ms at 600 rpm), so a 50 ms timer woke it once more each revolution for nothing
 BATCH_TURNING_S = 0.1
-WAKE_EARLY = 0.02  # wake this share of a revolution (and 2 samples) before the predicted close: the spindle
-                   # may speed up a little; a close missed waits for the next frame past it or for BATCH_S
 
 
 def _noop_notify(**_kw: Any) -> None:
@@ -373,7 +371,10 @@ class Runner:
             if kind == "estimate" and item.get("seq_end") is not None:
                 period = int(item.get("samples") or 0) + int(item.get("lost_samples") or 0)
                 if period > 0:
-                    self._wake_at_seq = int(item["seq_end"]) + period - int(WAKE_EARLY * period) - 2
+                    # the first sample past the next boundary closes it, at this speed: woken earlier, the
+                    # estimator found no revolution to close about half the time (a wake-up for nothing);
+                    # one that speeds up closes sooner and waits at most for the next frame
+                    self._wake_at_seq = int(item["seq_end"]) + period + 1
                 return
 
     # ------------------------------------------------------------------ estimator thread, per block

@@ -42,12 +42,18 @@ def finite_or_null(value: Any) -> Any:
     return finite_or_null(_plain(value))
 
 
+# One encoder for every payload: `json.dumps` with options builds a new `JSONEncoder` per call (about
+# 0.5 of the ~8 µs of a 30-field estimate; replay writes one per revolution, the floats' repr is the
+# rest). `encode` keeps no state between calls, so threads may share it.
+_encode = json.JSONEncoder(allow_nan=False, separators=(",", ":"), default=_plain).encode
+
+
 def dumps(payload: Any) -> bytes:
-    """Strict JSON bytes. The fast path is one `json.dumps`; NaN takes a second pass."""
+    """Strict JSON bytes. The fast path is one encoding; NaN takes a second pass."""
     try:
-        return json.dumps(payload, allow_nan=False, separators=(",", ":"), default=_plain).encode()
+        return _encode(payload).encode()
     except ValueError:  # "Out of range float values are not JSON compliant"
-        return json.dumps(finite_or_null(payload), allow_nan=False, separators=(",", ":")).encode()
+        return _encode(finite_or_null(payload)).encode()
 
 
 def loads_object(data: bytes) -> dict[str, Any]:

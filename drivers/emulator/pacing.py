@@ -3,6 +3,12 @@
 Sleeping a fixed 10 ms per batch would drift by the work done each batch; instead
 the number of samples due is ``floor((now - t0) * rate)``, so a late wake-up is
 caught up by the next batch and minutes of running stay on the clock.
+
+With a `quantum` (the stream's samples per frame) only whole frames are due, as
+a DAQ with its own sample clock sends them: a wake-up 1 ms late at 10-sample
+frames sends one 10-sample frame and keeps the 11th for the next, instead of a
+10-sample frame and a 1-sample one (which doubled the frames on the wire and
+was nothing a real DAQ does). The end of a finite run sends what is left.
 """
 
 from __future__ import annotations
@@ -12,9 +18,11 @@ import time
 
 
 class Pacer:
-    def __init__(self, sample_rate_hz: int, *, realtime: bool = True, batch_s: float = 0.01, clock=time.monotonic):
+    def __init__(self, sample_rate_hz: int, *, realtime: bool = True, batch_s: float = 0.01, clock=time.monotonic,
+                 quantum: int = 1):
         self.rate = sample_rate_hz
         self.realtime = realtime
+        self.quantum = max(1, int(quantum))
         self.batch = max(1, round(sample_rate_hz * batch_s))
         self.clock = clock
         self.t0 = clock()
@@ -25,6 +33,8 @@ class Pacer:
         if self.realtime:
             now = self.clock() if now is None else now
             n = math.floor((now - self.t0) * self.rate) - self.produced
+            if limit is None or self.produced + n < limit:
+                n -= n % self.quantum   # whole frames only; the rest waits for the next one
         else:
             n = self.batch * 100
         if limit is not None:
@@ -35,7 +45,7 @@ class Pacer:
 
     def next_time(self) -> float:
         """Monotonic time when the next batch is due."""
-        return self.t0 + (self.produced + self.batch) / self.rate
+        return self.t0 + (self.produced + max(self.batch, self.quantum)) / self.rate
 
 
 class CncTimer:

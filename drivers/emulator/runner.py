@@ -105,7 +105,9 @@ def serve(args) -> int:
     realtime = args.realtime if args.realtime is not None else not args.capture
     if args.capture and duration_samples is None:
         raise EmulatorError(f"scenario {args.scenario!r} never ends: give --duration-s for a capture", 2)
-    pacer = Pacer(rate, realtime=realtime)
+    # the framed stream sends whole frames (a Modbus register map fills its ring sample by sample)
+    stream = not (args.modbus_tcp or args.modbus_rtu)
+    pacer = Pacer(rate, realtime=realtime, quantum=args.per_frame if stream else 1)
     try:
         code = asyncio.run(_main(args, device, pacer, duration_samples))
     except OSError as exc:

@@ -69,6 +69,25 @@ def test_pacer_does_not_drift_with_late_wakeups():
     assert total == int((now[0] - 100.0) * 1000)
 
 
+def test_pacer_sends_whole_frames_as_a_daq_does():
+    """A wake-up 1-7 ms late sends whole 10-sample frames, never a 10 + 1 pair (issue 13: the emulator's
+    remainder frames doubled the frames on the wire); the clock is kept within one frame, and the end of
+    a finite run sends its remainder."""
+    now = [100.0]
+    pacer = Pacer(1000, clock=lambda: now[0], quantum=10)
+    rng = np.random.default_rng(1)
+    total = 0
+    for _ in range(3_000):
+        now[0] = pacer.next_time() + float(rng.uniform(0.001, 0.007))
+        n = pacer.due()
+        assert n % 10 == 0
+        total += n
+        assert 0 <= int((now[0] - 100.0) * 1000) - total < 10
+    limit = total + 15
+    now[0] += 1.0
+    assert pacer.due(limit=limit) == 15   # the last, partial frame
+
+
 def test_create_driver_names_the_transport_in_errors():
     with pytest.raises(DriverError, match="'carrier-pigeon'"):
         create_driver("carrier-pigeon")

@@ -226,7 +226,7 @@ class Sink:
 def live(tmp_path):
     source = PulseSource()
     device = DeviceModel(source)
-    server = StreamServer(device, WireEmitter(device, per_frame=10), Pacer(1000, realtime=True))
+    server = StreamServer(device, WireEmitter(device, per_frame=10), Pacer(1000, realtime=True, quantum=10))
     port = free_tcp_port()
     loop = asyncio.new_event_loop()
     ready = threading.Event()
@@ -311,13 +311,15 @@ def test_a_frame_reaching_the_predicted_close_of_a_revolution_wakes_the_estimato
     assert runner._on_frame(0, quiet, 0, False) == (True, False)  # checked; nothing asks for the estimator
     runner._spindle_stopped = False
     runner._predict_close(Step(items=[("estimate", {"seq_end": 1009, "samples": 100, "lost_samples": 0})]))
-    # the next revolution closes at about sample 1109: the frame holding it wakes the estimator, not those before
+    # the next revolution ends at sample 1109 and is closed by sample 1110, the first past its boundary: the
+    # frame holding 1110 wakes the estimator, not those before (waking for 1109 found nothing to close)
     assert runner._on_frame(1090, quiet, 0, False) == (True, False)
-    assert runner._on_frame(1100, quiet, 0, False) == (True, True)
+    assert runner._on_frame(1100, quiet, 0, False) == (True, False)
+    assert runner._on_frame(1110, quiet, 0, False) == (True, True)
     runner._spindle_stopped = True
     runner._predict_close(Step())
-    assert runner._on_frame(1110, quiet, 0, False) == (True, False)  # stopped: no revolution to wait for
+    assert runner._on_frame(1120, quiet, 0, False) == (True, False)  # stopped: no revolution to wait for
     loud = quiet.copy()
     loud[:, 3:6] = [12500, 12500, -25000]  # i_w 50 A: over stall_current_a (45), under crash_current_a (55)
-    assert runner._on_frame(1120, loud, 0, False) == (True, True)  # a stall is judged at once
+    assert runner._on_frame(1130, loud, 0, False) == (True, True)  # a stall is judged at once
     assert not runner.interlock.latched
