@@ -65,9 +65,9 @@ class EncoderAngle:
         j = np.arange(h, len(c))
         k = np.maximum(j - self.window, 0)
         dseq = s[j] - s[k]
-        # the very first sample (no step yet): speed unknown, treated as stopped (0)
-        rpm = np.divide(c[j] - c[k], dseq, out=np.zeros(len(j)), where=dseq != 0)
-        rpm *= self.sample_rate_hz * 60.0 / self.counts_per_rev
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rpm = (c[j] - c[k]) / dseq * (self.sample_rate_hz * 60.0 / self.counts_per_rev)
+        rpm[dseq == 0] = 0.0  # the very first sample: speed unknown, treated as stopped
         if restart and len(rpm) > 1:
             rpm[0] = rpm[1]   # the first sample after a gap: the speed of the step that follows it
         self._hist_count = c[-self.window :].copy()
@@ -214,17 +214,13 @@ class RevolutionSplitter:
         k_pt = np.floor(th)
         dth = th[1:] - th[:-1]
         any_gap = bool(gap[0]) if len(gap) else False
-        if not any_gap and abs(dth).max() < 1.0 and mv.all():   # NaN compares False: the general path
-            # the live cases: no gap, the spindle turning, no boundary or one (a block of a revolution or
-            # less): a few sums instead of the running integrals of every sample below (issue 13)
-            cross = np.flatnonzero(k_pt[1:] != k_pt[:-1])
-            if len(cross) == 0:
-                if self._active:
-                    self._acc += 0.5 * (x[0] + x[-1]) + x[1:-1].sum(axis=0)
-                    self._acc_samples += m - carry
-                return _empty(self.k)
-            if len(cross) == 1 and self._active and carry:
-                return self._one_boundary(int(cross[0]), pos, th, x, k_pt, float(dth[cross[0]]))
+        all_moving = bool(mv.all())
+        if not any_gap and all_moving and k_pt[0] == k_pt[-1] and (k_pt == k_pt[0]).all() and abs(dth).max() < 1.0:
+            # the common case: no boundary, no gap, spindle turning -> one trapezoid sum
+            if self._active:
+                self._acc += 0.5 * (x[0] + x[-1]) + x[1:-1].sum(axis=0)
+                self._acc_samples += m - carry
+            return _empty(self.k)
 
         dpos = pos[1:] - pos[:-1]
         area = 0.5 * (x[:-1] + x[1:]) * dpos[:, None]
@@ -310,41 +306,6 @@ class RevolutionSplitter:
             samples=samples[keep].astype(np.int64),
             lost=lost[keep].astype(np.int64),
             damaged=dmg[keep],
-        )
-
-    def _one_boundary(self, j: int, pos: np.ndarray, th: np.ndarray, x: np.ndarray, k_pt: np.ndarray,
-                      dth_j: float) -> RevolutionBatch:
-        """`push` for a block that continues the open revolution without a gap, the spindle turning, and
-        holds one boundary, between points j and j + 1 (samples one apart): the same trapezoids, split at
-        the same fractional instant, summed directly."""
-        target = k_pt[j + 1] if dth_j > 0 else k_pt[j]
-        alpha = min(max((target - th[j]) / dth_j, 0.0), 1.0)
-        cpos = float(pos[j]) + alpha
-        at_end = cpos >= pos[j + 1]                      # the boundary sits on sample j+1 (to rounding)
-        head = 0.5 * (x[0] + x[j]) + x[1:j].sum(axis=0) if j else np.zeros(self.k)   # points 0 .. j
-        run_c = head + alpha * x[j] + 0.5 * (alpha * alpha) * (x[j + 1] - x[j])
-        total = 0.5 * (x[0] + x[-1]) + x[1:-1].sum(axis=0)
-        count_c = j + 1 + int(at_end)                    # points at or before the crossing
-        integral = self._acc + run_c
-        samples = self._acc_samples + count_c - 1       # the first point is the last block's
-        lost, damaged, stopped, start = self._acc_lost, self._acc_damaged, self._acc_stopped, self._acc_start
-        self._acc = total - run_c
-        self._acc_samples = len(pos) - count_c
-        self._acc_lost = 0
-        self._acc_damaged = False
-        self._acc_stopped = False
-        self._acc_start = cpos
-        if stopped:   # the revolution closed here began while the spindle was stopped: none
-            self.lost_idle += lost
-            return _empty(self.k)
-        return RevolutionBatch(
-            start_pos=np.array([start]),
-            end_pos=np.array([cpos]),
-            seq_end=np.array([int(pos[j] + at_end)], dtype=np.int64),
-            integrals=integral[None, :],
-            samples=np.array([samples], dtype=np.int64),
-            lost=np.array([lost], dtype=np.int64),
-            damaged=np.array([damaged]),
         )
 
     def _abandon_if_stopped(self, last_moving: bool) -> None:
