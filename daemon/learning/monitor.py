@@ -207,10 +207,9 @@ class ProcessMonitor:
         if env is None:
             return
         if k is None:
-            # revolutions before entry counted as progress along the path (the plain count at 100 %)
-            if proc.progress >= env.entry_deadline:
-                self._raise(step, proc, "envelope_low", "entry", round(proc.progress, 2),
-                            float(env.entry_deadline), None, {0: round(proc.progress, 2)})
+            # revolutions before entry counted as progress along the path (the plain count at 100 %); an
+            # entry being confirmed began in its first revolution
+            self._check_entry(step, proc, env)
             return
         if k >= env.length:
             return  # longer than learned: nothing to compare with
@@ -296,12 +295,17 @@ class ProcessMonitor:
         })
         step.processes.append(summary)
 
+    def _check_entry(self, step: MonitorStep, proc: ProcessRun, env: Envelope) -> None:
+        """No entry by the learned deadline: the part or the tool is missing."""
+        without = proc.progress_without_entry
+        if without >= env.entry_deadline:
+            self._raise(step, proc, "envelope_low", "entry", round(without, 2), float(env.entry_deadline), None,
+                        {0: round(without, 2)})
+
     def _end_checks(self, step: MonitorStep, proc: ProcessRun, env: Envelope) -> None:
         """No entry at all, or too little energy, in a process that ran its course."""
         if proc.entry_rev is None:
-            if proc.progress >= env.entry_deadline:
-                self._raise(step, proc, "envelope_low", "entry", round(proc.progress, 2),
-                            float(env.entry_deadline), None, {0: round(proc.progress, 2)})
+            self._check_entry(step, proc, env)
             return
         if len(proc.torque_nm) >= env.cut_length and proc.energy_j < env.energy_low_j:
             self._raise(step, proc, "envelope_low", "cutting_energy_j", round(proc.energy_j, 3),

@@ -82,6 +82,12 @@ class ProcessRun:
     def too_damaged(self) -> bool:
         return self.invalid > MAX_INVALID_FRACTION * max(self.revolutions, 1)
 
+    @property
+    def progress_without_entry(self) -> float:
+        """Progress before the entry, for the missing-entry check: up to the first revolution of an entry
+        still being confirmed (it began when that revolution did), else all of it."""
+        return self._tentative[0][6] if self._tentative else self.progress
+
     def add(self, est: dict[str, Any]) -> int | None:
         """One revolution; returns its process_rev (None before entry)."""
         index = self.revolutions

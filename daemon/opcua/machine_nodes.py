@@ -10,8 +10,9 @@ Under `Objects/millsense/<machine>` (namespace `urn:millsense:opcua`):
 
 Alarm changes are fired as events of `MillsenseAlarmType`, a subtype of AlarmConditionType,
 one condition per judged quantity (`ConditionName` = `torque_nm`, `force_n`, `daq`, ...):
-`ActiveState/Id` true from the alarm until its `clear`. docs/opcua.md says what is and is not
-implemented of the condition model.
+`ActiveState/Id` true from the alarm until its `clear`. Alarm changes this server missed (it
+connected late, or its link dropped) are fired from the next `status` (publish/alarm_state.py).
+docs/opcua.md says what is and is not implemented of the condition model.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import structlog
 from asyncua import Server, ua
 
 from millsense.daemon.opcua import fields as F
+from millsense.daemon.publish.alarm_state import ShownAlarms, catch_up, caught_up
 
 log = structlog.get_logger("millsense.opcua")
 
@@ -102,6 +104,7 @@ class MachineNodes:
         self.last: dict[tuple[str, str], Any] = {}       # last value written, to skip unchanged writes
         self.tools: dict[int, tuple[Any, Any]] = {}      # tool number -> (ProcessCount, Wear)
         self.active: dict[str, str] = {}                 # quantity -> active alarm level
+        self.shown = ShownAlarms()                       # the alarm changes fired, to catch up from `status`
         self.alive_node: Any = None
         self.messages: Any = None
         self.tools_folder: Any = None
@@ -163,7 +166,10 @@ class MachineNodes:
                 await self._folder(f.folder)
             await self._write(f, value, when)
         if kind == "alarm":
-            await self._fire_alarm(payload)
+            if self.shown.is_new(payload):
+                await self._fire_alarm(payload)
+        elif kind == "status":
+            await self._catch_up(payload)
         elif kind == "process":
             await self._tool_life(payload)
 
@@ -183,7 +189,15 @@ class MachineNodes:
             dv = ua.DataValue(ua.Variant(value, _vt(f.ua_type)), SourceTimestamp=when)
         await node.write_value(dv)
 
+    async def _catch_up(self, status: dict[str, Any]) -> None:
+        """Fire the alarm changes this server missed (it connected late, or its link blinked): the status
+        says which alarms are active now (alarm_state.py)."""
+        for alarm in catch_up(self.shown, status):
+            await self._fire_alarm(alarm)
+        caught_up(self.shown, status)
+
     async def _fire_alarm(self, payload: dict[str, Any]) -> None:
+        self.shown.shown(payload)
         level = payload.get("level") if isinstance(payload.get("level"), str) else "unknown"
         quantity = payload.get("quantity") if isinstance(payload.get("quantity"), str) else "unknown"
         was = self.active.get(quantity)

@@ -69,6 +69,7 @@ from millsense.daemon.pipeline.power_check import PowerSignCheck
 from millsense.daemon.pipeline.run_core import PipelineCore, estimate_payload, process_payload
 from millsense.daemon.pipeline.safety_check import FrameCheck
 from millsense.daemon.pipeline.status import LatencyStats, SeqClock, bad_frames, status_line
+from millsense.daemon.publish.alarm_state import ActiveAlarms
 from millsense.drivers.base import LinkEvent, SampleBlock, name_os_thread
 from millsense.drivers.protocol import Context, Descriptor, Status
 
@@ -180,6 +181,7 @@ class Runner:
         self._fault_sources: dict[str, dict[str, str]] = {}  # kind -> {check: reason} (see _signal_source)
         self._fault_lock = threading.Lock()
         self._alarm_lock = threading.Lock()  # the engine is touched by the estimator thread and reset()
+        self.active_alarms = ActiveAlarms()  # numbered alarm changes, for subscribers that join late
         self._stop = threading.Event()
         self.ready = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -708,7 +710,7 @@ class Runner:
 
     def _publish_alarm(self, ev: AlarmEvent, interlock: str | None) -> None:
         t = self.clock.time_of(ev.seq) if (self.clock is not None and ev.seq is not None) else time.time()
-        payload = alarm_payload(ev, self.machine, t, interlock)
+        payload = self.active_alarms.stamp(alarm_payload(ev, self.machine, t, interlock))
         self.sink.alarm(payload)
         self.alarms_sent += 1
         self.last_alarm = payload
@@ -942,6 +944,7 @@ class Runner:
             "last_test_trip": self.last_test_trip,
             "alarm": alarm,
             "alarms": alarms,
+            **self.active_alarms.snapshot(),
             "faults": dict(self.faults),
             "context": None if ctx is None else {"program": ctx.program, "tool": ctx.tool,
                                                  "operation": ctx.operation, "source": ctx.source},

@@ -394,6 +394,20 @@ def test_false_alarm_widens_so_the_same_alarm_does_not_come_again():
     assert len(s.events("envelope_high")) == 2
 
 
+def test_an_entry_that_begins_before_the_deadline_is_not_a_missing_entry():
+    """The entry is the first of two entering revolutions in a row, so it is known one revolution after it
+    began. Learned entries at 10 give a deadline of 13 (10 + a margin of 3 revolutions): a process whose
+    cut begins at revolution 12 entered in time, though its entry is confirmed only at 13.
+    Found by hypothesis (seed 12431) as an envelope_low on entry in a good, noisy process."""
+    s = shop(noise_pct=0.0)
+    s.learn(5)
+    deadline = s.monitor.show(KEY)["entry_deadline_rev"]
+    s.process(Shape(air_before=deadline - 1))
+    assert s.events() == [] and s.processes()[-1]["verdict"] == "good"
+    s.process(Shape(air_before=deadline))  # one later: no entry by the deadline
+    assert [(e.level, e.quantity, e.value) for e in s.events()] == [("envelope_low", "entry", float(deadline))]
+
+
 def test_false_alarm_on_a_missing_entry_moves_the_entry_deadline():
     s = shop()
     s.learn(5)
