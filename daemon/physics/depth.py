@@ -329,6 +329,15 @@ def _unit_forces(r_r, t_c, radius_mm, flutes, material, mode) -> tuple[float, fl
     return scale_n * c, scale_n * (a + r1 * b), scale_n * (-b + r1 * a)
 
 
+def _check_depth_args(mode: str, tool_radius_mm: float, flutes: float, known_radial_mm: float | None,
+                      known_axial_mm: float | None) -> None:
+    """The argument errors both depth-from-torque functions raise before looking at the torque."""
+    check_mode(mode)
+    _check_tool(tool_radius_mm, flutes)
+    if known_radial_mm is not None and known_axial_mm is not None:
+        raise ValueError("depth_from_torque: give one known depth (radial or axial), not both")
+
+
 def depth_from_torque(
     torque_nm: float,
     feed_per_tooth_mm: float,
@@ -345,10 +354,7 @@ def depth_from_torque(
     Known axial depth: F_at/R_a is increasing in R_r, solved exactly. Known radial
     depth (or slot): R_a is linear in F_at. Neither known: ``no_second_force``.
     """
-    check_mode(mode)
-    _check_tool(tool_radius_mm, flutes)
-    if known_radial_mm is not None and known_axial_mm is not None:
-        raise ValueError("depth_from_torque: give one known depth (radial or axial), not both")
+    _check_depth_args(mode, tool_radius_mm, flutes, known_radial_mm, known_axial_mm)
     if not torque_nm > min_torque_nm:
         return DepthResult(None, None, AIR_CUT)
     tangential_n = torque_nm / (tool_radius_mm * 1e-3)  # F_at = T_c/R, R in m
@@ -388,10 +394,7 @@ def depth_from_torque_many(
     axial depth needs a root per revolution (eq. 7 inverted in R_r): those go one by one. Argument
     errors raise as in ``depth_from_torque``, but only where it would: after the air-cut test.
     """
-    check_mode(mode)
-    _check_tool(tool_radius_mm, flutes)
-    if known_radial_mm is not None and known_axial_mm is not None:
-        raise ValueError("depth_from_torque: give one known depth (radial or axial), not both")
+    _check_depth_args(mode, tool_radius_mm, flutes, known_radial_mm, known_axial_mm)
     torque = np.asarray(torque_nm, dtype=float)
     t_c = np.asarray(feed_per_tooth_mm, dtype=float)
     count = len(torque)

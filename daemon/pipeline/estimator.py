@@ -311,11 +311,19 @@ class Estimator:
         sp = phys[self._sp_name] if self._sp_name is not None else None
         clip_seq, signal_fault = self.signals.push(seq0, counts, x, rpm, moving, sp, batch.start_pos, batch.seq_end)
 
+        gain_before = self.physics.last_gain
+        self._gain_ends = np.zeros(0, dtype=np.int64)
         estimates = self._estimates(batch) if len(batch) else []
 
-        # sample-level air-gap power and line current for the crash trip, at the latest filter gain
+        # sample-level air-gap power and line current for the crash trip: each sample at the filter gain of
+        # the last revolution closed before it (so a block's size does not move it)
         both = np.empty((2, n))
-        np.divide(p_meas, self.physics.last_gain, out=both[0])
+        ends = self._gain_ends
+        if len(ends) and ends[0] < seq[-1]:
+            gains = np.concatenate(([gain_before], self.physics.gains))
+            np.divide(p_meas, gains[np.searchsorted(ends, seq, side="left")], out=both[0])
+        else:
+            np.divide(p_meas, gain_before, out=both[0])
         np.abs(np.stack((i_u, i_v, i_w)), out=None).max(axis=0, out=both[1])
         p_gap, current = self._smooth.push(both, contiguous)
         # a stuck encoder reads "stopped": not believed while a speed source is among the signal problems
@@ -412,6 +420,7 @@ class Estimator:
             tool_at = self.tool_at
             tools = None if tool_at is None else [tool_at(s) for s in batch.seq_end[g].tolist()]
             phys = self.physics.estimate_many(cols, tools)
+            self._gain_ends = batch.seq_end[g]   # where each of `physics.gains` holds from (the sample after)
             accelerating = self._accelerating(rpm[g], rise, prev).tolist()
             if "f_mag" in c:
                 phys["force_measured_n"] = m[:, c["f_mag"]].tolist()

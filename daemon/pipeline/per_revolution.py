@@ -226,6 +226,7 @@ class RevolutionPhysics:
         self.feed_force = feed_force            # (channel, newton_per_amp, friction_n) or None
         self.method = self._resolve_method(str(settings.depth.method), has_dynamometer)
         self.last_gain = 1.0
+        self.gains = np.ones(0)
 
     def _resolve_method(self, method: str, has_dynamometer: bool) -> str:
         """`auto` -> the best source of a second force this configuration has ([D] §3)."""
@@ -339,6 +340,7 @@ class RevolutionPhysics:
                 for i, st in zip(rows.tolist(), part.status):
                     status[i] = st
         self.last_gain = float(gain[-1])
+        self.gains = gain   # of each revolution of this call, for the sample-level power after each
         t_c_ok = np.isfinite(t_c)
         return {
             "spindle_rpm": rpm.tolist(),

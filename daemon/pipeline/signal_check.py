@@ -26,16 +26,19 @@ The checks, on raw counts and on what the estimator already computes:
   Checked while the spindle turns, or while f_e says it should (a dead encoder
   reads "stopped" under a running drive).
 
-Cost: per block, the column minima and maxima of the raw counts and a few sums
-go into a ring of rows (one row per `EVAL_STEP_S` of the block, all built by one
-`reduceat` each); the counts are looked at sample by sample only in a block that
-touches a limit. The checks run on the rows: over the blocks of each revolution
-as it closes (so the revolution that holds the bad samples is the one marked),
-and every `EVAL_STEP_S` of samples over the last `WINDOW_S` for the fault. All
+Cost: per block, the raw counts and a few per-sample columns go into a ring of
+samples (`KEEP_S` of them). The checks run on exact sample ranges: over each
+revolution's own samples as it closes (so the revolution that holds the bad
+samples is the one marked, and no other), and every `EVAL_STEP_S` of samples,
+counted from the first sample ever, over the last `WINDOW_S` for the fault. All
 the ranges a block asks about are screened together in one numpy pass
-(`_problems_many`); only a range that could hold a problem is worded by the exact
-check, one at a time. Everything counts samples by
-index, never by wall clock: a replay decides exactly as the live daemon.
+(`_problems_many`: one `reduceat` per statistic); only a range that could hold a
+problem is worded by the exact check, one at a time. Everything counts samples
+by index, never by wall clock, and nothing depends on where the blocks were cut:
+a replay decides exactly as the live daemon, whatever its read size. (Before
+stop 16 the ring held one row per block, so a revolution was judged with the
+samples of the whole blocks around it, and a replay's large blocks could make a
+revolution next to a clipped one valid or invalid depending on its read size.)
 
 Fault: raised after `RAISE_S` of samples in which every window was bad (a
 transient spike invalidates its revolution but is no fault), so within 1 s of
@@ -124,7 +127,7 @@ class SignalCheck:
         self.clear_n = int(round(CLEAR_S * self.rate))
         self.keep = int(round(KEEP_S * self.rate))
         self.high_window = max(2, int(round(HIGH_WINDOW_S * self.rate)))
-        cap = max(MIN_ROWS, 2 * self.keep // 10)
+        cap = max(MIN_ROWS, 2 * self.keep)
         self._alloc(cap, c)
         self._next_eval: int | None = None
         self._bad_since: int | None = None
@@ -134,17 +137,16 @@ class SignalCheck:
         # the problems and saturation of the revolutions handed to the last `push`
         self.revolution_verdicts: tuple[list[dict[str, str]], np.ndarray] = ([], np.zeros(0, dtype=bool))
 
+    _RING = ("seq", "v", "sums")
+
     def _alloc(self, cap: int, c: int) -> None:
+        """The ring: one row per sample. `seq` its number, `v` its raw counts, `sums` (1, moving, f_e in Hz,
+        v_sq, rpm of the angle source, rpm of the speed channel): columns that ranges are summed over."""
         self.cap = cap
         self.w = 0
         # one spare row past the capacity: `np.ufunc.reduceat` needs every range's end to be a valid index
-        self.first = np.zeros(cap + 1, dtype=np.int64)
-        self.last = np.zeros(cap + 1, dtype=np.int64)
-        self.mn = np.zeros((cap + 1, c), dtype=np.int32)
-        self.mx = np.zeros((cap + 1, c), dtype=np.int32)
-        self.clip_lo = np.zeros((cap + 1, c), dtype=np.int32)
-        self.clip_hi = np.zeros((cap + 1, c), dtype=np.int32)
-        # per row: samples, moving samples, sum f_e (Hz), sum v_sq, sum |rpm| (angle source), sum |speed channel|
+        self.seq = np.zeros(cap + 1, dtype=np.int64)
+        self.v = np.zeros((cap + 1, c), dtype=np.int32)
         self.sums = np.zeros((cap + 1, 6))
 
     # ------------------------------------------------------------------ per block
@@ -157,73 +159,54 @@ class SignalCheck:
         clipped current sample that was high, else None; the fault reason if the fault is raised by this
         block, "" if cleared, else None).
 
-        A block longer than the evaluation step (a replay's, a catch-up read) goes in as several rows, so
-        that the fault is decided at the same sample as with the DAQ's small frames. All rows of a block
-        are built at once (`reduceat` over the row starts); the fault windows it closes are judged in one
-        batch (`_problems_many`), then fed in order to the raise/clear state machine.
+        Each sample is a row, so a block of any size (the DAQ's frame, a replay's read, a catch-up) decides
+        the fault at the same sample and judges every revolution on its own samples. The fault windows the
+        block closes are judged in one batch (`_problems_many`), then fed in order to the raise/clear
+        state machine.
 
         `rev_start`, `rev_end`: the start positions and last seqs of the revolutions this block closed;
-        they are judged in the same pass (`revolutions` on this block's rows) and left in
+        they are judged in the same pass (`revolutions` on their samples) and left in
         `revolution_verdicts`: (problems of each, saturated (R,) bool).
         """
         n = counts.shape[0]
         self.revolution_verdicts = ([], np.zeros(0, dtype=bool))
         if n == 0:
             return None, None
-        starts = np.arange(0, n, self.step)
-        rows = len(starts)
-        self._reserve(rows, seq0)
+        self._reserve(n, seq0)
         r0 = self.w
-        r1 = r0 + rows
+        r1 = r0 + n
         self.w = r1
-        ends = np.empty_like(starts)
-        ends[:-1] = starts[1:]
-        ends[-1] = n
-        self.first[r0:r1] = seq0 + starts
-        last = seq0 + ends - 1
-        self.last[r0:r1] = last
-        mn = np.minimum.reduceat(counts, starts, axis=0)
-        mx = np.maximum.reduceat(counts, starts, axis=0)
-        self.mn[r0:r1] = mn
-        self.mx[r0:r1] = mx
+        self.seq[r0:r1] = np.arange(seq0, seq0 + n, dtype=np.int64)
+        self.v[r0:r1] = counts
         s = self.sums[r0:r1]
-        s[:, 0] = ends - starts
-        s[:, 1] = np.add.reduceat(moving, starts, dtype=np.int64)
-        s[:, 2] = np.add.reduceat(x[:, self.fe_col], starts)
-        s[:, 3] = np.add.reduceat(x[:, self.vsq_col], starts)
-        s[:, 4] = np.add.reduceat(rpm, starts)       # signed: the mean's magnitude is taken when judged
-        s[:, 5] = np.add.reduceat(sp_rpm, starts) if sp_rpm is not None else 0.0
+        s[:, 0] = 1.0
+        s[:, 1] = moving
+        s[:, 2] = x[:, self.fe_col]
+        s[:, 3] = x[:, self.vsq_col]
+        s[:, 4] = rpm       # signed: the mean's magnitude is taken when judged
+        s[:, 5] = sp_rpm if sp_rpm is not None else 0.0
         clip_seq = None
-        if (mn.min(axis=0) <= self.lo).any() or (mx.max(axis=0) >= self.hi).any():
-            self.clip_lo[r0:r1] = np.add.reduceat(counts <= self.lo, starts, axis=0, dtype=np.int32)
-            self.clip_hi[r0:r1] = np.add.reduceat(counts >= self.hi, starts, axis=0, dtype=np.int32)
-            for r, a, b in zip(range(r0, r1), starts.tolist(), ends.tolist()):   # rare: a limit touched
-                if clip_seq is None and (self.clip_lo[r].any() or self.clip_hi[r].any()):
-                    clip_seq = self._high_clip(counts[a:b], seq0 + a, r)
-        else:
-            self.clip_lo[r0:r1] = 0
-            self.clip_hi[r0:r1] = 0
+        if (counts.min(axis=0) <= self.lo).any() or (counts.max(axis=0) >= self.hi).any():   # rare: a limit touched
+            clip_seq = self._high_clip(r0, r1)
 
-        # which rows close a fault window: every EVAL_STEP_S of samples, counted from the first row ever
-        evals: list[tuple[int, int]] = []     # (row, its last seq)
-        nxt = self._next_eval
-        for r, end in zip(range(r0, r1), last.tolist()):
-            if nxt is None:
-                nxt = seq0 + self.step - 1                       # the very first row of all
-            if end >= nxt:
-                nxt = end + self.step
-                evals.append((r, end))
-        self._next_eval = nxt
+        # the fault windows this block closes: every EVAL_STEP_S of samples, counted from the first sample ever
+        nxt = self._next_eval if self._next_eval is not None else seq0 + self.step - 1
+        if nxt < seq0:   # samples were lost over an evaluation: the next one on the same cadence
+            nxt += -(-(seq0 - nxt) // self.step) * self.step
+        last_seq = seq0 + n - 1
+        ends = np.arange(nxt, last_seq + 1, self.step, dtype=np.int64)
+        self._next_eval = int(ends[-1]) + self.step if len(ends) else nxt
+        evals = list(zip((ends - seq0 + r0).tolist(), ends.tolist()))     # (row, its seq)
         verdict = None
         revs = len(rev_start) if rev_start is not None else 0
         if evals or revs:
             # the fault windows and the closed revolutions' rows, screened in one pass
             w = self.w
-            a_eval = np.searchsorted(self.last[:w], np.array([end - self.window + 1 for _, end in evals], dtype=np.int64))
+            a_eval = np.searchsorted(self.seq[:w], ends - self.window + 1)
             b_eval = np.array([r + 1 for r, _ in evals], dtype=np.int64)
             if revs:
-                a_rev = np.searchsorted(self.last[:w], np.floor(rev_start))
-                b_rev = np.maximum(np.searchsorted(self.first[:w], rev_end, side="right"), a_rev + 1)
+                a_rev = np.searchsorted(self.seq[:w], np.floor(rev_start))
+                b_rev = np.maximum(np.searchsorted(self.seq[:w], rev_end, side="right"), a_rev + 1)
                 found = self._problems_many(np.concatenate([a_eval, a_rev]), np.concatenate([b_eval, b_rev]))
             else:
                 found = self._problems_many(a_eval, b_eval)
@@ -244,9 +227,9 @@ class SignalCheck:
         if self.w + rows <= self.cap:
             return
         cap, old = max(2 * self.cap, self.w + rows), self
-        keep = {k: getattr(old, k)[: old.w].copy() for k in ("first", "last", "mn", "mx", "clip_lo", "clip_hi", "sums")}
+        keep = {k: getattr(old, k)[: old.w].copy() for k in self._RING}
         w = self.w
-        self._alloc(cap, self.mn.shape[1])
+        self._alloc(cap, self.v.shape[1])
         for k, v in keep.items():
             getattr(self, k)[:w] = v
         self.w = w
@@ -259,35 +242,44 @@ class SignalCheck:
     def _compact(self, seq0: int) -> None:
         """Drop rows older than the longest revolution; keep at most half the ring."""
         w = self.w
-        start = int(np.searchsorted(self.last[:w], seq0 - self.keep))
+        start = int(np.searchsorted(self.seq[:w], seq0 - self.keep))
         start = max(start, w - self.cap // 2)
         keep = w - start
-        for a in (self.first, self.last, self.mn, self.mx, self.clip_lo, self.clip_hi, self.sums):
+        for name in self._RING:
+            a = getattr(self, name)
             a[:keep] = a[start:w]
         self.w = keep
 
-    def _high_clip(self, counts: np.ndarray, seq0: int, r: int) -> int | None:
-        """The first clipped current sample of this row, if that current was high (swinging, not stuck)."""
+    def _high_clip(self, r0: int, r1: int) -> int | None:
+        """The first sample of rows [r0, r1) where a current sits at a limit while it was high: it swung at
+        least `HIGH_FRAC` of its range over the `high_window` samples up to it (swinging, not stuck)."""
         cols = self.i_cols
-        clipped = (counts[:, cols] <= self.lo[cols]) | (counts[:, cols] >= self.hi[cols])
-        if not clipped.any():
+        block = self.v[r0:r1][:, cols]
+        clipped = (block <= self.lo[cols]) | (block >= self.hi[cols])
+        rows = np.flatnonzero(clipped.any(axis=1))
+        if len(rows) == 0:
             return None
-        a = self._rows_from(seq0 + counts.shape[0] - self.high_window, r + 1)
-        swing = self.mx[a : r + 1, cols].max(axis=0) - self.mn[a : r + 1, cols].min(axis=0)
-        high = swing >= HIGH_FRAC * (self.hi[cols] - self.lo[cols])
-        hit = clipped & high
-        if not hit.any():
-            return None
-        return seq0 + int(np.argmax(hit.any(axis=1)))
+        a = max(0, r0 - self.high_window + 1)
+        span = self.v[a:r1][:, cols]
+        # the window of each sample: the high_window samples up to it, within what the ring holds
+        pad = self.high_window - 1 - (r0 - a)
+        lo_pad = np.full((pad, len(cols)), np.iinfo(np.int32).max, dtype=np.int32)
+        hi_pad = np.full((pad, len(cols)), np.iinfo(np.int32).min, dtype=np.int32)
+        windows_lo = np.lib.stride_tricks.sliding_window_view(np.concatenate([lo_pad, span]), self.high_window, axis=0)
+        windows_hi = np.lib.stride_tricks.sliding_window_view(np.concatenate([hi_pad, span]), self.high_window, axis=0)
+        swing = windows_hi[rows].max(axis=2).astype(np.int64) - windows_lo[rows].min(axis=2)
+        hit = clipped[rows] & (swing >= HIGH_FRAC * (self.hi[cols] - self.lo[cols]))
+        first = np.flatnonzero(hit.any(axis=1))
+        return None if len(first) == 0 else int(self.seq[r0 + rows[first[0]]])
 
     def _rows_from(self, seq: float, w: int | None = None) -> int:
         """First row whose last sample is at or after `seq`."""
         w = self.w if w is None else w
-        return int(np.searchsorted(self.last[:w], seq))
+        return int(np.searchsorted(self.seq[:w], seq))
 
     # ------------------------------------------------------------------ verdicts
     def revolution(self, start_pos: float, end_seq: int) -> tuple[dict[str, str], bool]:
-        """Problems in the blocks holding one revolution's samples, and whether a current saturated high."""
+        """Problems in one revolution's samples, and whether a current saturated high."""
         problems, saturated = self.revolutions(np.array([start_pos], float), np.array([end_seq], np.int64))
         return problems[0], bool(saturated[0])
 
@@ -296,8 +288,8 @@ class SignalCheck:
         if len(start_pos) == 0:
             return [], np.zeros(0, dtype=bool)
         w = self.w
-        a = np.searchsorted(self.last[:w], np.floor(start_pos))
-        b = np.searchsorted(self.first[:w], end_seq, side="right")
+        a = np.searchsorted(self.seq[:w], np.floor(start_pos))
+        b = np.searchsorted(self.seq[:w], end_seq, side="right")
         found = self._problems_many(a, np.maximum(b, a + 1))
         return [f[0] for f in found], np.array([f[1] for f in found], dtype=bool)
 
@@ -341,8 +333,8 @@ class SignalCheck:
         idx[1::2] = b
         top = min(max(self.w, int(b.max())) + 1, len(self.sums))   # the spare row keeps every end valid
         sums = np.add.reduceat(self.sums[:top], idx, axis=0)[0::2]
-        mn = np.minimum.reduceat(self.mn[:top], idx, axis=0)[0::2]
-        mx = np.maximum.reduceat(self.mx[:top], idx, axis=0)[0::2]
+        mn = np.minimum.reduceat(self.v[:top], idx, axis=0)[0::2]
+        mx = np.maximum.reduceat(self.v[:top], idx, axis=0)[0::2]
         suspect = ((mn <= self.lo) | (mx >= self.hi)).any(axis=1)
         suspect |= self._flat_many(mn, mx)
         suspect |= self._speed_many(sums)
@@ -398,13 +390,14 @@ class SignalCheck:
         out: dict[str, str] = {}
         sums = self.sums[a:b].sum(axis=0)
         n = sums[0]
-        mn = self.mn[a:b].min(axis=0)
-        mx = self.mx[a:b].max(axis=0)
+        v = self.v[a:b]
+        mn = v.min(axis=0)
+        mx = v.max(axis=0)
         saturated = False
         saturated_names: set[str] = set()
         if (mn <= self.lo).any() or (mx >= self.hi).any():
-            lo_n = self.clip_lo[a:b].sum(axis=0)
-            hi_n = self.clip_hi[a:b].sum(axis=0)
+            lo_n = (v <= self.lo).sum(axis=0)
+            hi_n = (v >= self.hi).sum(axis=0)
             for k in np.flatnonzero((lo_n > 0) | (hi_n > 0)):
                 which = [f"raw_min {self.lo[k]}"] if lo_n[k] else []
                 which += [f"raw_max {self.hi[k]}"] if hi_n[k] else []

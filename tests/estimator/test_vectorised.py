@@ -2,7 +2,8 @@
 closes), and what it computes does not depend on how the samples were cut into blocks.
 
 - Block-size independence: one simulated capture fed in blocks of 1, 10, 37 and 1000 samples gives
-  the same estimates (every number within 1e-9 relative, everything else equal).
+  the same estimates (every number within 1e-9 relative, everything else equal); also a crash whose
+  currents clip (which revolutions are invalid, and where the signals fault is decided).
 - The signal check's block-wide screen (`SignalCheck._problems_many`) never passes clean a range of
   rows that the exact, worded check (`_problems`) faults, on signals made to sit around every
   threshold (flat, weak, clipped channels; speeds near their tolerance).
@@ -73,9 +74,8 @@ def _estimates(cfg, desc, first: int, counts: np.ndarray, size: int) -> list[dic
 @pytest.mark.parametrize("scenario, method", [("aircut-high", "off"), ("fig6", "auto")])
 def test_same_estimates_whatever_the_block_size(tmp_path: Path, scenario: str, method: str):
     # aircut-high: speed steps (accelerating revolutions, f_e windows over several short revolutions);
-    # fig6: the depth root finding and the dynamometer / feed-drive columns. (Not a capture whose
-    # signals fault: a revolution is judged over the whole rows of blocks it touches, so a clipped
-    # row next to it is block-size dependent by design; the screen test below covers those checks.)
+    # fig6: the depth root finding and the dynamometer / feed-drive columns. (A capture whose signals
+    # fault: the next test.)
     cap, _ = simcase.capture(tmp_path, scenario)
     extra = {"feed_mm_min": None} if scenario.startswith("aircut") else {}
     cfg = simcase.settings_for(scenario, tmp_path, method=method, **extra)
@@ -94,6 +94,48 @@ def test_same_estimates_whatever_the_block_size(tmp_path: Path, scenario: str, m
         for i, (a, b) in enumerate(zip(ref, got)):
             _same(a, b, f"[{i}]", diffs)
         assert not diffs, f"blocks of {size}: " + "; ".join(diffs[:8])
+
+
+def _verdicts(cfg, desc, first: int, counts: np.ndarray, size: int):
+    """The estimates; each signals-fault change with the block (its last sample) that decided it; the
+    sample-level air-gap power the crash trip compares (W, one per sample)."""
+    est = Estimator(cfg, desc, desc.sample_rate_hz)
+    out: list[dict] = []
+    faults: list[tuple[str, int]] = []
+    p_gap: list[np.ndarray] = []
+    for a in range(0, len(counts), size):
+        part = counts[a : a + size]
+        result = est.process(SampleBlock(first + a, first + a, part, 0, False))
+        out += result.estimates
+        p_gap.append(np.array(result.p_gap_w))
+        if result.signal_fault is not None:
+            faults.append((result.signal_fault, first + a + len(part) - 1))
+    return out, faults, np.concatenate(p_gap)
+
+
+def test_which_revolutions_are_valid_does_not_depend_on_the_block_size(tmp_path: Path):
+    """A crash saturates the currents: the revolutions holding clipped samples are invalid, whatever the
+    blocks; the signals fault is decided at the same sample (in blocks of one sample, the block that
+    holds it); and the crash trip's sample-level power is the same. Before stop 16, the check's rows started at each block's first sample, so a revolution was
+    judged with the samples of whole blocks around it: revolution 81 of this capture was valid in blocks of
+    1000 samples and invalid in blocks of 10."""
+    cap, _ = simcase.capture(tmp_path, "crash")
+    cfg = simcase.settings_for("crash", tmp_path, method="off")
+    desc, first, counts = _samples(cap)
+    ref, ref_faults, ref_p_gap = _verdicts(cfg, desc, first, counts, 1)
+    assert any(e["invalid"] == "signals" for e in ref) and any(e["saturated"] for e in ref)
+    for size in (10, 37, 1000):
+        got, faults, p_gap = _verdicts(cfg, desc, first, counts, size)
+        # each sample's power at the filter gain of the revolution closed before it, whatever the block
+        np.testing.assert_allclose(p_gap, ref_p_gap, rtol=REL, atol=ABS, err_msg=f"blocks of {size}")
+        diffs: list[str] = []
+        if len(got) != len(ref):
+            diffs.append(f"{len(got)} estimates vs {len(ref)}")
+        for i, (a, b) in enumerate(zip(ref, got)):
+            _same(a, b, f"[{i}]", diffs)
+        assert not diffs, f"blocks of {size}: " + "; ".join(diffs[:8])
+        decided = [(v, first + (s - first) // size * size + size - 1) for v, s in ref_faults]
+        assert faults == [(v, min(s, first + len(counts) - 1)) for v, s in decided], (size, faults, ref_faults)
 
 
 # ---------------------------------------------------------------------------------- the screen

@@ -136,6 +136,10 @@ def test_overload_asserts_feed_hold_before_anything_is_published(rig):
     by_rev = {p["rev"]: h for p, h in sink.of("estimate")}
     assert by_rev[6] is True and by_rev[4] is False
     assert drv.device.feed_hold and runner.status()["interlock"] == "feed_hold"
+    # numbered within the run, and listed as active in every status (for subscribers that join late)
+    status = runner.status()
+    assert alarm["alarm_seq"] == 1 and alarm["run_id"] == status["run_id"] and status["alarm_seq"] == 1
+    assert status["active_alarms"] == [alarm]
     # latched: it stays although the torque stays over the limit and nothing new trips
     n_est = len(sink.of("estimate"))
     wait_for(lambda: len(sink.of("estimate")) >= n_est + 2, 3, "revolutions newer than the hold")
