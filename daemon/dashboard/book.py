@@ -18,6 +18,8 @@ import threading
 import time
 from typing import Any
 
+from millsense.daemon.publish.alarm_state import ShownAlarms, catch_up, caught_up
+
 ESTIMATES_PER_MACHINE = 600
 ALARMS_PER_MACHINE = 50
 RECENT_ALARMS = 100
@@ -53,6 +55,7 @@ class Machine:
         self.alarms: collections.deque[dict] = collections.deque(maxlen=ALARMS_PER_MACHINE)
         self.status: dict | None = None
         self.process: dict | None = None
+        self.shown = ShownAlarms()   # the alarm changes listed, to catch up from `status` (alarm_state.py)
 
     def snapshot(self) -> dict[str, Any]:
         return {"machine": self.name, "alive": self.alive, "gone_since": self.gone_since,
@@ -127,24 +130,39 @@ class Book:
         self._tell(update)
 
     def publication(self, name: str, kind: str, payload: dict) -> None:
+        updates: list[dict] = []
         with self._lock:
             m = self._machine(name)
             if m is None:
                 return
             if kind == "estimate":
                 payload = _pick(payload, ESTIMATE_FIELDS)
-                m.estimates.append(payload)
             elif kind == "alarm":
-                payload = dict(payload, machine=name)
-                m.alarms.append(payload)
-                self.recent_alarms.append(payload)
+                if not m.shown.is_new(payload):
+                    return  # a status already brought it
+                payload = self._list_alarm(m, payload)
             elif kind == "status":
+                # alarms raised or cleared while this dashboard was not connected to the daemon
+                updates = [{"kind": "alarm", "machine": name, "payload": self._list_alarm(m, a)}
+                           for a in catch_up(m.shown, payload)]
+                caught_up(m.shown, payload)
                 payload = m.status = _pick(payload, STATUS_FIELDS)
             elif kind == "process":
                 payload = m.process = _pick(payload, PROCESS_FIELDS)
             else:
                 return
-        self._tell({"kind": kind, "machine": name, "payload": payload})
+            if kind == "estimate":
+                m.estimates.append(payload)
+        for update in [*updates, {"kind": kind, "machine": name, "payload": payload}]:
+            self._tell(update)
+
+    def _list_alarm(self, m: Machine, payload: dict) -> dict:
+        """Keep an alarm change in the machine's list and the recent ones (the lock held)."""
+        m.shown.shown(payload)
+        payload = dict(payload, machine=m.name)
+        m.alarms.append(payload)
+        self.recent_alarms.append(payload)
+        return payload
 
     def _tell(self, update: dict) -> None:
         for c in list(self.clients):

@@ -15,6 +15,7 @@ import zenoh
 
 from millsense.daemon.dashboard import book as book_mod
 from millsense.daemon.dashboard.book import Book
+from millsense.daemon.publish.alarm_state import ActiveAlarms
 from millsense.daemon.dashboard.server import DashboardServer
 from millsense.daemon.dashboard.zenoh_side import ZenohSide
 from tests.conftest import free_tcp_port
@@ -97,6 +98,31 @@ def test_publications_reach_the_snapshot_cut_to_the_drawn_fields(dashboard):
     pub.put("millsense/m-2/alarm", b'{"level": "overload", "value": NaN}')
     got = wait_for(lambda: _get(server, "/api/snapshot")["recent_alarms"], 10, "the alarm")
     assert got[0]["machine"] == "m-2" and got[0]["level"] == "overload" and got[0]["value"] is None
+
+
+def test_a_dashboard_that_missed_an_alarm_lists_it_from_the_status(dashboard):
+    """The daemon's overload went out before this dashboard heard the daemon: the next status lists it
+    (`active_alarms`), and the page gets it once; cleared while away, it gets the clear."""
+    server, pub = dashboard
+    table = ActiveAlarms()
+    missed = table.stamp({"machine": "m-3", "t": 5.0, "rev": 40, "level": "overload", "quantity": "torque_nm",
+                          "value": 31.7, "limit": 30.0, "interlock": "feed_hold"})
+
+    def status():
+        return json.dumps({"machine": "m-3", "t": 6.0, "state": "running", "alarm": "overload", **table.snapshot()})
+
+    def alarms():
+        return [a for a in _get(server, "/api/snapshot")["recent_alarms"] if a["machine"] == "m-3"]
+
+    got = wait_for(lambda: (pub.put("millsense/m-3/status", status()) or True) and alarms(), 10, "the missed alarm")
+    assert [(a["level"], a["rev"], a["value"]) for a in got] == [("overload", 40, 31.7)]
+    pub.put("millsense/m-3/alarm", json.dumps(missed))  # the publication, late: not listed twice
+    pub.put("millsense/m-3/status", status())
+    table.stamp({"machine": "m-3", "t": 7.0, "rev": 45, "level": "clear", "quantity": "torque_nm", "value": 1.0,
+                 "limit": 30.0, "interlock": "feed_hold"})  # missed too
+    got = wait_for(lambda: (pub.put("millsense/m-3/status", status()) or True) and len(alarms()) > 1 and alarms(),
+                   10, "the clear")
+    assert [a["level"] for a in got] == ["overload", "clear"], got
 
 
 def test_memory_is_bounded_per_machine_and_in_machines():
