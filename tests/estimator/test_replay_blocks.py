@@ -21,7 +21,7 @@ import pytest
 from millsense.daemon.commands.replay import Replay
 from millsense.daemon.config import load_config
 from tests.e2e.helpers import CMD
-from tests.estimator.test_vectorised import _same
+from tests.estimator.test_vectorised import assert_same_lines
 
 REPO = Path(__file__).resolve().parents[2]
 CASES = {
@@ -57,9 +57,4 @@ def test_joined_blocks_give_what_small_ones_give(tmp_path: Path, case: str):
     assert "estimate" in kinds and "alarm" in kinds, kinds
     if case == "part":
         assert "process" in kinds
-    diffs: list[str] = []
-    if len(whole) != len(small):
-        diffs.append(f"{len(whole)} lines vs {len(small)}")
-    for i, (a, b) in enumerate(zip(small, whole)):
-        _same(a, b, f"[{i}]", diffs)
-    assert not diffs, "; ".join(diffs[:8])
+    assert_same_lines(small, whole, "whole against 256-byte chunks")

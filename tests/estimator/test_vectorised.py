@@ -51,6 +51,16 @@ def _same(a, b, path: str, out: list[str]) -> None:
         out.append(f"{path}: {a!r} vs {b!r}")
 
 
+def assert_same_lines(ref: list[dict], got: list[dict], label: str) -> None:
+    """The same number of estimates (or JSON lines), each the same by `_same`."""
+    diffs: list[str] = []
+    if len(got) != len(ref):
+        diffs.append(f"{len(got)} lines vs {len(ref)}")
+    for i, (a, b) in enumerate(zip(ref, got)):
+        _same(a, b, f"[{i}]", diffs)
+    assert not diffs, f"{label}: " + "; ".join(diffs[:8])
+
+
 def _samples(path: Path):
     """The capture's descriptor and all its samples as one array (the capture has no gaps)."""
     desc, parts, first = None, [], None
@@ -88,12 +98,7 @@ def test_same_estimates_whatever_the_block_size(tmp_path: Path, scenario: str, m
         assert any(e["depth_status"] == "ok" for e in ref)
     for size in (1, 10, 37):
         got = _estimates(cfg, desc, first, counts, size)
-        diffs: list[str] = []
-        if len(got) != len(ref):
-            diffs.append(f"{len(got)} estimates vs {len(ref)}")
-        for i, (a, b) in enumerate(zip(ref, got)):
-            _same(a, b, f"[{i}]", diffs)
-        assert not diffs, f"blocks of {size}: " + "; ".join(diffs[:8])
+        assert_same_lines(ref, got, f"blocks of {size}")
 
 
 def _verdicts(cfg, desc, first: int, counts: np.ndarray, size: int):
@@ -128,12 +133,7 @@ def test_which_revolutions_are_valid_does_not_depend_on_the_block_size(tmp_path:
         got, faults, p_gap = _verdicts(cfg, desc, first, counts, size)
         # each sample's power at the filter gain of the revolution closed before it, whatever the block
         np.testing.assert_allclose(p_gap, ref_p_gap, rtol=REL, atol=ABS, err_msg=f"blocks of {size}")
-        diffs: list[str] = []
-        if len(got) != len(ref):
-            diffs.append(f"{len(got)} estimates vs {len(ref)}")
-        for i, (a, b) in enumerate(zip(ref, got)):
-            _same(a, b, f"[{i}]", diffs)
-        assert not diffs, f"blocks of {size}: " + "; ".join(diffs[:8])
+        assert_same_lines(ref, got, f"blocks of {size}")
         decided = [(v, first + (s - first) // size * size + size - 1) for v, s in ref_faults]
         assert faults == [(v, min(s, first + len(counts) - 1)) for v, s in decided], (size, faults, ref_faults)
 
