@@ -259,7 +259,7 @@ class SignalCheck:
         rows = np.flatnonzero(clipped.any(axis=1))
         if len(rows) == 0:
             return None
-        a = max(0, r0 - self.high_window + 1)
+        a = self._rows_from(self.seq[r0] - self.high_window + 1, r0)   # not past a gap before the block
         span = self.v[a:r1][:, cols]
         # the window of each sample: the high_window samples up to it, within what the ring holds
         pad = self.high_window - 1 - (r0 - a)
