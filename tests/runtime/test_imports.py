@@ -76,6 +76,13 @@ def test_the_live_daemon_loads_nothing_it_does_not_use(tmp_path):
     assert seen["openblas"] == "1"
 
 
+def _python(code: str) -> str:
+    """What a fresh interpreter prints running `code`."""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip()
+
+
 def test_numpy_is_not_imported_before_run_starts():
     """`bound_native_memory` sets OPENBLAS_NUM_THREADS first thing in `run`; it only works if nothing
     on the way there (the CLI, the parser, the run module) has imported numpy already."""
@@ -85,9 +92,7 @@ def test_numpy_is_not_imported_before_run_starts():
         "build_parser(only='run')\n"
         "print(sorted(m for m in sys.modules if m == 'numpy' or m.startswith('numpy.')))\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "[]"
+    assert _python(code) == "[]"
 
 
 # Eight threads allocate at once; glibc's malloc_info then lists the arenas (one `<heap nr=..>` each).
@@ -137,6 +142,4 @@ def test_the_run_command_is_the_one_imported():
         "build_parser(only='run')\n"
         "print(sorted(m for name, (m, _) in COMMANDS.items() if name != 'run' and m in sys.modules))\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "[]"
+    assert _python(code) == "[]"
