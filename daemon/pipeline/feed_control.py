@@ -251,8 +251,10 @@ class FeedController:
         step = self.settings.rate_pct_s * dt_s
         return self._commanded + min(max(goal_pct - self._commanded, -step), step)
 
-    def on_revolution(self, est: Mapping[str, Any], *, target: float | None, allowed: bool, now_s: float) -> Decision:
-        """One revolution's estimate in, the override to command out."""
+    def on_revolution(self, est: Mapping[str, Any], *, target: float | None, allowed: bool, now_s: float,
+                      suspect: str | None = None) -> Decision:
+        """One revolution's estimate in, the override to command out. `suspect`: why the newest samples may
+        come from a failing sensor (a channel that stopped moving): no feed is raised on this revolution."""
         rpm = est.get("spindle_rpm") or 0.0
         rev_s = 60.0 / rpm if rpm > 0 else (now_s - self._last_now if self._last_now is not None else 0.1)
         dt_s = min(max(rev_s, MIN_REV_S), MAX_REV_S)
@@ -290,6 +292,10 @@ class FeedController:
             # a sudden drop (a sensor failing, a flute breaking, not a cut's floor): no more feed for it until
             # the next revolution confirms it; the fault or the breakage check has that long to see it
             return self._remember(now_s, self._decide("armed", self._commanded, "confirming a drop"))
+        if suspect is not None and error > 0:
+            # a sensor that failed in this revolution's last samples lightens it by a little, below the drop
+            # above: the newest samples show it (signal_check.newest_pinned), so no more feed for it
+            return self._remember(now_s, self._decide("armed", self._commanded, f"a signal stopped: {suspect}"))
         return self._remember(now_s, self._pi(error, dt_s))
 
     def _remember(self, now_s: float, decision: Decision) -> Decision:

@@ -435,11 +435,12 @@ class Runner:
             for kind, item in step.items:
                 if kind == "estimate":
                     self._check.on_estimate(item, self.core.alarms.over_limits(item))
+        suspect = self._newest_pinned() if self.feed.enabled else None
         for kind, item in step.items:
             if kind == "estimate":
                 self._check_power(item)
                 try:
-                    self._afc_revolution(item, now)
+                    self._afc_revolution(item, now, suspect)
                 except Exception as exc:  # noqa: BLE001 - the controller's error must not stop the estimates
                     self._afc_error(exc, item)
                 t = self.clock.time_of(int(item.get("seq_end", block.seq + n - 1)))
@@ -495,8 +496,14 @@ class Runner:
         with self._afc_lock:
             self._afc_apply(self.feed.on_idle(now), "no recent revolution")
 
-    def _afc_revolution(self, est: dict, now: float) -> None:
-        """The controller's step for one revolution, before it is published; the estimate carries its state."""
+    def _newest_pinned(self) -> str | None:
+        """A channel that stopped moving in the newest samples the estimator has (signal_check.py), if any."""
+        signals = getattr(self.core.estimator, "signals", None)
+        return signals.newest_pinned() if signals is not None else None
+
+    def _afc_revolution(self, est: dict, now: float, suspect: str | None = None) -> None:
+        """The controller's step for one revolution, before it is published; the estimate carries its state.
+        `suspect`: a channel that stopped moving in the newest samples: no feed is raised on it."""
         feed = self.feed
         if feed.enabled:
             seq = est.get("seq_end")
@@ -515,7 +522,8 @@ class Runner:
                 else:
                     decision = feed.on_revolution(
                         est, target=feed.target_for(tool, operation, learned),
-                        allowed=feed.allowed(tool, operation, None if ctx is None else ctx.afc_allowed), now_s=now)
+                        allowed=feed.allowed(tool, operation, None if ctx is None else ctx.afc_allowed), now_s=now,
+                        suspect=suspect)
                 self._afc_apply(decision, "afc")
         est["afc"] = {"state": feed.state, "override_pct": feed.commanded_pct, "target": feed.target}
 

@@ -73,6 +73,13 @@ EVAL_STEP_S = 0.1       # ... evaluated this often (windows overlap by half)
 RAISE_S = 0.2           # bad for this long (two evaluations in a row): fault
 SATURATION_RAISE_S = 0.8  # ... but currents clipped while high: a crash saturates them for a few revolutions
 CLEAR_S = 1.0           # good for this long: fault cleared
+# A sensor that has just failed (torn off, stuck): over the newest PIN_SAMPLES samples it moves by no more
+# than PIN_COUNTS while another channel of its kind swings LIVE_COUNTS. A healthy phase at its peak moves
+# more than that over 5 samples whenever another swings so much, down to f_e = 5 Hz (the others' swing
+# bounds its amplitude: 0.136 A >= 200 gives 0.003 A >= 4.5 counts). Not a verdict (a revolution needs
+# longer evidence): the feed controller raises no feed while it holds (feed_control.py).
+PIN_SAMPLES = 5
+PIN_COUNTS = 2
 KEEP_S = 2.5            # rows kept: the longest revolution (at STOP_RPM, 2 s) and some
 MIN_ROWS = 512
 
@@ -271,6 +278,21 @@ class SignalCheck:
         hit = clipped[rows] & (swing >= HIGH_FRAC * (self.hi[cols] - self.lo[cols]))
         first = np.flatnonzero(hit.any(axis=1))
         return None if len(first) == 0 else int(self.seq[r0 + rows[first[0]]])
+
+    def newest_pinned(self) -> str | None:
+        """The name of a voltage or current channel that has not moved over the newest samples while another
+        of its kind swung (PIN_SAMPLES, PIN_COUNTS above), else None."""
+        w, k = self.w, PIN_SAMPLES
+        if w < k or self.seq[w - 1] - self.seq[w - k] != k - 1:
+            return None
+        tail = self.v[w - k : w][:, self.vi_cols]
+        swing = (tail.max(axis=0) - tail.min(axis=0)).tolist()
+        for group in self._groups:
+            if any(swing[j] >= LIVE_COUNTS for j in group):
+                for j in group:
+                    if swing[j] <= PIN_COUNTS:
+                        return self.names[self.vi_cols[j]]
+        return None
 
     def _rows_from(self, seq: float, w: int | None = None) -> int:
         """First row whose last sample is at or after `seq`."""

@@ -95,12 +95,15 @@ def test_a_taper_is_cut_faster_at_the_same_peak_torque(tmp_path):
     assert abs(peak(adaptive) / target - 1.0) <= 0.05, (peak(adaptive), target)
 
 
-@pytest.mark.parametrize("onset_s", [5.0, 9.0])
+@pytest.mark.parametrize("onset_s", [5.0, 5.05, 9.0])
 def test_a_fault_mid_cut_brings_the_override_to_100_in_the_next_command(tmp_path, onset_s):
     """A current sensor torn off mid-cut: the daemon reads a lighter load until it declares the signals
     blind, then holds the feed. At 5 s (2 mm, the controller above 100 %) and at 9 s (3 mm, below it): no
     command after the onset goes above programmed or above the last one before it; the override is at most
-    100 % in the command that follows the fault, before the feed hold goes out, and never above 100 % after."""
+    100 % in the command that follows the fault, before the feed hold goes out, and never above 100 % after.
+    Where the onset falls in its revolution changes from run to run: in the last fifth, the revolution reads
+    only a few % light (valid, below the drop rule), and before stop 16 the controller raised the feed on it
+    in 3 runs of 4 (the newest-samples guard, docs/afc.md). Two onsets half a revolution apart."""
     scenario = "afc-step"
     feed = _feed(scenario)
     target = torque_at_depth(scenario, 2.5, feed, tmp_path)

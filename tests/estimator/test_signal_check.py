@@ -254,3 +254,63 @@ def test_a_sensor_that_fails_mid_run_spoils_only_the_samples_from_then_on():
     col = [ch.name for ch in faulty.descriptor.channels].index("i_u")
     assert (got[:450] == sound[:450]).all()
     assert (got[450:, col] == 7).all() and (got[450:, :col] == sound[450:, :col]).all()
+
+
+# ---------------------------------------------------------------------------- a sensor that just stopped
+def _newest_pinned_per_frame(cfg, cap: Path, frame: int = 10) -> list[tuple[int, str | None]]:
+    """(last seq, `newest_pinned()`) after every frame of `frame` samples, as the live estimator sees them."""
+    from millsense.drivers.base import SampleBlock
+
+    core = PipelineCore(cfg)
+    out = []
+    for desc, block in iter_capture_blocks(cap):
+        core.on_descriptor(desc)
+        for a in range(0, len(block.counts), frame):
+            part = block.counts[a : a + frame]
+            core.process(SampleBlock(block.seq + a, block.index + a, part, block.lost_before if a == 0 else 0,
+                                     block.discontinuity and a == 0))
+            out.append((block.seq + a + len(part) - 1, core.estimator.signals.newest_pinned()))
+    return out
+
+
+@pytest.mark.parametrize("scenario", ["step", "aircut-low", "aircut-high", "fig6"])
+def test_no_healthy_channel_reads_as_stopped_in_the_newest_samples(tmp_path, scenario):
+    """The feed controller raises no feed while a channel has not moved over the newest 5 samples: on sound
+    signals (speed changes down to the slowest air cut, a cut, the spindle starting) that never holds."""
+    from millsense.drivers.sim.scenarios import SCENARIOS
+
+    cap = capture(tmp_path, scenario, SCENARIOS[scenario].duration_s)
+    cfg = settings(tmp_path, feed_mm_min=None if scenario.startswith("aircut") else 200.0)
+    flagged = [(seq, name) for seq, name in _newest_pinned_per_frame(cfg, cap) if name is not None]
+    assert not flagged, flagged[:5]
+
+
+def test_a_current_pinned_mid_cut_reads_as_stopped_within_a_frame(tmp_path):
+    cap = capture(tmp_path, "step", 6.0, "--pin", "i_u=0", "--faults-from-s", "5.0")
+    seen = _newest_pinned_per_frame(settings(tmp_path), cap)
+    first = seen[0][0]
+    onset = first + 5 * RATE
+    before = [name for seq, name in seen if seq < onset]
+    after = [name for seq, name in seen if seq >= onset + 4]   # 5 pinned samples by then
+    assert set(before) == {None} and after and set(after) == {"i_u"}
+
+
+@pytest.mark.parametrize("f_e_hz", [5.0, 20.0, 80.0])
+def test_a_clean_phase_at_its_peak_is_not_read_as_stopped(f_e_hz, tmp_path):
+    """Noise-free balanced waveforms (written from first principles, tests/estimator/synthetic.py) through
+    every phase angle: at its peak a phase moves least, yet more than PIN_COUNTS over PIN_SAMPLES whenever
+    another of its kind swings LIVE_COUNTS (signal_check.py says down to f_e = 5 Hz)."""
+    from millsense.daemon.pipeline.estimator import Estimator
+    from millsense.drivers.base import SampleBlock
+    from tests.estimator import synthetic
+
+    m = synthetic.Machine()
+    m = synthetic.Machine(spindle_rpm=f_e_hz * 60.0 * (1.0 - m.slip) / (m.pole_pairs * m.gear_ratio))
+    assert abs(m.f_e_hz - f_e_hz) < 1e-9
+    est = Estimator(configs.load(tmp_path, name="pin.toml", encoder=True, pole_pairs=2), synthetic.descriptor(), 1000.0)
+    counts = synthetic.counts(m, int(2 * 1000 / f_e_hz) + 10)   # two electrical periods: every peak
+    flagged = []
+    for a in range(0, len(counts), 5):
+        est.process(SampleBlock(a, a, counts[a : a + 5], 0, False))
+        flagged.append(est.signals.newest_pinned())
+    assert set(flagged) == {None}, [(5 * k, f) for k, f in enumerate(flagged) if f][:5]

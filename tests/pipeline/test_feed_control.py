@@ -370,6 +370,21 @@ def test_a_sudden_drop_is_confirmed_before_the_feed_rises_for_it():
     assert c.commanded_pct < rising
 
 
+def test_no_feed_is_raised_while_a_signal_has_stopped_in_the_newest_samples():
+    """A sensor that fails in a revolution's last samples lightens it by a few %, below the drop rule: the
+    runner passes what the signal check saw in the newest samples, and the feed is not raised on it."""
+    c = _above_100()
+    held = c.commanded_pct
+    d = c.on_revolution(est(82.0), target=100.0, allowed=True, now_s=3.0, suspect="i_u")   # 85 -> 82: 4 % down
+    assert (d.override_pct, d.reason) == (None, "a signal stopped: i_u") and c.commanded_pct == held
+    c.on_revolution(est(120.0), target=100.0, allowed=True, now_s=3.1, suspect="i_u")      # a fall still goes out
+    assert c.commanded_pct < held
+    lowered = c.commanded_pct
+    for k in range(2):  # nothing suspect: the drop from 120 is confirmed, then the feed rises
+        c.on_revolution(est(82.0), target=100.0, allowed=True, now_s=3.2 + 0.1 * k)
+    assert c.commanded_pct > lowered
+
+
 def test_the_fault_path_takes_back_what_the_last_revolutions_raised():
     """A fault seen a revolution or two after its onset: the commands made on its readings are suspect."""
     c = controller()
