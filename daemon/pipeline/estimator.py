@@ -313,6 +313,8 @@ class Estimator:
 
         gain_before = self.physics.last_gain
         self._gain_ends = np.zeros(0, dtype=np.int64)
+        # the filter gain the sample-level power of this block was divided by, from each seq on
+        self.gain_steps: list[tuple[int, float]] = [(seq0, gain_before)]
         estimates = self._estimates(batch) if len(batch) else []
 
         # sample-level air-gap power and line current for the crash trip: each sample at the filter gain of
@@ -322,8 +324,11 @@ class Estimator:
         if len(ends) and ends[0] < seq[-1]:
             gains = np.concatenate(([gain_before], self.physics.gains))
             np.divide(p_meas, gains[np.searchsorted(ends, seq, side="left")], out=both[0])
+            inside = ends < seq[-1]
+            self.gain_steps = [(seq0, gain_before), *zip((ends[inside] + 1).tolist(), gains[1:][inside].tolist())]
         else:
             np.divide(p_meas, gain_before, out=both[0])
+            self.gain_steps = [(seq0, gain_before)]
         np.abs(np.stack((i_u, i_v, i_w)), out=None).max(axis=0, out=both[1])
         p_gap, current = self._smooth.push(both, contiguous)
         # a stuck encoder reads "stopped": not believed while a speed source is among the signal problems
