@@ -137,6 +137,7 @@ class Book:
                 return
             if kind == "estimate":
                 payload = _pick(payload, ESTIMATE_FIELDS)
+                m.estimates.append(payload)
             elif kind == "alarm":
                 if not m.shown.is_new(payload):
                     return  # a status already brought it
@@ -151,8 +152,6 @@ class Book:
                 payload = m.process = _pick(payload, PROCESS_FIELDS)
             else:
                 return
-            if kind == "estimate":
-                m.estimates.append(payload)
         for update in [*updates, {"kind": kind, "machine": name, "payload": payload}]:
             self._tell(update)
 

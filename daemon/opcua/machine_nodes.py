@@ -103,8 +103,7 @@ class MachineNodes:
         self.variables: dict[tuple[str, str], Any] = {}  # (folder, name) -> node
         self.last: dict[tuple[str, str], Any] = {}       # last value written, to skip unchanged writes
         self.tools: dict[int, tuple[Any, Any]] = {}      # tool number -> (ProcessCount, Wear)
-        self.active: dict[str, str] = {}                 # quantity -> active alarm level
-        self.shown = ShownAlarms()                       # the alarm changes fired, to catch up from `status`
+        self.shown = ShownAlarms()                       # the alarm changes fired (active ones by quantity)
         self.alive_node: Any = None
         self.messages: Any = None
         self.tools_folder: Any = None
@@ -197,15 +196,12 @@ class MachineNodes:
         caught_up(self.shown, status)
 
     async def _fire_alarm(self, payload: dict[str, Any]) -> None:
-        self.shown.shown(payload)
         level = payload.get("level") if isinstance(payload.get("level"), str) else "unknown"
         quantity = payload.get("quantity") if isinstance(payload.get("quantity"), str) else "unknown"
-        was = self.active.get(quantity)
+        had = self.shown.active.get(str(payload.get("quantity")))
+        was = had.get("level") if had is not None else None
+        self.shown.shown(payload)
         active = level != "clear"
-        if active:
-            self.active[quantity] = level
-        else:
-            self.active.pop(quantity, None)
         shown = level if active else (was or "clear")
         class_id, class_name = condition_class(shown, quantity, self.ns.mt)
         value = F.convert(payload.get("value"), F.DOUBLE)

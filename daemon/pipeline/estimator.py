@@ -193,6 +193,8 @@ class Estimator:
         has_dyn = "x" in roles.forces and "y" in roles.forces
         self.physics = RevolutionPhysics(settings, has_dynamometer=has_dyn, feed_force=feed_force,
                                          friction_zero=friction_zero)
+        # the filter gain the last block's sample-level power was divided by, from each seq on (`process`)
+        self.gain_steps: list[tuple[int, float]] = []
 
         # columns integrated per revolution
         cols = ["p_in", "p_cu", "p_gap_sq", "f_e", "v_sq", "rpm_rise"]
@@ -311,24 +313,16 @@ class Estimator:
         sp = phys[self._sp_name] if self._sp_name is not None else None
         clip_seq, signal_fault = self.signals.push(seq0, counts, x, rpm, moving, sp, batch.start_pos, batch.seq_end)
 
-        gain_before = self.physics.last_gain
-        self._gain_ends = np.zeros(0, dtype=np.int64)
-        # the filter gain the sample-level power of this block was divided by, from each seq on
-        self.gain_steps: list[tuple[int, float]] = [(seq0, gain_before)]
+        # the filter gain the sample-level power is divided by, from each seq on: the one of the last revolution
+        # closed before each sample (so a block's size does not move it); `_estimates` adds this block's
+        self.gain_steps = [(seq0, self.physics.last_gain)]
         estimates = self._estimates(batch) if len(batch) else []
 
-        # sample-level air-gap power and line current for the crash trip: each sample at the filter gain of
-        # the last revolution closed before it (so a block's size does not move it)
+        # sample-level air-gap power and line current for the crash trip
         both = np.empty((2, n))
-        ends = self._gain_ends
-        if len(ends) and ends[0] < seq[-1]:
-            gains = np.concatenate(([gain_before], self.physics.gains))
-            np.divide(p_meas, gains[np.searchsorted(ends, seq, side="left")], out=both[0])
-            inside = ends < seq[-1]
-            self.gain_steps = [(seq0, gain_before), *zip((ends[inside] + 1).tolist(), gains[1:][inside].tolist())]
-        else:
-            np.divide(p_meas, gain_before, out=both[0])
-            self.gain_steps = [(seq0, gain_before)]
+        for k, (start, gain) in enumerate(self.gain_steps):   # one step per revolution closed in the block
+            stop = self.gain_steps[k + 1][0] - seq0 if k + 1 < len(self.gain_steps) else n
+            np.divide(p_meas[start - seq0 : stop], gain, out=both[0, start - seq0 : stop])
         np.abs(np.stack((i_u, i_v, i_w)), out=None).max(axis=0, out=both[1])
         p_gap, current = self._smooth.push(both, contiguous)
         # a stuck encoder reads "stopped": not believed while a speed source is among the signal problems
@@ -425,7 +419,9 @@ class Estimator:
             tool_at = self.tool_at
             tools = None if tool_at is None else [tool_at(s) for s in batch.seq_end[g].tolist()]
             phys = self.physics.estimate_many(cols, tools)
-            self._gain_ends = batch.seq_end[g]   # where each of `physics.gains` holds from (the sample after)
+            # each revolution's filter gain holds for the sample-level power from the sample after it
+            ends, gains = batch.seq_end[g].tolist(), self.physics.gains.tolist()
+            self.gain_steps += [(e + 1, gain) for e, gain in zip(ends, gains) if e < self._last_seq]
             accelerating = self._accelerating(rpm[g], rise, prev).tolist()
             if "f_mag" in c:
                 phys["force_measured_n"] = m[:, c["f_mag"]].tolist()
