@@ -726,7 +726,8 @@ class Runner:
             self.history.add_alarm(payload)
         # The alarm's kind goes under `alarm_level`: structlog's add_log_level writes the log level
         # into `level` and would overwrite it (issue 10, finding 7).
-        fields = {k: v for k, v in payload.items() if k not in ("machine", "level")}
+        # run_id and alarm_seq are for subscribers that catch up (alarm_state.py), not for the person reading the log
+        fields = {k: v for k, v in payload.items() if k not in ("machine", "level", "run_id", "alarm_seq")}
         log.warning("alarm", alarm_level=payload["level"], **fields)
 
     def _trip(self, reason: str, last_seq: int | None = None) -> str | None:
