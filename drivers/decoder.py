@@ -272,10 +272,12 @@ class StreamDecoder:
         head = all_rows[0, :11]
         # how far does the run of identical headers go?  Look in a growing window, so
         # that a run broken early (noise) costs little.
-        window = min(kmax, 64)
+        window = min(kmax, 128)
         while True:
             rows = all_rows[:window]
-            same = (rows[:, :5] == head[:5]).all(axis=1) & (rows[:, 9:11] == head[9:11]).all(axis=1)
+            same = rows[:, :11] == head      # sync, type, length, channels, samples; not the index (5:9)
+            same[:, 5:9] = True
+            same = same.all(axis=1)
             if not same.all():
                 k = int(np.argmin(same))
                 break

@@ -61,6 +61,7 @@ the revolution to close (`safety_check.py`).
 from __future__ import annotations
 
 from collections import deque
+from itertools import repeat
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -94,6 +95,8 @@ NULL_FIELDS = (
     "torque_sigma_nm", "force_n", "force_tangential_n", "force_feed_n", "feed_per_tooth_mm", "radial_depth_mm",
     "axial_depth_mm", "depth_status",
 )
+
+_BASE_KEYS = ("rev", "seq_end", "samples", "lost_samples", "feed_override_pct")
 
 
 @dataclass
@@ -320,9 +323,12 @@ class Estimator:
 
         # sample-level air-gap power and line current for the crash trip
         both = np.empty((2, n))
-        for k, (start, gain) in enumerate(self.gain_steps):   # one step per revolution closed in the block
-            stop = self.gain_steps[k + 1][0] - seq0 if k + 1 < len(self.gain_steps) else n
-            np.divide(p_meas[start - seq0 : stop], gain, out=both[0, start - seq0 : stop])
+        steps = self.gain_steps   # one step per revolution closed in the block
+        if len(steps) == 1:
+            np.divide(p_meas, steps[0][1], out=both[0])
+        else:   # each sample over its own step's gain: the steps spread to samples, one division
+            starts = np.fromiter((start for start, _ in steps), dtype=np.int64, count=len(steps)) - seq0
+            np.divide(p_meas, np.repeat([gain for _, gain in steps], np.diff(starts, append=n)), out=both[0])
         np.abs(np.stack((i_u, i_v, i_w)), out=None).max(axis=0, out=both[1])
         p_gap, current = self._smooth.push(both, contiguous)
         # a stuck encoder reads "stopped": not believed while a speed source is among the signal problems
@@ -369,7 +375,7 @@ class Estimator:
         seq_end, samples, lost = batch.seq_end.tolist(), batch.samples.tolist(), batch.lost.tolist()
         # the applied override per revolution: a few steps at most, never per sample
         track = self.override
-        overrides = [track.mean(e - max(n, 1) + 1, e) for e, n in zip(seq_end, samples)]
+        overrides = track.means([e - max(n, 1) + 1 for e, n in zip(seq_end, samples)], seq_end)
         if seq_end:
             track.forget_before(seq_end[-1])   # the next revolution starts after this sample
         invalid = ["lost_samples" if dmg else "signals" if prob or s else None
@@ -426,26 +432,29 @@ class Estimator:
             if "f_mag" in c:
                 phys["force_measured_n"] = m[:, c["f_mag"]].tolist()
 
-        keys = list(phys)
-        rows = iter(zip(*phys.values())) if phys else iter(())
-        acc = iter(accelerating)
-        out = []
+        # one dict per revolution, built in one go from its row (this runs for every revolution of a replay)
+        first = self.rev + 1
+        self.rev += count
+        ovr = [round(o, 2) for o in overrides]
+        has_fm = "f_mag" in c
+        fm = (("force_measured_n",) if has_fm else ())
+        out: list[dict | None] = [None] * count
+        if good:
+            keys = [k for k in phys if k != "force_measured_n"]
+            names = (*keys, *_BASE_KEYS, "valid", "invalid", "accelerating", *fm, "saturated")
+            base = ([first + i for i in good], [seq_end[i] for i in good], [samples[i] for i in good],
+                    [lost[i] for i in good], [ovr[i] for i in good])
+            rows = zip(*(phys[k] for k in keys), *base, repeat(True), repeat(None), accelerating,
+                       *(phys[k] for k in fm), [sat[i] for i in good])
+            for i, row in zip(good, rows):
+                out[i] = dict(zip(names, row))
         for i in range(count):
-            self.rev += 1
-            base = {"rev": self.rev, "seq_end": seq_end[i], "samples": samples[i], "lost_samples": lost[i],
-                    "feed_override_pct": round(overrides[i], 2)}
-            if invalid[i] is not None:
+            if out[i] is None:
                 est = dict.fromkeys(NULL_FIELDS)
-                est.update(base, valid=False, invalid=invalid[i], cutting=False, accelerating=False)
-                if "f_mag" in c:
+                est.update(zip(_BASE_KEYS, (first + i, seq_end[i], samples[i], lost[i], ovr[i])), valid=False,
+                           invalid=invalid[i], cutting=False, accelerating=False)
+                if has_fm:
                     est["force_measured_n"] = None
-            else:
-                values = dict(zip(keys, next(rows)))
-                force_measured = values.pop("force_measured_n", None)
-                est = values
-                est.update(base, valid=True, invalid=None, accelerating=next(acc))
-                if "f_mag" in c:
-                    est["force_measured_n"] = force_measured
-            est["saturated"] = sat[i]
-            out.append(est)
+                est["saturated"] = sat[i]
+                out[i] = est
         return out

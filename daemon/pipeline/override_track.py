@@ -74,6 +74,16 @@ class OverrideTrack:
         total += value * (int(last) + 1 - start)
         return total / (int(last) + 1 - int(first))
 
+    def means(self, firsts: list[int], lasts: list[int]) -> list[float]:
+        """`mean` of each span firsts[k] … lasts[k] (in sample order), from one snapshot of the steps: one
+        value for all when no step falls after the first span starts (the usual batch of revolutions)."""
+        seqs, pcts = self._steps
+        if not firsts:
+            return []
+        if not seqs or seqs[-1] <= firsts[0]:
+            return [pcts[-1] if seqs else DEFAULT_PCT] * len(firsts)
+        return [self.mean(a, b) for a, b in zip(firsts, lasts)]
+
     def forget_before(self, seq: int) -> None:
         """Drop steps no revolution from `seq` on can need (the one in force at `seq` stays)."""
         seqs = self._steps[0]

@@ -10,9 +10,11 @@ through its samples (trapezoid, split exactly at the boundary). A revolution
 mean is then integral / duration: exact for signals that are linear between
 samples, and independent of where the samples happen to fall.
 
-Everything is vectorised over a block: running integrals by `cumsum`, crossings
-by `floor` of the angle, and a revolution's sums as differences of running sums
-at its two boundaries. Only the partial revolution is carried between blocks.
+Everything is vectorised over a block: crossings by `floor` of the angle, the
+trapezoids between consecutive crossings summed by one `np.add.reduceat`, and a
+revolution's sums as that sum plus the split intervals at its two boundaries
+(never a difference of block-long running sums, which costs a sequential pass
+and loses digits). Only the partial revolution is carried between blocks.
 
 Damage: a revolution that spans lost samples (an index gap) or a discontinuity
 is still closed at its boundary but flagged `damaged`, with its lost-sample
@@ -226,8 +228,6 @@ class RevolutionSplitter:
         area = 0.5 * (x[:-1] + x[1:]) * dpos[:, None]
         if len(gap) and gap[0]:                           # a gap can only open a block
             area[0] = 0.0                                 # no data inside a gap
-        run = np.zeros((m, self.k))
-        np.cumsum(area, axis=0, out=run[1:])
         k_left = k_pt[:-1]
         k_right = k_pt[1:]
         insane = ~np.isfinite(dth) | (np.abs(dth) >= 1.0)
@@ -243,7 +243,7 @@ class RevolutionSplitter:
         j = np.flatnonzero(cross)
         if len(j) == 0:
             if self._active:
-                self._acc += run[-1]
+                self._acc += area.sum(axis=0)
                 self._acc_samples += m - carry
                 self._acc_lost += int(cum_lost[-1])
                 self._acc_damaged |= bool(cum_dmg[-1])
@@ -258,12 +258,17 @@ class RevolutionSplitter:
         cpos = pos[j] + alpha * dpos[j]
         at_end = cpos >= pos[j + 1]                      # the boundary sits on sample j+1 (to rounding)
         dx = x[j + 1] - x[j]
-        run_c = run[j] + alpha[:, None] * x[j] + 0.5 * (alpha * alpha)[:, None] * dx
+        part = alpha[:, None] * x[j] + 0.5 * (alpha * alpha)[:, None] * dx   # interval j up to its crossing
+        # the areas between crossings, each summed on its own (no block-long running sum to difference):
+        # before the first, between each two, after the last
+        seg = np.add.reduceat(area, np.concatenate([[0], j]), axis=0)
+        if j[0] == 0:
+            seg[0] = 0.0                                 # reduceat gives area[0] for an empty range
         count_c = j + 1 + at_end                         # points at or before each crossing
         seq_end = (pos[j] + at_end).astype(np.int64)
 
         # revolutions between consecutive crossings of this block
-        integ = run_c[1:] - run_c[:-1]
+        integ = seg[1:-1] + part[1:] - part[:-1]
         samples = count_c[1:] - count_c[:-1]
         lost = cum_lost[j[1:] + 1] - cum_lost[j[:-1]]
         dmg = (cum_dmg[j[1:] + 1] - cum_dmg[j[:-1]]) > 0
@@ -274,7 +279,7 @@ class RevolutionSplitter:
 
         j0 = j[0]
         if self._active:   # the revolution carried in closes at the first crossing
-            integ = np.vstack([(self._acc + run_c[0])[None, :], integ])
+            integ = np.vstack([(self._acc + seg[0] + part[0])[None, :], integ])
             samples = np.concatenate([[self._acc_samples + count_c[0] - carry], samples])
             lost = np.concatenate([[self._acc_lost + cum_lost[j0 + 1]], lost])
             dmg = np.concatenate([[self._acc_damaged or cum_dmg[j0 + 1] > 0], dmg])
@@ -288,7 +293,7 @@ class RevolutionSplitter:
         # the revolution left open
         jl = j[-1]
         self._active = True
-        self._acc = run[-1] - run_c[-1]
+        self._acc = seg[-1] - part[-1]
         self._acc_samples = int(m - count_c[-1])
         self._acc_lost = int(cum_lost[-1] - cum_lost[jl + 1])
         self._acc_damaged = bool(cum_dmg[-1] - cum_dmg[jl + 1])

@@ -108,6 +108,8 @@ class SignalCheck:
         self.v_cols = np.array([col[n] for n in roles.voltages.values()], dtype=np.intp)
         self.i_cols = np.array([col[n] for n in roles.currents.values()], dtype=np.intp)
         self.vi_cols = np.concatenate([self.v_cols, self.i_cols])
+        # no current between these touches its limit
+        self._i_lo_max, self._i_hi_min = int(self.lo[self.i_cols].max()), int(self.hi[self.i_cols].min())
         nv = len(self.v_cols)
         self._groups = [range(nv), range(nv, len(self.vi_cols))]
         self._vi_scale = self.scale[self.vi_cols].tolist()
@@ -193,7 +195,12 @@ class SignalCheck:
         s[:, 4] = rpm       # signed: the mean's magnitude is taken when judged
         s[:, 5] = sp_rpm if sp_rpm is not None else 0.0
         clip_seq = None
-        if (counts.min(axis=0) <= self.lo).any() or (counts.max(axis=0) >= self.hi).any():   # rare: a limit touched
+        # rare: a current at a limit (the other channels' limits are judged with the ranges below). The
+        # currents' extremes over all of them first (a column-wise min over an (n, C) block is a strided
+        # pass, several times slower), per column only if one could be at its limit
+        cur = counts.take(self.i_cols, axis=1)
+        if (int(cur.min()) <= self._i_lo_max or int(cur.max()) >= self._i_hi_min) and (
+                (cur.min(axis=0) <= self.lo[self.i_cols]).any() or (cur.max(axis=0) >= self.hi[self.i_cols]).any()):
             clip_seq = self._high_clip(r0, r1)
 
         # the fault windows this block closes: every EVAL_STEP_S of samples, counted from the first sample ever
@@ -217,9 +224,16 @@ class SignalCheck:
                 found = self._problems_many(np.concatenate([a_eval, a_rev]), np.concatenate([b_eval, b_rev]))
             else:
                 found = self._problems_many(a_eval, b_eval)
-            for (_, end), f in zip(evals, found):
-                v = self._judge(end, f)
-                verdict = v if v is not None else verdict
+            windows = found[: len(evals)]
+            if not self.faulted and evals and all(f is self._CLEAN for f in windows):
+                # every window clean and nothing to clear: what `_judge` would do for each, at once
+                self._bad_since = None
+                if self._good_since is None:
+                    self._good_since = evals[0][1] - self.step + 1
+            else:
+                for (_, end), f in zip(evals, windows):
+                    v = self._judge(end, f)
+                    verdict = v if v is not None else verdict
             self.revolution_verdicts = ([f[0] for f in found[len(evals):]],
                                         np.array([f[1] for f in found[len(evals):]], dtype=bool))
         else:

@@ -16,6 +16,8 @@ import json
 from dataclasses import replace
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from millsense.daemon.commands.replay import Replay
 from millsense.daemon.pipeline.override_track import OverrideTrack
@@ -103,3 +105,19 @@ def test_override_track_time_weighted_mean():
     assert track.mean(100, 199) == pytest.approx((75 * 120.0 + 25 * 80.0) / 100)
     track.forget_before(180)
     assert track.at(180) == 80.0 and track.mean(180, 279) == 80.0
+
+
+@given(steps=st.lists(st.tuples(st.integers(0, 2000), st.sampled_from([50.0, 80.0, 100.0, 120.0, 150.0])), max_size=6),
+       spans=st.lists(st.integers(1, 300), min_size=1, max_size=12), start=st.integers(0, 1500))
+def test_the_overrides_of_a_batch_of_revolutions_are_each_ones_mean(steps, spans, start):
+    """`means` (one call for the revolutions a block closed, with its shortcut when no step falls inside
+    them) gives what `mean` gives for each revolution."""
+    track = OverrideTrack()
+    for seq, pct in sorted(steps):
+        track.note(seq, pct)
+    firsts, lasts, first = [], [], start
+    for n in spans:   # consecutive revolutions, as the estimator closes them
+        firsts.append(first)
+        lasts.append(first + n - 1)
+        first += n
+    assert track.means(firsts, lasts) == [track.mean(a, b) for a, b in zip(firsts, lasts)]
