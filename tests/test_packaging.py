@@ -50,3 +50,8 @@ def test_wheel_installs_only_under_millsense(tmp_path):
     assert "millsense/daemon/cli.py" in names
     assert "millsense/drivers/protocol.py" in names
     assert "millsense/daemon/demo.toml" in names
+    # the licence the metadata names travels with the code (Apache-2.0, pyproject's `license`)
+    assert any(n.endswith(".dist-info/licenses/LICENSE") for n in names), names
+    dist_info = next(t for t in tops if t.endswith(".dist-info"))
+    meta = zipfile.ZipFile(wheel).read(f"{dist_info}/METADATA").decode()
+    assert "License-Expression: Apache-2.0" in meta and "License-File: LICENSE" in meta, meta[:800]
