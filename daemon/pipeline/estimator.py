@@ -152,9 +152,11 @@ class _MovingAverage:
         else:
             ext[:, : w - 1] = p[:, :1]
         ext[:, w - 1 :] = p
-        run = np.cumsum(ext, axis=1)
-        out = run[:, w - 1 :].copy()
-        out[:, 1:] -= run[:, : n - 1]
+        # each mean summed from its own samples, oldest first (w − 1 vector adds): the same numbers whatever
+        # the block size, where a running sum's differences would carry the block's rounding
+        out = ext[:, :n].copy()
+        for j in range(1, w):
+            out += ext[:, j : j + n]
         self._tail = ext[:, n:]
         out /= w
         return out
@@ -353,6 +355,8 @@ class Estimator:
             self._fe_recent.clear()
             return None
         self._fe_recent.append((integral_hz, duration))
+        if duration >= MIN_FE_WINDOW:   # the revolution alone is window enough (600 rpm and slower at 1 kHz)
+            return abs(integral_hz / duration)
         total, span = 0.0, 0.0
         for integ, dur in reversed(self._fe_recent):
             total += integ
@@ -435,7 +439,10 @@ class Estimator:
         # one dict per revolution, built in one go from its row (this runs for every revolution of a replay)
         first = self.rev + 1
         self.rev += count
-        ovr = [round(o, 2) for o in overrides]
+        if overrides and overrides.count(overrides[0]) == count:   # the usual batch: one override throughout
+            ovr = [round(overrides[0], 2)] * count
+        else:
+            ovr = [round(o, 2) for o in overrides]
         has_fm = "f_mag" in c
         fm = (("force_measured_n",) if has_fm else ())
         out: list[dict | None] = [None] * count
