@@ -61,9 +61,9 @@ the revolution to close (`safety_check.py`).
 from __future__ import annotations
 
 from collections import deque
-from itertools import repeat
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from itertools import repeat
 
 import numpy as np
 
