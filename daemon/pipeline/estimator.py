@@ -439,10 +439,8 @@ class Estimator:
         # one dict per revolution, built in one go from its row (this runs for every revolution of a replay)
         first = self.rev + 1
         self.rev += count
-        if overrides and overrides.count(overrides[0]) == count:   # the usual batch: one override throughout
-            ovr = [round(overrides[0], 2)] * count
-        else:
-            ovr = [round(o, 2) for o in overrides]
+        rounded = {o: round(o, 2) for o in set(overrides)}   # a batch holds one override, or a few
+        ovr = [rounded[o] for o in overrides]
         has_fm = "f_mag" in c
         fm = (("force_measured_n",) if has_fm else ())
         out: list[dict | None] = [None] * count

@@ -60,29 +60,17 @@ class OverrideTrack:
 
     def mean(self, first: int, last: int) -> float:
         """Time-weighted mean over samples first … last (inclusive)."""
-        seqs, pcts = self._steps
-        i = bisect_right(seqs, int(first)) - 1
-        value = pcts[i] if i >= 0 else DEFAULT_PCT
-        if last <= first or i + 1 >= len(seqs) or seqs[i + 1] > last:
-            return value   # no step inside: the usual revolution
-        total, start = 0.0, int(first)
-        for s, p in zip(seqs[i + 1:], pcts[i + 1:]):
-            if s > last:
-                break
-            total += value * (s - start)
-            start, value = s, p
-        total += value * (int(last) + 1 - start)
-        return total / (int(last) + 1 - int(first))
+        return _mean(*self._steps, first, last)
 
     def means(self, firsts: list[int], lasts: list[int]) -> list[float]:
-        """`mean` of each span firsts[k] … lasts[k] (in sample order), from one snapshot of the steps: one
-        value for all when no step falls after the first span starts (the usual batch of revolutions)."""
+        """`mean` of each span firsts[k] … lasts[k] (in sample order), all from one snapshot of the steps:
+        one value for all when no step falls after the first span starts (the usual batch of revolutions)."""
         seqs, pcts = self._steps
         if not firsts:
             return []
         if not seqs or seqs[-1] <= firsts[0]:
             return [pcts[-1] if seqs else DEFAULT_PCT] * len(firsts)
-        return [self.mean(a, b) for a, b in zip(firsts, lasts)]
+        return [_mean(seqs, pcts, a, b) for a, b in zip(firsts, lasts)]
 
     def forget_before(self, seq: int) -> None:
         """Drop steps no revolution from `seq` on can need (the one in force at `seq` stays)."""
@@ -122,3 +110,19 @@ def load_scale(override_pct, gain: float) -> float:
     if override_pct is None or not override_pct > 0.0 or override_pct == DEFAULT_PCT:
         return 1.0
     return (float(override_pct) / 100.0) ** gain
+
+
+def _mean(seqs: list[int], pcts: list[float], first: int, last: int) -> float:
+    """Time-weighted mean over samples first … last (inclusive) of the steps (seqs, pcts)."""
+    i = bisect_right(seqs, int(first)) - 1
+    value = pcts[i] if i >= 0 else DEFAULT_PCT
+    if last <= first or i + 1 >= len(seqs) or seqs[i + 1] > last:
+        return value   # no step inside: the usual revolution
+    total, start = 0.0, int(first)
+    for s, p in zip(seqs[i + 1:], pcts[i + 1:]):
+        if s > last:
+            break
+        total += value * (s - start)
+        start, value = s, p
+    total += value * (int(last) + 1 - start)
+    return total / (int(last) + 1 - int(first))
