@@ -67,24 +67,17 @@ def _command_in(argv: list[str]) -> str | None:
 
 
 class _VersionAction(argparse.Action):
-    """`--version`, looked up only when asked (importlib.metadata costs 70 ms of every start)."""
+    """`--version`: millsense.daemon.__version__, which the package's metadata is built from."""
 
     def __init__(self, option_strings, dest, **kwargs):
         super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS,
                          help="show program's version number and exit")
 
     def __call__(self, parser, namespace, values, option_string=None):
-        print(f"millsense {_version()}")  # on stdout, as argparse's own version action does
+        from millsense.daemon import __version__
+
+        print(f"millsense {__version__}")  # on stdout, as argparse's own version action does
         parser.exit()
-
-
-def _version() -> str:
-    try:
-        from importlib.metadata import version
-
-        return version("millsense")
-    except Exception:  # noqa: BLE001 - running from a source tree without metadata
-        return "0+unknown"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -193,10 +193,12 @@ def _make_tables() -> tuple[np.ndarray, np.ndarray]:
     return table, v.astype(np.uint16)
 
 
-CRC_TABLE, CRC_TABLE2 = _make_tables()
+CRC_TABLE, _table2 = _make_tables()
 _T1 = CRC_TABLE.tolist()
 # an array, not a list: 65536 Python ints held 2.4 MB of the daemon's memory (issue 13); indexing costs the same
-_T2 = array("H", CRC_TABLE2.astype(np.uint16).tobytes())
+_T2 = array("H", _table2.tobytes())
+CRC_TABLE2 = np.frombuffer(_T2, dtype=np.uint16)  # the same 128 KB, seen by numpy: not a second copy
+del _table2
 
 
 # The CRC is linear over GF(2): the register after a body of n bytes is the

@@ -41,7 +41,10 @@ class TcpDriver(StreamDriver):
         return f"{self.host}:{self.tcp_port}"
 
     def _open(self) -> None:
-        sock = socket.create_connection((self.host, self.tcp_port), timeout=self.connect_timeout_s)
+        # An ASCII host goes to the resolver as bytes: a str one is first run through the `idna` codec,
+        # whose import alone holds 0.4 MB of the daemon's memory (issue 13). A non-ASCII name still needs it.
+        host = self.host.encode("ascii") if self.host.isascii() else self.host
+        sock = socket.create_connection((host, self.tcp_port), timeout=self.connect_timeout_s)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         sock.settimeout(None)  # blocking: the kernel's timeouts below bound each call
         timeval = _timeval(self.read_timeout_s)

@@ -9,6 +9,7 @@ fails for want of a network skips, saying so.
 
 from __future__ import annotations
 
+import ast
 import os
 import re
 import shutil
@@ -24,6 +25,9 @@ from tests.conftest import REPO
 WHEELHOUSE_SH = REPO / "systemd" / "wheelhouse.sh"
 INSTALL_OFFLINE = REPO / "systemd" / "install-offline.sh"
 PROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+# pyproject.toml's version is `dynamic`: it is millsense.daemon.__version__, read without importing
+VERSION = next(ast.literal_eval(node.value) for node in ast.parse((REPO / "daemon" / "__init__.py").read_text()).body
+               if isinstance(node, ast.Assign) and [t.id for t in node.targets] == ["__version__"])
 # Port 9 (discard): nothing answers there, so any attempt to reach an index fails.
 UNREACHABLE = "http://127.0.0.1:9"
 NETWORK_TROUBLE = re.compile(
@@ -84,11 +88,11 @@ def installed(wheelhouse, tmp_path_factory) -> dict[str, Path]:
 
 def test_wheelhouse_holds_every_dependency_pinned_and_the_scripts(wheelhouse):
     wheels = {p.name.split("-")[0]: p.name.split("-")[1] for p in wheelhouse.glob("*.whl")}
-    assert wheels["millsense"] == PROJECT["version"]
+    assert wheels["millsense"] == VERSION
     for requirement in PROJECT["dependencies"]:
         assert _name(requirement) in wheels, f"{requirement}: no wheel in the wheelhouse"
     pins = (wheelhouse / "requirements.txt").read_text().split()
-    assert pins[0] == f"millsense=={PROJECT['version']}"
+    assert pins[0] == f"millsense=={VERSION}"
     assert sorted(pins) == sorted(f"{name}=={version}" for name, version in wheels.items())
     assert not list(wheelhouse.glob("*.tar.gz")) and not list(wheelhouse.glob("*.zip")), "only wheels: the box builds nothing"
     readme = (wheelhouse / "README.txt").read_text()
@@ -104,7 +108,7 @@ def test_wheelhouse_holds_every_dependency_pinned_and_the_scripts(wheelhouse):
 def test_installed_cli_runs_from_its_own_venv(installed):
     version = run([installed["millsense"], "--version"], env=offline_env())
     assert version.returncode == 0, version.stderr
-    assert version.stdout.strip() == f"millsense {PROJECT['version']}"
+    assert version.stdout.strip() == f"millsense {VERSION}"
     # The code comes from the venv, not from this checkout's editable install.
     where = run([installed["venv"] / "bin" / "python", "-c", "import millsense.daemon.cli as c; print(c.__file__)"],
                 env=offline_env())

@@ -202,8 +202,7 @@ class _Daemon:
     def __init__(self, settings: Any, driver: Any, session: Any, demo: bool):
         import structlog
 
-        from millsense.daemon import sdnotify
-        from millsense.daemon.cli import _version
+        from millsense.daemon import __version__, sdnotify
         from millsense.daemon.config import effective_config_dict
         importlib.import_module("millsense.daemon.pipeline.estimator")  # numpy now, not on the first block
         from millsense.daemon.pipeline.runner import Runner
@@ -222,7 +221,7 @@ class _Daemon:
         self.runner = Runner(
             settings,
             driver,
-            version=_version(),
+            version=__version__,
             notify=sdnotify.notify,
             on_second=self.summary,
             effective_config=lambda: effective_config_dict(settings),

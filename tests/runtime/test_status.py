@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from millsense.daemon.pipeline.status import LatencyStats, SeqClock, bad_frames, status_line, summary_line
+from millsense.daemon.pipeline.status import LatencyStats, SeqClock, bad_frames, percentile, status_line, summary_line
 
 
 def test_seq_clock_uses_the_least_delayed_block():
@@ -53,6 +53,13 @@ def test_latency_percentiles():
     assert got["n"] == 1000
     assert abs(got["p50"] - np.percentile(values[1:], 50) * 1e3) < 1e-3
     assert abs(got["max"] - 10.0) < 1e-9
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.floats(0.0, 1.0, allow_nan=False), min_size=1, max_size=60), st.floats(0.0, 100.0))
+def test_the_percentile_is_numpys_linear_one(values, q):
+    ordered = sorted(values)
+    assert abs(percentile(ordered, q) - float(np.percentile(values, q))) <= 1e-12
 
 
 def test_lines_tolerate_missing_values():
