@@ -7,7 +7,7 @@ one clock (`time.monotonic()`): "sent" right after the write of the frame that
 holds the pulse's first sample, "received" when the set-outputs command that
 asserts feed hold reaches the device (the source's `feed_hold` is set by the
 device on that command). The daemon is a real `millsense run` subprocess
-reading that stream in 10-sample frames.
+reading that stream in 10-sample frames, with the environment its systemd unit gives it.
 
 Pulse source: the simulator's channels, everything at 0 (the spindle stands
 still), and on demand one pulse of 10 samples whose air-gap power is ~26 kW
@@ -52,6 +52,7 @@ from millsense.drivers.emulator.wire import WireEmitter  # noqa: E402
 from millsense.drivers.protocol import Descriptor  # noqa: E402
 from tests.conftest import free_tcp_port  # noqa: E402
 from tests.e2e.helpers import Procs, tcp, write_config  # noqa: E402
+from tests.ops.unit_file import unit_environment  # noqa: E402 - the daemon as its unit runs it
 
 BUDGET_P99_MS = 3.0
 PULSE_SAMPLES = 10
@@ -166,7 +167,7 @@ def run_trips(transport: str, trips: int) -> dict:
     missed = 0
     try:
         with Procs(tmp) as procs:
-            procs.start("daemon", ["run", "--config", str(cfg)])
+            procs.start("daemon", ["run", "--config", str(cfg)], env_extra=unit_environment())
             _wait(lambda: _status(sdir).get("samples_received", 0) > 2000, 60, "the daemon streaming")
             for _ in range(trips):
                 emu.pulse()

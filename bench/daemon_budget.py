@@ -1,6 +1,7 @@
 """The daemon's run-time budget, measured on real processes.
 
-Prints four figures and the budget of each:
+Prints four figures and the budget of each (the daemon runs with the environment
+its systemd unit gives it: Python with -OO):
 
 1. per-revolution processing p99 — from the running daemon's own status
    (`latency_ms`: the frame that closes a revolution taken by the estimator
@@ -39,6 +40,7 @@ sys.path.insert(0, str(REPO))
 
 from tests.conftest import free_tcp_port  # noqa: E402
 from tests.e2e.helpers import Procs, Subscriber, tcp, wait_for, write_config  # noqa: E402
+from tests.ops.unit_file import unit_environment  # noqa: E402 - the daemon as its unit runs it
 from tests.procstat import proc_cpu_s, proc_kb  # noqa: E402
 
 CPU_BUDGET_PCT = 3.0
@@ -90,7 +92,7 @@ def daemon_figures(seconds: float, scenario: str) -> dict:
     with Procs(tmp) as procs:
         procs.start("sim", ["sim", "--scenario", scenario, "--loop", "--tcp", f"127.0.0.1:{daq_port}", "--realtime"])
         time.sleep(0.5)
-        daemon = procs.start("daemon", ["run", "--config", str(cfg)])
+        daemon = procs.start("daemon", ["run", "--config", str(cfg)], env_extra=unit_environment())
         bare = subprocess.Popen([sys.executable, "-c", _BARE_RECV, str(daq_port)])
         sub = Subscriber([tcp(z_port)], "bench")
         try:

@@ -9,6 +9,9 @@ stands on: a bare interpreter that imports numpy, pydantic (and builds one model
 structlog, sqlite3 and hmac and opens a Zenoh peer session configured as the
 daemon's, and nothing of millsense.
 The difference to the floor is what the daemon's own code and data cost.
+Every process runs with the environment the systemd unit gives the daemon
+(`Environment=` of systemd/millsense@.service: Python with -OO), as deployed; the
+same daemon under a plain interpreter is printed beside it.
 Budget (issue 13): ≤ 70 MB.
 
     .venv/bin/python bench/daemon_rss_learning.py [--seconds 100]
@@ -30,6 +33,7 @@ sys.path.insert(0, str(REPO))
 
 from tests.conftest import free_tcp_port  # noqa: E402
 from tests.config.helpers import dumps  # noqa: E402
+from tests.ops.unit_file import unit_environment  # noqa: E402
 
 CMD = [sys.executable, "-m", "millsense.daemon"]
 RSS_BUDGET_MB = 70.0
@@ -55,8 +59,9 @@ with zenoh.open(conf):
 """
 
 
-def peak_rss_mb(learning: bool, seconds: float) -> tuple[float, int]:
-    """(the daemon's VmHWM in MB, the processes it logged) after `seconds` on the part program."""
+def peak_rss_mb(learning: bool, seconds: float, as_unit: bool = True) -> tuple[float, int]:
+    """(the daemon's VmHWM in MB, the processes it logged) after `seconds` on the part program; with the
+    unit's environment, or (as_unit False) under a plain interpreter."""
     tmp = Path(tempfile.mkdtemp(prefix="millsense-rss-"))
     port, zport = free_tcp_port(), free_tcp_port()
     doc = tomllib.loads((REPO / "config" / "part-program.toml").read_text())
@@ -68,7 +73,7 @@ def peak_rss_mb(learning: bool, seconds: float) -> tuple[float, int]:
     doc["log"] = {"level": "info", "format": "json"}
     cfg = tmp / "d.toml"
     cfg.write_text(dumps(doc))
-    env = dict(os.environ, XDG_STATE_HOME=str(tmp / "state"))
+    env = dict(os.environ, XDG_STATE_HOME=str(tmp / "state"), **(unit_environment() if as_unit else {}))
     sim = subprocess.Popen(CMD + ["sim", "--scenario", "part-program", "--parts", "30", "--tcp", f"127.0.0.1:{port}",
                                   "--realtime", "--watchdog-ms", "1000"],
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -95,7 +100,8 @@ def peak_rss_mb(learning: bool, seconds: float) -> tuple[float, int]:
 def floor_rss_mb(seconds: float) -> float:
     """Peak RSS in MB of the bare stack (`_FLOOR`) after `seconds`."""
     out = subprocess.run([sys.executable, "-c", _FLOOR, str(free_tcp_port()), str(seconds)],
-                         capture_output=True, text=True, timeout=seconds + 60, check=True)
+                         capture_output=True, text=True, timeout=seconds + 60, check=True,
+                         env=dict(os.environ, **unit_environment()))
     return int(out.stdout) / 1000.0
 
 
@@ -106,8 +112,12 @@ def main() -> int:
     floor = floor_rss_mb(min(args.seconds, 10.0))
     on, n_on = peak_rss_mb(True, args.seconds)
     off, _ = peak_rss_mb(False, args.seconds)
+    plain, _ = peak_rss_mb(True, args.seconds, as_unit=False)
     verdict = "met" if on <= RSS_BUDGET_MB else "missed"
-    print(f"daemon peak RSS (VmHWM), learned limits + history on: {on:.1f} MB ({n_on} processes in {args.seconds:g} s)")
+    env = " ".join(f"{k}={v}" for k, v in unit_environment().items())
+    print(f"daemon peak RSS (VmHWM), learned limits + history on, as the unit runs it ({env}): {on:.1f} MB "
+          f"({n_on} processes in {args.seconds:g} s)")
+    print(f"the same daemon under a plain interpreter: {plain:.1f} MB (the unit's environment saves {plain - on:.1f} MB)")
     print(f"baseline, the same daemon and stream with both off: {off:.1f} MB (learning + history cost {on - off:+.1f} MB)")
     print(f"baseline, the bare stack (numpy, pydantic, structlog, sqlite3, hmac, a Zenoh peer session): {floor:.1f} MB "
           f"(the daemon's own share: {on - floor:.1f} MB)")

@@ -8,7 +8,7 @@ and drops what the daemons send back (heartbeats). The feeder shares the box
 but its CPU is not counted.
 
 Each daemon is a real `millsense run` subprocess (its own config, state
-directory, Zenoh listen endpoint). After a warm-up the bench measures, over a
+directory, Zenoh listen endpoint; the environment its systemd unit gives it). After a warm-up the bench measures, over a
 window, the daemons' CPU (user + system from /proc) and asks every daemon for
 its status on its local control socket: none may have lost a sample or fallen
 behind (samples received within 2 % of the feeder's pace, the driver's queue
@@ -113,6 +113,7 @@ while s.recv(65536):
 
 def run(n: int, seconds: float) -> int:
     from tests.e2e.helpers import Procs, tcp, write_config
+    from tests.ops.unit_file import unit_environment  # the daemons as their unit runs them
 
     from millsense.daemon.pipeline.latch_store import state_dir
     from millsense.daemon.pipeline.local_control import LocalControlError, local_command
@@ -133,7 +134,7 @@ def run(n: int, seconds: float) -> int:
                 cfg = write_config(tmp / f"d{k}.toml", machine=f"m{k}",
                                    daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {ports[k]}',
                                    zenoh_listen=[tcp(free_tcp_port())], interlock="enabled = true")
-                daemons.append(procs.start(f"d{k}", ["run", "--config", str(cfg)]))
+                daemons.append(procs.start(f"d{k}", ["run", "--config", str(cfg)], env_extra=unit_environment()))
                 time.sleep(0.3)  # imports take a CPU-second each: a staggered start
             bare = subprocess.Popen([sys.executable, "-c", _BARE_RECV, str(ports[n])])
             sdirs = [state_dir(f"m{k}", {"XDG_STATE_HOME": str(tmp / "state")}) for k in range(n)]

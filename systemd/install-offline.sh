@@ -53,6 +53,10 @@ print("%d.%d %s" % (*sys.version_info[:2], tag))')
     fail "$wheelhouse has no wheel of $missing for this box (Python ${here% *}, ${here#* })${built:+; it was built for $built}. On a connected machine: systemd/wheelhouse.sh DIR --python-version ${here% *} --platform ${here#* }"
 fi
 "$venv/bin/python" -m pip install --disable-pip-version-check --no-index --no-deps --force-reinstall -q "$wheel"
+# The unit runs Python with -OO (PYTHONOPTIMIZE=2) and cannot write to the venv: its -OO bytecode is
+# compiled here, once, or every start of the daemon compiles it again in memory (docs/install.md).
+"$venv/bin/python" -OO -m compileall -q -j 0 "$("$venv/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')" >/dev/null ||
+    echo "$0: warning: compiling the -OO bytecode failed; the daemon compiles it at each start instead" >&2
 "$venv/bin/millsense" --version
 
 if [ -n "$bindir" ]; then

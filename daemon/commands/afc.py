@@ -1,9 +1,6 @@
 """`millsense afc`: switch a daemon's adaptive feed control on or off, or see its state (docs/afc.md).
 
-    millsense afc status       the controller's state, target, commanded and applied override
-    millsense afc on           hold each allowed cut at its target load through the feed override
-    millsense afc off          back to the programmed feed: the override returns to 100 % at once
-
+Its actions are listed in ACTIONS_HELP below, which `--help` prints.
 `status` reads the `status` queryable (no token), as `millsense limits list`
 reads `limits`; `on` and `off` are commands on `cmd/afc`, authorised and
 audited exactly like `millsense reset` (the challenge–response of
@@ -25,13 +22,20 @@ from millsense.daemon.publish.operator_command import OperatorCommand, Read
 
 COMMAND = OperatorCommand("millsense afc", "afc")
 PROG = COMMAND.prog
+
+# The actions as `--help` prints them (a constant, not the docstring: the service runs with -OO)
+ACTIONS_HELP = """\
+    millsense afc status       the controller's state, target, commanded and applied override
+    millsense afc on           hold each allowed cut at its target load through the feed override
+    millsense afc off          back to the programmed feed: the override returns to 100 % at once
+"""
 ACTIONS = ("on", "off", "status")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("action", choices=list(ACTIONS), help="on, off, or status")
     COMMAND.add_arguments(parser)
-    parser.epilog = __doc__.split("\n\n")[1]
+    parser.epilog = ACTIONS_HELP
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
 
 

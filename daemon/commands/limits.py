@@ -1,14 +1,6 @@
 """`millsense limits`: see and change the limits a daemon learned, per process (program/tool/operation).
 
-    millsense limits list                      every key: learning, pending or active; the tools' life and wear
-    millsense limits show KEY                  one key's envelope
-    millsense limits accept KEY                activate a learned envelope waiting for it ([learning] confirm)
-    millsense limits relearn KEY               forget it; the next good processes teach it again
-    millsense limits widen KEY --pct N         widen its band by N %
-    millsense limits narrow KEY --pct N        narrow it by N % (never below the configured floors)
-    millsense limits false-alarm KEY           the last alarm of KEY was false: widen the band where it fired
-    millsense limits new-tool TOOL             a new cutter in T<TOOL>: its life count and wear start again
-
+Its actions are listed in ACTIONS_HELP below, which `--help` prints.
 KEY is "program/tool/operation", e.g. 1234/12/3. `list` and `show` read the
 `limits` queryable (no token); the others are commands on `cmd/limits`,
 authorised and audited exactly like `millsense reset` (the challenge–response
@@ -31,6 +23,18 @@ from millsense.daemon.publish.operator_command import OperatorCommand, Read
 
 COMMAND = OperatorCommand("millsense limits", "limits")
 PROG = COMMAND.prog
+
+# The actions as `--help` prints them (a constant, not the docstring: the service runs with -OO)
+ACTIONS_HELP = """\
+    millsense limits list                      every key: learning, pending or active; the tools' life and wear
+    millsense limits show KEY                  one key's envelope
+    millsense limits accept KEY                activate a learned envelope waiting for it ([learning] confirm)
+    millsense limits relearn KEY               forget it; the next good processes teach it again
+    millsense limits widen KEY --pct N         widen its band by N %
+    millsense limits narrow KEY --pct N        narrow it by N % (never below the configured floors)
+    millsense limits false-alarm KEY           the last alarm of KEY was false: widen the band where it fired
+    millsense limits new-tool TOOL             a new cutter in T<TOOL>: its life count and wear start again
+"""
 # The CLI's words (hyphens, as the other subcommands) -> the action of cmd/limits.
 ACTIONS = {"list": "list", "show": "show", "accept": "accept", "relearn": "relearn", "widen": "widen",
            "narrow": "narrow", "false-alarm": "false_alarm", "new-tool": "new_tool"}
@@ -43,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pct", type=int, default=None, metavar="N",
                         help="widen / narrow: by how many whole percent of the band")
     COMMAND.add_arguments(parser)
-    parser.epilog = __doc__.split("\n\n")[1]
+    parser.epilog = ACTIONS_HELP
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
 
 

@@ -96,7 +96,7 @@ class Procs:
     def start(self, name: str, args: list[str], env_extra: dict[str, str] | None = None, **kw: Any) -> subprocess.Popen:
         out = open(self.tmp / f"{name}.out", "wb")  # noqa: SIM115 - closed with the process
         err = open(self.tmp / f"{name}.err", "wb")  # noqa: SIM115
-        env = dict(os.environ, PYTHONUNBUFFERED="1", **(env_extra or {}))
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env_extra or {})}
         # A daemon keeps its latch in its state directory: one started from a bench (tests set their own
         # in conftest) must not leave a held feed in the user's ~/.local/state for the next run.
         env.setdefault("XDG_STATE_HOME", str(self.tmp / "state"))

@@ -20,21 +20,12 @@ from pathlib import Path
 import pytest
 
 from tests.config.helpers import REPO
+from tests.ops.unit_file import UNIT, unit_options
 
-UNIT = REPO / "systemd" / "millsense@.service"
 SYSUSERS = REPO / "systemd" / "millsense.sysusers.conf"
 INSTALLED = "/usr/local/bin/millsense"
 SYSTEMD_ANALYZE = shutil.which("systemd-analyze")
 needs_systemd = pytest.mark.skipif(SYSTEMD_ANALYZE is None, reason="systemd-analyze not installed")
-
-
-def unit_options() -> dict[str, list[str]]:
-    opts: dict[str, list[str]] = {}
-    for line in UNIT.read_text().splitlines():
-        if "=" in line and not line.lstrip().startswith(("#", "[")):
-            k, v = line.split("=", 1)
-            opts.setdefault(k.strip(), []).append(v.strip())
-    return opts
 
 
 def local_copy(tmp_path: Path, text: str | None = None) -> Path:
@@ -58,13 +49,14 @@ def test_unit_has_the_required_settings():
     expected = {
         "Type": "notify", "NotifyAccess": "main", "WatchdogSec": "5", "Restart": "on-failure", "RestartSec": "2",
         "RestartPreventExitStatus": "78", "User": "millsense", "Group": "millsense", "SupplementaryGroups": "dialout",
-        "UMask": "0077", "Environment": "PYTHONUNBUFFERED=1", "StateDirectory": "millsense/%i", "StateDirectoryMode": "0750", "LogsDirectory": "millsense",
+        "UMask": "0077", "StateDirectory": "millsense/%i", "StateDirectoryMode": "0750", "LogsDirectory": "millsense",
         "NoNewPrivileges": "yes", "ProtectSystem": "strict", "ProtectHome": "yes", "PrivateTmp": "yes",
         "MemoryDenyWriteExecute": "yes", "SystemCallArchitectures": "native", "CapabilityBoundingSet": "",
         "AmbientCapabilities": "", "RestrictAddressFamilies": "AF_UNIX AF_INET AF_INET6 AF_NETLINK", "DevicePolicy": "closed",
     }
     for key, value in expected.items():
         assert o.get(key) == [value], key
+    assert o["Environment"] == ["PYTHONUNBUFFERED=1", "PYTHONOPTIMIZE=2"]
     assert sorted(o["DeviceAllow"]) == ["char-ttyACM rw", "char-ttyS rw", "char-ttyUSB rw"]
     assert "@system-service" in o["SystemCallFilter"]
     for key in ("ProtectKernelTunables", "ProtectKernelModules", "ProtectKernelLogs", "ProtectControlGroups", "ProtectClock",
