@@ -1,7 +1,7 @@
 """The daemon as its systemd unit runs it: with the unit's `Environment=` (PYTHONOPTIMIZE=2, Python's -OO).
 
 -OO drops docstrings and assert statements. So the service's code may neither rely on an assert nor read a
-docstring, and the daemon must do its whole job so: every transport, the history and learned limits on,
+docstring, and the daemon must do its whole job so: every DAQ transport, the history and learned limits on,
 estimates published, a clean stop, and a bad config still a clear exit 78.
 """
 
@@ -59,11 +59,15 @@ def _daq(transport: str, tmp_path, port: int) -> tuple[str, list[str]]:
     if transport == "serial":
         link = tmp_path / "daq-link"
         return f'transport = "serial"\nport = "{link}"\nbaudrate = 921600', ["--pty", str(link)]
+    if transport == "modbus-rtu":
+        link = tmp_path / "rtu-link"
+        return (f'transport = "modbus-rtu"\nport = "{link}"\nbaudrate = 921600\nunit = 1\npoll_ms = 20',
+                ["--modbus-rtu", str(link)])
     return (f'transport = "modbus-tcp"\nhost = "127.0.0.1"\ntcp_port = {port}\nunit = 1\npoll_ms = 20',
             ["--modbus-tcp", f"127.0.0.1:{port}"])
 
 
-@pytest.mark.parametrize("transport", ["tcp", "serial", "modbus-tcp"])
+@pytest.mark.parametrize("transport", ["tcp", "serial", "modbus-tcp", "modbus-rtu"])
 def test_the_daemon_runs_as_the_unit_runs_it(tmp_path, transport):
     """Learned limits and the history on (their defaults), for each transport: estimates reach a
     subscriber, the status answers, SIGTERM stops it cleanly, and no traceback."""
