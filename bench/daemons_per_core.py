@@ -8,9 +8,10 @@ and drops what the daemons send back (heartbeats). The feeder shares the box
 but its CPU is not counted.
 
 Each daemon is a real `millsense run` subprocess (its own config, state
-directory, Zenoh listen endpoint; the environment its systemd unit gives it). After a warm-up the bench measures, over a
-window, the daemons' CPU (user + system from /proc) and asks every daemon for
-its status on its local control socket: none may have lost a sample or fallen
+directory, Zenoh listen endpoint; the environment its systemd unit gives it).
+After a warm-up the bench measures, over a window, the daemons' CPU (user +
+system from /proc) and asks every daemon for its status on its local control
+socket: none may have lost a sample or fallen
 behind (samples received within 2 % of the feeder's pace, the driver's queue
 nearly empty), and the per-revolution processing latency p99 must be ≤ 5 ms.
 
