@@ -12,6 +12,8 @@ import importlib
 import os
 import sys
 
+from millsense.daemon import __version__
+
 EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
@@ -74,8 +76,6 @@ class _VersionAction(argparse.Action):
                          help="show program's version number and exit")
 
     def __call__(self, parser, namespace, values, option_string=None):
-        from millsense.daemon import __version__
-
         print(f"millsense {__version__}")  # on stdout, as argparse's own version action does
         parser.exit()
 

@@ -9,7 +9,6 @@ fails for want of a network skips, saying so.
 
 from __future__ import annotations
 
-import ast
 import os
 import re
 import shutil
@@ -20,14 +19,13 @@ from pathlib import Path
 
 import pytest
 
+from millsense.daemon import __version__
 from tests.conftest import REPO
 
 WHEELHOUSE_SH = REPO / "systemd" / "wheelhouse.sh"
 INSTALL_OFFLINE = REPO / "systemd" / "install-offline.sh"
 PROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
-# pyproject.toml's version is `dynamic`: it is millsense.daemon.__version__, read without importing
-VERSION = next(ast.literal_eval(node.value) for node in ast.parse((REPO / "daemon" / "__init__.py").read_text()).body
-               if isinstance(node, ast.Assign) and [t.id for t in node.targets] == ["__version__"])
+VERSION = __version__  # pyproject.toml's version is `dynamic`: millsense.daemon.__version__ (this checkout's)
 # Port 9 (discard): nothing answers there, so any attempt to reach an index fails.
 UNREACHABLE = "http://127.0.0.1:9"
 NETWORK_TROUBLE = re.compile(
