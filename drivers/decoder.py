@@ -43,7 +43,6 @@ from millsense.drivers.protocol import (
     Status,
     crc16_modbus,
     crc16_modbus_rows,
-    crc16_modbus_small,
 )
 
 
@@ -155,7 +154,7 @@ class StreamDecoder:
         prefix, shape, flen = self._shape  # type: ignore[misc]
         if data[:5] != prefix or data[9:11] != shape:
             return None
-        if crc16_modbus_small(data[2 : flen - 2]) != data[flen - 2] | (data[flen - 1] << 8):
+        if crc16_modbus(data[2 : flen - 2]) != data[flen - 2] | (data[flen - 1] << 8):
             return None
         c, s = shape[0], shape[1]
         counts = np.frombuffer(data, dtype="<i2", count=c * s, offset=11).reshape(s, c).astype(np.int16)

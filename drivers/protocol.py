@@ -22,6 +22,7 @@ from array import array
 from dataclasses import dataclass
 from enum import IntEnum
 
+import crcmod.predefined
 import numpy as np
 
 SYNC = b"\xa5\x5a"
@@ -201,15 +202,12 @@ CRC_TABLE2 = np.frombuffer(_T2, dtype=np.uint16)  # the same 128 KB, seen by num
 del _table2
 
 
-# The CRC is linear over GF(2): the register after a body of n bytes is the
-# register after n zero bytes (from the initial 0xFFFF) xor, for every byte b at
-# position j, the register that b alone would leave followed by n-1-j zero bytes.
-# So with a table POS[m, b] (byte b, then m zero bytes, from register 0) a body's
-# CRC is one gather and one xor-reduction: no loop over the bytes, whatever the
-# number of frames. That wins over a Python loop from ~150 bytes on (a 10-sample
-# frame of 9 channels has 189), and over the column loop below up to a few
-# thousand frames at once (measured: bench/decoder_throughput.py --crc).
-GATHER_FROM_BYTES = 160
+# Many frames at once (a replay's read, a catch-up): the CRC is linear over GF(2): the register after a
+# body of n bytes is the register after n zero bytes (from the initial 0xFFFF) xor, for every byte b at
+# position j, the register that b alone would leave followed by n-1-j zero bytes. So with a table
+# POS[m, b] (byte b, then m zero bytes, from register 0) the bodies' CRCs are one gather and one
+# xor-reduction: no loop over bytes or frames. That wins over the column loop below up to a few thousand
+# frames at once, and over a call of the compiled CRC per frame (measured: bench/decoder_throughput.py).
 GATHER_BELOW_ROWS = 2048
 _MAX_BODY = 3 + MAX_PAYLOAD
 _position = (np.empty((0, 256), np.uint16), np.empty(0, np.uint16))  # (POS, register after m zero bytes)
@@ -246,36 +244,15 @@ def _position_table(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return pos.ravel(), base, zero
 
 
+# CRC-16/MODBUS compiled (crcmod-plus: README, "Dependencies"). The reader thread checks one frame a wake-up,
+# its caches cold after 10 ms of other work: about 10 µs a 169-byte body there, against 47 µs for the
+# byte-by-byte loop in Python and 115-165 µs for a numpy gather (bench/decoder_throughput.py --crc).
+_crc16_modbus_c = crcmod.predefined.mkCrcFun("modbus")
+
+
 def crc16_modbus(data: bytes) -> int:
-    """CRC-16/MODBUS (reflected 0xA001, init 0xFFFF) of ``data``."""
-    n = len(data)
-    if n >= GATHER_FROM_BYTES:
-        flat, base, zero = _position_table(n)
-        terms = flat.take(base + np.frombuffer(data, dtype=np.uint8))
-        return int(np.bitwise_xor.reduce(terms)) ^ int(zero[n])
-    crc = 0xFFFF
-    even = n & ~1
-    if even:
-        for word in struct.unpack_from(f"<{even // 2}H", data):
-            crc = _T2[crc ^ word]
-    if n & 1:
-        crc = (crc >> 8) ^ _T1[(crc ^ data[-1]) & 0xFF]
-    return crc
-
-
-def crc16_modbus_small(data: bytes) -> int:
-    """CRC-16/MODBUS of one frame, byte by byte with the 256-entry table.
-
-    For the reader thread's one frame per wake-up (issue 13): there the caches are
-    cold, and the small table costs half of the gather or the 65536-entry word table
-    (paced every 10 ms: about 55 µs against 115–165 µs for a 169-byte body), though
-    both of those win when run back to back.
-    """
-    crc = 0xFFFF
-    table = _T1
-    for b in data:
-        crc = (crc >> 8) ^ table[(crc ^ b) & 0xFF]
-    return crc
+    """CRC-16/MODBUS (reflected 0xA001, init 0xFFFF) of ``data`` (bytes, bytearray or a memoryview)."""
+    return _crc16_modbus_c(data)
 
 
 def crc16_modbus_rows(rows: np.ndarray) -> np.ndarray:

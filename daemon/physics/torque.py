@@ -20,6 +20,7 @@ Gear ratio g = ω_motor/ω_spindle; all speeds in rad/s.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 
@@ -99,24 +100,35 @@ def select_gear(
     return int(order[fits[0]] if fits.size else order[-1])
 
 
+@functools.lru_cache(maxsize=16)
+def _gear_table(max_spindle_rpm: tuple[float, ...], ratios: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The gears' constants `select_gears` needs, once per gearbox: (order by max speed, the maxima in that
+    order, the ratios). A revolution's gear is chosen every revolution."""
+    if len(max_spindle_rpm) != len(ratios) or not ratios:
+        raise ValueError("select_gears: need one max_spindle_rpm per gear ratio, at least one gear")
+    maxima = np.asarray(max_spindle_rpm, dtype=float)
+    order = np.argsort(maxima, kind="stable")
+    table = (order, maxima[order], np.asarray(ratios, dtype=float))
+    for a in table:
+        a.flags.writeable = False   # shared between calls
+    return table
+
+
 def select_gears(spindle_rpm, max_spindle_rpm: Sequence[float], ratios: Sequence[float], motor_to_spindle_ratio=None):
     """``select_gear`` over arrays of revolutions: (R,) gear indices.
 
     Where a measured motor/spindle ratio is finite and > 0 (nan elsewhere), the gear
     nearest in log ratio; else the lowest ``max_spindle_rpm`` ≥ |rpm|, or the highest.
     """
-    if len(max_spindle_rpm) != len(ratios) or not ratios:
-        raise ValueError("select_gears: need one max_spindle_rpm per gear ratio, at least one gear")
+    order, sorted_max, ratio_arr = _gear_table(tuple(max_spindle_rpm), tuple(ratios))
     rpm = np.abs(np.atleast_1d(np.asarray(spindle_rpm, dtype=float)))
-    maxima = np.asarray(max_spindle_rpm, dtype=float)
-    order = np.argsort(maxima, kind="stable")
-    fits = maxima[order][None, :] >= rpm[:, None]
-    by_speed = np.where(fits.any(axis=1), order[fits.argmax(axis=1)], order[-1])
+    # the first gear in max-speed order whose maximum is ≥ |rpm| (a nan speed sorts past all: the highest)
+    by_speed = order[np.minimum(np.searchsorted(sorted_max, rpm), len(order) - 1)]
     if motor_to_spindle_ratio is None:
         return by_speed
     measured = np.atleast_1d(np.asarray(motor_to_spindle_ratio, dtype=float))
     ok = np.isfinite(measured) & (measured > 0)
     # clipped into a range that cannot overflow the quotient; the nearest gear in log ratio stays the same
     measured = np.clip(np.where(ok, measured, 1.0), 1e-12, 1e12)
-    distance = np.abs(np.log(np.asarray(ratios, dtype=float)[None, :] / measured[:, None]))
+    distance = np.abs(np.log(ratio_arr[None, :] / measured[:, None]))
     return np.where(ok, distance.argmin(axis=1), by_speed)

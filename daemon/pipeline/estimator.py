@@ -326,11 +326,11 @@ class Estimator:
         # sample-level air-gap power and line current for the crash trip
         both = np.empty((2, n))
         steps = self.gain_steps   # one step per revolution closed in the block
-        if len(steps) == 1:
-            np.divide(p_meas, steps[0][1], out=both[0])
-        else:   # each sample over its own step's gain: the steps spread to samples, one division
-            starts = np.fromiter((start for start, _ in steps), dtype=np.int64, count=len(steps)) - seq0
-            np.divide(p_meas, np.repeat([gain for _, gain in steps], np.diff(starts, append=n)), out=both[0])
+        # each sample over its own step's gain (a step per revolution closed: one or two in a live block)
+        for k, (start, gain) in enumerate(steps):
+            a = start - seq0
+            b = steps[k + 1][0] - seq0 if k + 1 < len(steps) else n
+            np.divide(p_meas[a:b], gain, out=both[0, a:b])
         np.abs(np.stack((i_u, i_v, i_w)), out=None).max(axis=0, out=both[1])
         p_gap, current = self._smooth.push(both, contiguous)
         # a stuck encoder reads "stopped": not believed while a speed source is among the signal problems

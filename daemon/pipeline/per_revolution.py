@@ -35,6 +35,7 @@ from millsense.daemon.physics.power import air_gap_power_w, butterworth_power_ga
 from millsense.daemon.physics.torque import (
     cutting_torque_nm,
     inertia_torque_nm,
+    select_gear,
     select_gears,
     synchronous_spindle_omega_rad_s,
     torque_sigma_nm,
@@ -206,6 +207,7 @@ class RevolutionPhysics:
         # per-gear columns, indexed by the gear of each revolution
         self._names = [g.name for g in self.gears]
         self._ratios = np.array([g.ratio for g in self.gears])
+        self._ratio_list = [g.ratio for g in self.gears]
         self._friction = np.array([g.friction_torque_nm for g in self.gears])
         self._viscous = np.array([g.viscous_nms for g in self.gears])
         self._inertia = np.array([np.nan if g.inertia_kgm2 is None else g.inertia_kgm2 for g in self.gears])
@@ -394,6 +396,8 @@ class RevolutionPhysics:
     def _gear_indices(self, c: RevolutionColumns) -> np.ndarray:
         """Gear from the motor/spindle speed ratio when measurable, else by spindle speed."""
         rpm = c.spindle_rpm
+        if len(rpm) == 1:   # the live daemon's batch: one revolution, on plain floats (the same choice)
+            return np.array([self._gear_index(c)], dtype=np.intp)
         if c.motor_rpm is not None:
             ratio = np.where(rpm > 0, c.motor_rpm / rpm, np.nan)
         elif self.pole_pairs:
@@ -402,7 +406,22 @@ class RevolutionPhysics:
             ratio = np.where(usable, (60.0 * f_e / self.pole_pairs) / rpm, np.nan)   # synchronous / spindle
         else:
             ratio = None
-        return select_gears(rpm, self._max_rpm, self._ratios.tolist(), motor_to_spindle_ratio=ratio)
+        return select_gears(rpm, self._max_rpm, self._ratio_list, motor_to_spindle_ratio=ratio)
+
+    def _gear_index(self, c: RevolutionColumns) -> int:
+        """`_gear_indices` of a one-revolution batch: `select_gear` on its floats (test_vectorised.py holds
+        `select_gears` to it), with the measured ratio clipped as `select_gears` clips it."""
+        rpm = float(c.spindle_rpm[0])
+        ratio: float | None = None
+        if c.motor_rpm is not None:
+            ratio = float(c.motor_rpm[0]) / rpm if rpm > 0 else math.nan
+        elif self.pole_pairs:
+            f_e = float(c.f_e_hz[0])
+            usable = math.isfinite(f_e) and f_e != 0.0 and rpm > 0
+            ratio = (60.0 * f_e / self.pole_pairs) / rpm if usable else math.nan
+        if ratio is not None and math.isfinite(ratio) and ratio > 0:
+            ratio = min(max(ratio, 1e-12), 1e12)
+        return select_gear(rpm, self._max_rpm, self._ratio_list, motor_to_spindle_ratio=ratio)
 
     # A spindle at a steady speed has no inertia torque, but the speed reading's rise over a revolution
     # still scatters by its quantisation (an encoder of 4096 counts read over 16 samples: steps of

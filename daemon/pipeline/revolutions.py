@@ -216,13 +216,17 @@ class RevolutionSplitter:
         k_pt = np.floor(th)
         dth = th[1:] - th[:-1]
         any_gap = bool(gap[0]) if len(gap) else False
-        all_moving = bool(mv.all())
-        if not any_gap and all_moving and k_pt[0] == k_pt[-1] and (k_pt == k_pt[0]).all() and abs(dth).max() < 1.0:
-            # the common case: no boundary, no gap, spindle turning -> one trapezoid sum
-            if self._active:
-                self._acc += 0.5 * (x[0] + x[-1]) + x[1:-1].sum(axis=0)
-                self._acc_samples += m - carry
-            return _empty(self.k)
+        span = k_pt[-1] - k_pt[0]   # whole revolutions between the block's ends: two or more go the general way
+        if not any_gap and -1.0 <= span <= 1.0 and bool(mv.all()) and np.abs(dth).max() < 1.0:   # (nan fails)
+            # the live path's blocks: no gap, spindle turning, the samples one apart
+            turns = np.flatnonzero(k_pt[1:] != k_pt[:-1])
+            if len(turns) == 0:   # no boundary -> one trapezoid sum
+                if self._active:
+                    self._acc += 0.5 * (x[0] + x[-1]) + x[1:-1].sum(axis=0)
+                    self._acc_samples += m - carry
+                return _empty(self.k)
+            if len(turns) == 1 and self._active:
+                return self._close_one(int(turns[0]), pos, th, x, m, carry, float(dth[turns[0]]), k_pt)
 
         dpos = pos[1:] - pos[:-1]
         area = 0.5 * (x[:-1] + x[1:]) * dpos[:, None]
@@ -311,6 +315,42 @@ class RevolutionSplitter:
             samples=samples[keep].astype(np.int64),
             lost=lost[keep].astype(np.int64),
             damaged=dmg[keep],
+        )
+
+    def _close_one(self, j: int, pos: np.ndarray, th: np.ndarray, x: np.ndarray, m: int, carry: int, dth_j: float,
+                   k_pt: np.ndarray) -> RevolutionBatch:
+        """`push` for a block with one boundary (between samples j and j+1), no gap, the spindle turning and a
+        revolution open: the general path's arithmetic on one crossing, in the same order, on plain floats
+        where it is one number. This is the live daemon's closing block (10-50 samples)."""
+        target = float(k_pt[j + 1]) if dth_j > 0 else float(k_pt[j])
+        alpha = min(max((target - float(th[j])) / dth_j, 0.0), 1.0)
+        cpos = float(pos[j]) + alpha * float(pos[j + 1] - pos[j])
+        at_end = cpos >= float(pos[j + 1])               # the boundary sits on sample j+1 (to rounding)
+        part = alpha * x[j] + 0.5 * (alpha * alpha) * (x[j + 1] - x[j])   # interval j up to its crossing
+        area = 0.5 * (x[:-1] + x[1:])                    # the samples are one apart: dpos = 1
+        before = area[:j].sum(axis=0) if j else np.zeros(self.k)
+        count_c = j + 1 + int(at_end)
+        closed = self._acc + before + part
+        samples = self._acc_samples + count_c - carry
+        lost, damaged, stopped, start = self._acc_lost, self._acc_damaged, self._acc_stopped, self._acc_start
+        # the revolution left open
+        self._acc = area[j:].sum(axis=0) - part
+        self._acc_samples = int(m - count_c)
+        self._acc_lost = 0
+        self._acc_damaged = False
+        self._acc_stopped = False
+        self._acc_start = cpos
+        if stopped:   # the spindle stopped inside it: not a revolution
+            self.lost_idle += int(lost)
+            return _empty(self.k)
+        return RevolutionBatch(
+            start_pos=np.array([start]),
+            end_pos=np.array([cpos]),
+            seq_end=np.array([int(float(pos[j]) + at_end)], dtype=np.int64),
+            integrals=closed[None, :],
+            samples=np.array([samples], dtype=np.int64),
+            lost=np.array([lost], dtype=np.int64),
+            damaged=np.array([bool(damaged)]),
         )
 
     def _abandon_if_stopped(self, last_moving: bool) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -171,3 +172,26 @@ def test_stopped_spindle_gives_no_revolutions_and_keeps_lost_count():
     assert len(ends) >= 14 + 13
     assert sp.lost_idle == 20 and sp.lost_total == 20
     assert sum(int(g.lost.sum()) for g in got) == 0
+
+
+@pytest.mark.parametrize("block", [10, 1000])
+def test_a_revolution_the_spindle_stopped_in_is_dropped_whatever_block_closes_it(block):
+    """The spindle dips below the stop speed for a few samples inside one revolution, then turns on: that
+    revolution is not published, the ones around it are; a gap of 3 samples while it turns counts as lost
+    in the same way. Blocks of 10 samples close it with one boundary each (the live daemon's closing
+    block: `RevolutionSplitter._close_one`); blocks of 1000 through the general path."""
+    spr = 50
+    n = 1000
+    theta = np.arange(n) / spr + 0.5            # boundaries on samples 25, 75, 125, ...
+    moving = np.ones(n, bool)
+    moving[302:306] = False                    # inside the revolution from 275 to 325
+    sp = RevolutionSplitter(1)
+    got = []
+    for a in range(0, n, block):
+        b = min(a + block, n)
+        lost = 3 if a <= 200 < b and block == 10 else 0   # 3 lost before sample 200 (10-sample blocks only)
+        got.append(sp.push(a, theta[a:b], np.ones((b - a, 1)), moving[a:b], lost_before=lost))
+    ends = np.concatenate([g.seq_end for g in got]).tolist()
+    assert ends == [e for e in range(75, n, spr) if e != 325], ends
+    lost = sum(int(g.lost.sum()) for g in got)
+    assert lost == (3 if block == 10 else 0) and sp.lost_idle == 0

@@ -190,7 +190,8 @@ def test_screen_never_passes_a_faulty_range(tmp_path: Path, seed: int, size: int
 
 # ---------------------------------------------------------------------------------- physics
 
-@given(rpm=st.lists(st.floats(-5000, 5000), min_size=1, max_size=20),
+@given(rpm=st.lists(st.one_of(st.floats(-5000, 5000), st.sampled_from([900.0, 2500.0, 4500.0, -900.0, math.nan, math.inf])),
+                   min_size=1, max_size=20),
        ratio=st.lists(st.one_of(st.floats(-2, 20, allow_subnormal=False), st.just(float("nan"))),
                       min_size=20, max_size=20))
 def test_select_gears_is_select_gear_per_revolution(rpm, ratio):
