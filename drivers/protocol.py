@@ -245,8 +245,8 @@ def _position_table(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 # CRC-16/MODBUS compiled (crcmod-plus: README, "Dependencies"). The reader thread checks one frame a wake-up,
-# its caches cold after 10 ms of other work: about 10 µs a 169-byte body there, against 47 µs for the
-# byte-by-byte loop in Python and 115-165 µs for a numpy gather (bench/decoder_throughput.py --crc).
+# its caches cold after 10 ms of other work: 9-12 µs a 189-byte body paced so, against 21-37 µs for the
+# byte-by-byte loop in Python and 62-77 µs for the numpy gather (bench/decoder_throughput.py).
 _crc16_modbus_c = crcmod.predefined.mkCrcFun("modbus")
 
 

@@ -321,7 +321,8 @@ class RevolutionSplitter:
                    k_pt: np.ndarray) -> RevolutionBatch:
         """`push` for a block with one boundary (between samples j and j+1), no gap, the spindle turning and a
         revolution open: the general path's arithmetic on one crossing, in the same order, on plain floats
-        where it is one number. This is the live daemon's closing block (10-50 samples)."""
+        where it is one number. This is the live daemon's closing block (the frames since the estimator's last
+        wake-up)."""
         target = float(k_pt[j + 1]) if dth_j > 0 else float(k_pt[j])
         alpha = min(max((target - float(th[j])) / dth_j, 0.0), 1.0)
         cpos = float(pos[j]) + alpha * float(pos[j + 1] - pos[j])
