@@ -1,9 +1,9 @@
 """Adaptive feed control with the target learned from good parts (issue 15: "or as a factor of the learned mean").
 
 A daemon with `[afc] target_factor = 1.1` and no target in its config learns
-the part program's three operations from the emulator (six parts played once,
-as fast as the daemon takes them: five make each key's envelope active), and
-keeps them in its history database. A second daemon, started on the same database,
+the part program's three operations from the emulator (played as fast as the
+daemon takes it, looping until each key's envelope is active), and keeps them
+in its history database. A second daemon, started on the same database,
 watches one part played in real time by the emulator, whose CNC follows the
 override: where the CONTEXT flag allows it (operations 10 and 20) the
 controller holds the torque at 1.1 × the learned mean over the cut, read back
@@ -63,13 +63,14 @@ def test_the_target_is_the_factor_times_the_learned_mean_of_each_operation(tmp_p
         # 1. learn: five good parts of each operation, as fast as the daemon reads them
         sub = Subscriber([tcp(z_port)], MACHINE)
         daemon = procs.start("learn", ["run", "--config", str(cfg), "--connect-timeout", "60"])
-        # Six parts once, not looping. Looping, the daemon got past the wrap before this test stopped the emulator
-        # in two CI runs of three (stop 19, once its reader got faster), and in the first part after the wrap,
-        # with the controller acting on its learned target, it went blind at a tool change (the speed channels
-        # 30 % below f_e's speed for 0.2 s) and latched a hold, so the second daemon started held. Left open:
-        # CHANGELOG, stop 19.
-        sim = procs.start("sim-learn", ["sim", "--scenario", "part-program", "--parts", "6", "--protocol", "2",
-                                        "--tcp", f"127.0.0.1:{daq_port}", "--fast", "--once", "--watchdog-ms", "1000"])
+        # Twelve parts a loop: learning is done after five or six, and the test stops the emulator long before it
+        # wraps. With six, the daemon got past the wrap before this test stopped the emulator in two CI runs of
+        # three (stop 19, once its reader got faster), and in the first part after the wrap, with the controller
+        # acting on its learned target, it went blind at a tool change (the speed channels 30 % below f_e's
+        # speed for 0.2 s) and latched a hold, so the second daemon started held (CHANGELOG, stop 19). Played
+        # once instead, a daemon that connects late misses the first parts and never learns.
+        sim = procs.start("sim-learn", ["sim", "--scenario", "part-program", "--parts", "12", "--protocol", "2",
+                                        "--tcp", f"127.0.0.1:{daq_port}", "--fast", "--loop", "--watchdog-ms", "1000"])
         wait_for(lambda: sum(k["state"] == "active" for k in _limits(cfg, "list").get("limits", [])) == 3, 120.0,
                  "three operations learned: " + procs.text("learn")[-2000:])
         _stop(sim)
