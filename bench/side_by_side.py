@@ -20,6 +20,7 @@ Run: .venv/bin/python bench/side_by_side.py [--base HEAD] [--seconds 60] [--runs
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import tarfile
@@ -57,7 +58,7 @@ def export_base(rev: str, into: Path) -> Path:
 
 def loaded_from(pythonpath: str | None) -> str:
     """Where `millsense.daemon` is imported from under that PYTHONPATH (the check that the base is the base)."""
-    env = None if pythonpath is None else {**__import__("os").environ, "PYTHONPATH": pythonpath}
+    env = None if pythonpath is None else {**os.environ, "PYTHONPATH": pythonpath}
     return subprocess.run([CMD[0], "-c", "import millsense.daemon as d; print(d.__file__)"], check=True,
                           capture_output=True, text=True, env=env).stdout.strip()
 
