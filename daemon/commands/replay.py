@@ -10,7 +10,11 @@ over the sample rate, so results are reproducible. Alarms carry
 
 A corrupt or truncated capture is decoded as far as it goes (the stream
 decoder drops bad bytes and hunts for the next sync, exactly as live); the
-counts of what was dropped go to stderr, one line, after the output.
+counts of what was dropped go to stderr, one line, after the output. After it,
+one warning line each for what the live daemon would raise: the wiring check
+(`power_check.py`), and fault `signals` where it is raised and cleared (live,
+the daemon is blind then, and holds the feed under `[interlock] on_blind =
+"hold"`).
 
 `--plot OUT.png` also draws the run (`daemon/plot.py`: rpm, torque, force,
 depths, alarms, lost-sample spans) once the input is read; stdout is the same
@@ -107,7 +111,7 @@ class Replay:
         from millsense.daemon.pipeline.power_check import PowerSignCheck
 
         self.power_check = PowerSignCheck()
-        self.warnings: list[str] = []       # what the live daemon would raise as fault `signals`
+        self.warnings: list[str] = []       # what the live daemon would raise: the wiring check, fault `signals`
         # contiguous SAMPLES runs joined into one block (seq, first index, lost before, discontinuity, parts)
         self._pending: tuple[int, int, int, bool, list] | None = None
         self._pending_n = 0
@@ -173,6 +177,14 @@ class Replay:
         counts = parts[0] if len(parts) == 1 else np.concatenate(parts)
         step = self.core.process(SampleBlock(seq, index, counts, lost, disc))
         self._write_items(step.items, lines)
+        self._note_faults(step)
+
+    def _note_faults(self, step) -> None:
+        """The faults the live daemon would raise or clear, at the sample where each was decided."""
+        for kind, seq, reason in step.fault_changes:
+            t = self._t(seq)
+            at = "?" if t is None else f"{t:.3f}"
+            self.warnings.append(f"fault {kind} from t={at} s: {reason}" if reason else f"fault {kind} cleared at t={at} s")
 
     def _write_items(self, items: list, lines: list[bytes]) -> None:
         from millsense.daemon.pipeline.alarms import alarm_payload

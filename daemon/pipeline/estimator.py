@@ -109,7 +109,8 @@ class BlockResult:
     spindle_stopped: bool = False                         # last sample below the stop speed
     current_a: np.ndarray = field(default_factory=lambda: np.empty(0))  # largest |line current|, smoothed
     clip_seq: int | None = None                           # first current sample at its ADC limit while high
-    signal_fault: str | None = None                       # fault `signals` raised (its reason), "" cleared
+    # fault `signals` raised (its reason) or cleared (""), every change in order, at the seq that decided it
+    signal_changes: list[tuple[int, str]] = field(default_factory=list)
 
 
 class _PhaseRate:
@@ -316,7 +317,7 @@ class Estimator:
         # plausibility: the revolutions closing in this block are judged with this block's samples, in the
         # same pass as the fault windows
         sp = phys[self._sp_name] if self._sp_name is not None else None
-        clip_seq, signal_fault = self.signals.push(seq0, counts, x, rpm, moving, sp, batch.start_pos, batch.seq_end)
+        clip_seq = self.signals.push(seq0, counts, x, rpm, moving, sp, batch.start_pos, batch.seq_end)
 
         # the filter gain the sample-level power is divided by, from each seq on: the one of the last revolution
         # closed before each sample (so a block's size does not move it); `_estimates` adds this block's
@@ -336,7 +337,7 @@ class Estimator:
         # a stuck encoder reads "stopped": not believed while a speed source is among the signal problems
         self._stopped = not bool(moving[-1]) and not self.signals.speed_suspect
         return BlockResult(estimates=estimates, p_gap_w=p_gap, seq=seq0, spindle_stopped=self._stopped,
-                           current_a=current, clip_seq=clip_seq, signal_fault=signal_fault)
+                           current_a=current, clip_seq=clip_seq, signal_changes=self.signals.changes)
 
     @staticmethod
     def _accelerating(spindle_rpm: np.ndarray, rise_rpm: np.ndarray, prev_rpm: np.ndarray) -> np.ndarray:

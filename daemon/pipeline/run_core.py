@@ -46,8 +46,11 @@ class Step:
     revolutions: int = 0
     # Signal plausibility (signal_check.py): fault kind ("signals") -> what is wrong, naming the
     # channel; `clear_faults`: kinds whose condition this block showed gone.
+    # A kind in both was raised and cleared within the block (a large one); `fault_changes` has every change
+    # in order: (kind, seq where decided, reason; "" cleared).
     faults: dict[str, str] = field(default_factory=dict)
     clear_faults: set[str] = field(default_factory=set)
+    fault_changes: list[tuple[str, int, str]] = field(default_factory=list)
     # Sample-level values of this block (safety_check.py), for the reset's "condition gone" test:
     # "p_gap_w" (smoothed air-gap power) and "current_a" (smoothed largest line current), block maxima.
     peaks: dict[str, float] = field(default_factory=dict)
@@ -315,10 +318,12 @@ class PipelineCore:
         step.trips.extend(crashes)  # the caller trips on these before it publishes anything
         if held:
             crashes = sorted(crashes + held, key=lambda ev: ev.seq if ev.seq is not None else 0)
-        fault = getattr(result, "signal_fault", None)
-        if fault:
-            step.faults["signals"] = fault
-        elif fault == "":
+        changes = getattr(result, "signal_changes", ())
+        for seq, reason in changes:
+            step.fault_changes.append(("signals", seq, reason))
+            if reason:
+                step.faults.setdefault("signals", reason)
+        if changes and changes[-1][1] == "":
             step.clear_faults.add("signals")
         step.spindle_stopped = bool(getattr(result, "spindle_stopped", False))
         n = len(getattr(block, "counts", ()))

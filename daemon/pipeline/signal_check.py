@@ -17,6 +17,12 @@ The checks, on raw counts and on what the estimator already computes:
   another voltage or current channel swings at least `LIVE_COUNTS`, or below
   `FLAT_REL` of the swing of its own kind's others (the three phases of a
   running motor swing alike; a disconnected sensor shows only its noise).
+  Only with evidence that the phases should have swung alike: the three of
+  the kind measured and not summing to zero (Kirchhoff: line currents and line
+  voltages always do, so a sensor reading its true share is not dead, however
+  small that share), or, with two measured, the field turned through at least
+  one electrical period. A standing current vector (the drive magnetising the
+  motor before a start, DC braking after a stop) leaves one phase near zero.
 - **Speed against the electrical frequency** (needs `[motor] pole_pairs`): the
   spindle speed (speed channel, or encoder) times a gear's ratio must be the
   synchronous speed f_e·60/pole_pairs ([P] eq. 10) within `MAX_SLIP` (an
@@ -24,7 +30,12 @@ The checks, on raw counts and on what the estimator already computes:
   brakes) plus `[signals] speed_tolerance_pct`, in some gear. With both a speed
   channel and an encoder, they must agree within `speed_tolerance_pct`.
   Checked while the spindle turns, or while f_e says it should (a dead encoder
-  reads "stopped" under a running drive).
+  reads "stopped" under a running drive). Only the samples with a voltage
+  (`MIN_VOLTAGE_V`) count, f_e and the speeds averaged over the same ones, and
+  only in a window where the drive was on for at least `ON_SHARE` of it: f_e
+  read from the noise of a drive that is off means nothing (it jumps by
+  hundreds of Hz a sample), and a window that holds a stop and a start would
+  otherwise weigh that noise against a spindle at rest.
 
 Cost: per block, the raw counts and a few per-sample columns go into a ring of
 samples (`KEEP_S` of them). The checks run on exact sample ranges: over each
@@ -68,6 +79,10 @@ SPEED_AGREE_RPM = 20.0
 MIN_VOLTAGE_V = 1.0     # space-vector amplitude below which the drive is off: f_e means nothing
 HIGH_FRAC = 0.25        # a clipped current is "high" (not stuck) if it swung this share of its range
 HIGH_WINDOW_S = 0.05    # ... within this much of samples before
+ON_SHARE = 0.5          # f_e is judged in a window where the drive was on for at least this share of it
+# Line currents and line voltages sum to zero. A dead sensor makes the sum its phase's true value (as large
+# as the others' swing while the field turns); healthy sensors leave their gain errors, a few % of it.
+KIRCHHOFF_SHARE = 0.25
 WINDOW_S = 0.2          # fault window: at least one electrical period down to f_e = 5 Hz
 EVAL_STEP_S = 0.1       # ... evaluated this often (windows overlap by half)
 RAISE_S = 0.2           # bad for this long (two evaluations in a row): fault
@@ -98,12 +113,14 @@ class SignalCheck:
         self.lo = np.full(c, -40000, dtype=np.int32)
         self.hi = np.full(c, 40000, dtype=np.int32)
         self.scale = np.ones(c)
+        signed = np.ones(c)
         for k, (name, kind) in enumerate(zip(self.names, kinds)):
             cfg = channels.get(name)
             if cfg is None or kind == ChannelKind.ENCODER:
                 continue
             self.lo[k], self.hi[k] = int(cfg.raw_min), int(cfg.raw_max)
-            self.scale[k] = abs(float(cfg.scale))
+            signed[k] = float(cfg.scale)
+            self.scale[k] = abs(signed[k])
         col = {n: k for k, n in enumerate(self.names)}
         self.v_cols = np.array([col[n] for n in roles.voltages.values()], dtype=np.intp)
         self.i_cols = np.array([col[n] for n in roles.currents.values()], dtype=np.intp)
@@ -113,6 +130,7 @@ class SignalCheck:
         nv = len(self.v_cols)
         self._groups = [range(nv), range(nv, len(self.vi_cols))]
         self._vi_scale = self.scale[self.vi_cols].tolist()
+        self._vi_signed = signed[self.vi_cols]
         self._vi_scale_arr = self.scale[self.vi_cols]
         # for each voltage/current column, the other columns of its kind (padded with the spare column)
         others = [[g for g in grp if g != j] for grp in self._groups for j in grp]
@@ -143,30 +161,34 @@ class SignalCheck:
         self._good_since: int | None = None
         self.faulted = False
         self.last_problems: dict[str, str] = {}
+        # the fault's changes decided by the last `push`, in order: (seq of the window's end, reason; "" cleared).
+        # A large block (a replay's, a live catch-up) can raise and clear it within itself.
+        self.changes: list[tuple[int, str]] = []
         # the problems and saturation of the revolutions handed to the last `push`
         self.revolution_verdicts: tuple[list[dict[str, str]], np.ndarray] = ([], np.zeros(0, dtype=bool))
 
     _RING = ("seq", "v", "sums")
+    # the columns of `sums`, summed over a range: samples, moving ones, f_e (Hz) where the drive is on, samples
+    # with the drive on, rpm of the angle source, of the speed channel, and each of these where the drive is on
+    N, MOVING, FE_ON, ON, SRC, SP, SRC_ON, SP_ON = range(8)
 
     def _alloc(self, cap: int, c: int) -> None:
-        """The ring: one row per sample. `seq` its number, `v` its raw counts, `sums` (1, moving, f_e in Hz,
-        v_sq, rpm of the angle source, rpm of the speed channel): columns that ranges are summed over."""
+        """The ring: one row per sample. `seq` its number, `v` its raw counts, `sums` the columns above."""
         self.cap = cap
         self.w = 0
         # one spare row past the capacity: `np.ufunc.reduceat` needs every range's end to be a valid index
         self.seq = np.zeros(cap + 1, dtype=np.int64)
         self.v = np.zeros((cap + 1, c), dtype=np.int32)
-        self.sums = np.zeros((cap + 1, 6))
+        self.sums = np.zeros((cap + 1, 8))
 
     # ------------------------------------------------------------------ per block
     def push(self, seq0: int, counts: np.ndarray, x: np.ndarray, rpm: np.ndarray,
              moving: np.ndarray, sp_rpm: np.ndarray | None, rev_start: np.ndarray | None = None,
-             rev_end: np.ndarray | None = None) -> tuple[int | None, str | None]:
+             rev_end: np.ndarray | None = None) -> int | None:
         """One block: raw counts (n, C), the estimator's per-sample columns `x` (n, K) (of which `fe_col`
         is f_e in Hz and `vsq_col` the squared voltage space vector), the spindle speed (rpm) of the angle
-        source, which samples turn, and the speed channel when an encoder leads. Returns (seq of its first
-        clipped current sample that was high, else None; the fault reason if the fault is raised by this
-        block, "" if cleared, else None).
+        source, which samples turn, and the speed channel when an encoder leads. Returns the seq of its first
+        clipped current sample that was high, else None; the fault's changes are left in `changes`.
 
         Each sample is a row, so a block of any size (the DAQ's frame, a replay's read, a catch-up) decides
         the fault at the same sample and judges every revolution on its own samples. The fault windows the
@@ -179,8 +201,9 @@ class SignalCheck:
         """
         n = counts.shape[0]
         self.revolution_verdicts = ([], np.zeros(0, dtype=bool))
+        self.changes = []
         if n == 0:
-            return None, None
+            return None
         self._reserve(n, seq0)
         r0 = self.w
         r1 = r0 + n
@@ -188,12 +211,16 @@ class SignalCheck:
         self.seq[r0:r1] = np.arange(seq0, seq0 + n, dtype=np.int64)
         self.v[r0:r1] = counts
         s = self.sums[r0:r1]
-        s[:, 0] = 1.0
-        s[:, 1] = moving
-        s[:, 2] = x[:, self.fe_col]
-        s[:, 3] = x[:, self.vsq_col]
-        s[:, 4] = rpm       # signed: the mean's magnitude is taken when judged
-        s[:, 5] = sp_rpm if sp_rpm is not None else 0.0
+        s[:, self.N] = 1.0
+        s[:, self.MOVING] = moving
+        on = s[:, self.ON]
+        np.greater_equal(x[:, self.vsq_col], MIN_VOLTAGE_V**2, out=on, casting="unsafe")  # NaN: off
+        np.multiply(x[:, self.fe_col], on, out=s[:, self.FE_ON])
+        s[:, self.FE_ON][on == 0] = 0.0                    # f_e of the noise may be anything, inf or NaN too
+        s[:, self.SRC] = rpm       # signed: the mean's magnitude is taken when judged
+        s[:, self.SP] = sp_rpm if sp_rpm is not None else 0.0
+        np.multiply(s[:, self.SRC], on, out=s[:, self.SRC_ON])
+        np.multiply(s[:, self.SP], on, out=s[:, self.SP_ON])
         clip_seq = None
         # rare: a current at a limit (the other channels' limits are judged with the ranges below). The
         # currents' extremes over all of them first (a column-wise min over an (n, C) block is a strided
@@ -211,7 +238,6 @@ class SignalCheck:
         ends = np.arange(nxt, last_seq + 1, self.step, dtype=np.int64)
         self._next_eval = int(ends[-1]) + self.step if len(ends) else nxt
         evals = list(zip((ends - seq0 + r0).tolist(), ends.tolist()))     # (row, its seq)
-        verdict = None
         revs = len(rev_start) if rev_start is not None else 0
         if evals or revs:
             # the fault windows and the closed revolutions' rows, screened in one pass
@@ -233,12 +259,13 @@ class SignalCheck:
             else:
                 for (_, end), f in zip(evals, windows):
                     v = self._judge(end, f)
-                    verdict = v if v is not None else verdict
+                    if v is not None:
+                        self.changes.append((end, v))
             self.revolution_verdicts = ([f[0] for f in found[len(evals):]],
                                         np.array([f[1] for f in found[len(evals):]], dtype=bool))
         else:
             self.revolution_verdicts = ([], np.zeros(0, dtype=bool))
-        return clip_seq, verdict
+        return clip_seq
 
     def _reserve(self, rows: int, seq0: int) -> None:
         """Room for `rows` more rows: drop old ones, or grow for a block larger than half the ring."""
@@ -396,20 +423,24 @@ class SignalCheck:
         """(Q,) bool: `_speed` could name a speed source. A screen: its limits are a relative 1e-9 tighter
         (and divisions are multiplied out, which moves a comparison by rounding only)."""
         tight = 1.0 - 1e-9
-        n = sums[:, 0]
-        src = np.abs(sums[:, 4] / n)
-        sp = np.abs(sums[:, 5] / n) if self.sp_name is not None else None
-        turning = sums[:, 1] == n
+        n = sums[:, self.N]
+        src = np.abs(sums[:, self.SRC] / n)
+        sp = np.abs(sums[:, self.SP] / n) if self.sp_name is not None else None
+        turning = sums[:, self.MOVING] == n
         out = np.zeros(len(n), dtype=bool)
         if self.pole_pairs:
-            fe = np.abs(sums[:, 2] / n)
-            v_ok = sums[:, 3] >= (MIN_VOLTAGE_V**2 * tight) * n
+            on_n = sums[:, self.ON]
+            per_on = 1.0 / np.maximum(on_n, 1.0)
+            fe = np.abs(sums[:, self.FE_ON] * per_on)
             implied = (fe * 60.0 / self.pole_pairs)[:, None] * self._inv_ratios      # [P] eq. 10, every gear
-            checked = v_ok & (turning | (implied.min(axis=1) >= 3.0 * STOP_RPM * tight))
+            on_enough = (on_n > 0) & (on_n >= ON_SHARE * n)
+            checked = on_enough & (turning | (implied.min(axis=1) >= 3.0 * STOP_RPM * tight))
             if checked.any():
                 band = (MAX_SLIP + self.tol) * tight * implied
                 positive = implied > 0
-                for rpm in (src, sp):
+                src_on = np.abs(sums[:, self.SRC_ON] * per_on)
+                sp_on = np.abs(sums[:, self.SP_ON] * per_on) if self.sp_name is not None else None
+                for rpm in (src_on, sp_on):
                     if rpm is not None:
                         fits = (positive & (np.abs(rpm[:, None] - implied) <= band)).any(axis=1)
                         out |= checked & ~fits
@@ -445,18 +476,19 @@ class SignalCheck:
             high = clipped & (swing >= HIGH_FRAC * (self.hi[cols] - self.lo[cols]))
             saturated = bool(high.any())
             saturated_names = {self.names[k] for k in cols[high]}
-        self._flat(mn, mx, int(n), out)
+        self._flat(a, b, mn, mx, sums, out)
         if not any(self.names[k] in out for k in self.v_cols):  # f_e from a bad voltage means nothing
             self._speed(sums, out)
         return out, saturated, saturated_names
 
-    def _flat(self, mn: np.ndarray, mx: np.ndarray, n: int, out: dict[str, str]) -> None:
+    def _flat(self, a: int, b: int, mn: np.ndarray, mx: np.ndarray, sums: np.ndarray, out: dict[str, str]) -> None:
         # six numbers at most: plain Python is cheaper than numpy here
         swing = (mx[self.vi_cols] - mn[self.vi_cols]).tolist()
         live = [w >= LIVE_COUNTS for w in swing]
         n_live = sum(live)
         if not n_live:
             return  # nothing swings: the drive is off (or everything is stuck: the clip check speaks then)
+        n = int(sums[self.N])
         phys = [w * f for w, f in zip(swing, self._vi_scale)]
         for group in self._groups:
             for j in group:
@@ -464,27 +496,43 @@ class SignalCheck:
                 others = [phys[g] for g in group if g != j and live[g]]
                 weak = bool(others) and phys[j] < FLAT_REL * max(others)         # its own kind swings more
                 name = self.names[self.vi_cols[j]]
-                if (dead or weak) and name not in out:
+                if (dead or weak) and name not in out and self._should_swing_alike(a, b, group, others, sums):
                     out[name] = (f"{name}: flat (peak-to-peak {swing[j]} counts over {n} samples) while the drive "
                                  f"runs: a stuck, dead or unplugged sensor")
 
+    def _should_swing_alike(self, a: int, b: int, group: range, others: list[float], sums: np.ndarray) -> bool:
+        """Evidence that the phases of `group` should have swung alike over rows [a, b): with all three
+        measured, they do not sum to zero (Kirchhoff); with two, the field turned through an electrical
+        period (f_e over the samples with a voltage). A kind of which nothing swings while the other kind
+        does (`others` empty: every current, or every voltage, silent) is named as before: no sum or
+        frequency can be read from it, and an unplugged sensor board looks like that."""
+        if not others:
+            return True
+        if len(group) == 3:
+            cols = self.vi_cols[group.start : group.stop]
+            total = self.v[a:b][:, cols] @ self._vi_signed[group.start : group.stop]
+            return float(total.max() - total.min()) >= KIRCHHOFF_SHARE * max(others)
+        return abs(float(sums[self.FE_ON])) / self.rate >= 1.0
+
     def _speed(self, sums: np.ndarray, out: dict[str, str]) -> None:
-        n, moving_n = sums[0], sums[1]
+        n, moving_n, on_n = sums[self.N], sums[self.MOVING], sums[self.ON]
         if n <= 0:
             return
-        fe = abs(sums[2] / n)
-        v_ok = sums[3] / n >= MIN_VOLTAGE_V**2
-        src = abs(sums[4] / n)
-        sp = abs(sums[5] / n) if self.sp_name is not None else None
+        src = abs(sums[self.SRC] / n)
+        sp = abs(sums[self.SP] / n) if self.sp_name is not None else None
         turning = moving_n == n
-        if self.pole_pairs and v_ok:
+        if self.pole_pairs and on_n > 0 and on_n >= ON_SHARE * n:
+            # f_e and the speeds over the same samples: those with a voltage
+            fe = abs(sums[self.FE_ON] / on_n)
+            src_on = abs(sums[self.SRC_ON] / on_n)
+            sp_on = abs(sums[self.SP_ON] / on_n) if self.sp_name is not None else None
             sync = fe * 60.0 / self.pole_pairs                  # synchronous motor speed, rpm ([P] eq. 10)
             implied = [(name, sync / ratio) for name, ratio in self.gears]
             should_turn = min(rpm for _, rpm in implied) >= 3.0 * STOP_RPM
             if turning or should_turn:
                 band = MAX_SLIP + self.tol
                 bad = []
-                for name, rpm in ((self.src_name, src), (self.sp_name, sp)):
+                for name, rpm in ((self.src_name, src_on), (self.sp_name, sp_on)):
                     if name is None or rpm is None:
                         continue
                     if not any(abs(rpm / imp - 1.0) <= band for _, imp in implied if imp > 0):

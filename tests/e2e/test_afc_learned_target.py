@@ -64,11 +64,10 @@ def test_the_target_is_the_factor_times_the_learned_mean_of_each_operation(tmp_p
         sub = Subscriber([tcp(z_port)], MACHINE)
         daemon = procs.start("learn", ["run", "--config", str(cfg), "--connect-timeout", "60"])
         # Twelve parts a loop: learning is done after five or six, and the test stops the emulator long before it
-        # wraps. With six, the daemon got past the wrap before this test stopped the emulator in two CI runs of
-        # three (stop 19, once its reader got faster), and in the first part after the wrap, with the controller
-        # acting on its learned target, it went blind at a tool change (the speed channels 30 % below f_e's
-        # speed for 0.2 s) and latched a hold, so the second daemon started held (CHANGELOG, stop 19). Played
-        # once instead, a daemon that connects late misses the first parts and never learns.
+        # wraps. (With six, the daemon got past the wrap in two CI runs of three at stop 19 and went blind at a
+        # tool change of the second loop, a false verdict of the signal check fixed at stop 20: CHANGELOG,
+        # tests/estimator/test_program_signals.py.) Played once instead, a daemon that connects late misses
+        # the first parts and never learns.
         sim = procs.start("sim-learn", ["sim", "--scenario", "part-program", "--parts", "12", "--protocol", "2",
                                         "--tcp", f"127.0.0.1:{daq_port}", "--fast", "--loop", "--watchdog-ms", "1000"])
         wait_for(lambda: sum(k["state"] == "active" for k in _limits(cfg, "list").get("limits", [])) == 3, 120.0,

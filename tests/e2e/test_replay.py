@@ -86,3 +86,22 @@ def test_unusable_captures_give_one_clear_error(tmp_path, capture):
     junk.write_bytes(np.random.default_rng(1).bytes(20000))
     p = subprocess.run(CMD + ["replay", str(junk), "--config", str(cfg)], capture_output=True, text=True, timeout=60)
     assert p.returncode == 1 and "no DAQ descriptor" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_a_signals_fault_is_reported_where_the_live_daemon_raises_it(capture, tmp_path):
+    """What makes the live daemon blind (fault `signals`: with `[interlock] on_blind = "hold"` it holds the
+    feed) is said on stderr, with where it was raised and cleared; a sound capture says nothing of it."""
+    _, cfg, _ = capture
+    clean, _ = _replay(capture[0], cfg)
+    assert "fault" not in clean.stderr, clean.stderr
+    cap = tmp_path / "pinned.bin"
+    sim = subprocess.run(CMD + ["sim", "--scenario", "step", "--capture", str(cap), "--duration-s", "4",
+                                "--pin", "i_u=0", "--faults-from-s", "1.5"], capture_output=True, text=True, timeout=120)
+    assert sim.returncode == 0, sim.stderr
+    p, lines = _replay(cap, cfg)
+    assert p.returncode == 0, p.stderr
+    said = re.findall(r"^millsense replay: warning: fault signals from t=([0-9.]+) s: (.*)$", p.stderr, re.M)
+    assert len(said) == 1, p.stderr
+    t, reason = float(said[0][0]), said[0][1]
+    assert 1.5 <= t <= 2.6 and reason.startswith("i_u: "), said   # raised within RAISE_S..1 s of the pin
+    assert all(x["valid"] is False for x in lines if x["type"] == "estimate" and x["t"] > 1.7)

@@ -102,8 +102,8 @@ def test_same_estimates_whatever_the_block_size(tmp_path: Path, scenario: str, m
 
 
 def _verdicts(cfg, desc, first: int, counts: np.ndarray, size: int):
-    """The estimates; each signals-fault change with the block (its last sample) that decided it; the
-    sample-level air-gap power the crash trip compares (W, one per sample)."""
+    """The estimates; each signals-fault change with the sample that decided it; the sample-level air-gap
+    power the crash trip compares (W, one per sample)."""
     est = Estimator(cfg, desc, desc.sample_rate_hz)
     out: list[dict] = []
     faults: list[tuple[str, int]] = []
@@ -113,17 +113,16 @@ def _verdicts(cfg, desc, first: int, counts: np.ndarray, size: int):
         result = est.process(SampleBlock(first + a, first + a, part, 0, False))
         out += result.estimates
         p_gap.append(np.array(result.p_gap_w))
-        if result.signal_fault is not None:
-            faults.append((result.signal_fault, first + a + len(part) - 1))
+        faults += [(reason, seq) for seq, reason in result.signal_changes]
     return out, faults, np.concatenate(p_gap)
 
 
 def test_which_revolutions_are_valid_does_not_depend_on_the_block_size(tmp_path: Path):
     """A crash saturates the currents: the revolutions holding clipped samples are invalid, whatever the
-    blocks; the signals fault is decided at the same sample (in blocks of one sample, the block that
-    holds it); and the crash trip's sample-level power is the same. Before stop 16, the check's rows started at each block's first sample, so a revolution was
-    judged with the samples of whole blocks around it: revolution 81 of this capture was valid in blocks of
-    1000 samples and invalid in blocks of 10."""
+    blocks; the signals fault is decided at the same sample; and the crash trip's sample-level power is the
+    same. Before stop 16, the check's rows started at each block's first sample, so a revolution was judged
+    with the samples of whole blocks around it: revolution 81 of this capture was valid in blocks of 1000
+    samples and invalid in blocks of 10."""
     cap, _ = simcase.capture(tmp_path, "crash")
     cfg = simcase.settings_for("crash", tmp_path, method="off")
     desc, first, counts = _samples(cap)
@@ -134,8 +133,7 @@ def test_which_revolutions_are_valid_does_not_depend_on_the_block_size(tmp_path:
         # each sample's power at the filter gain of the revolution closed before it, whatever the block
         np.testing.assert_allclose(p_gap, ref_p_gap, rtol=REL, atol=ABS, err_msg=f"blocks of {size}")
         assert_same_lines(ref, got, f"blocks of {size}")
-        decided = [(v, first + (s - first) // size * size + size - 1) for v, s in ref_faults]
-        assert faults == [(v, min(s, first + len(counts) - 1)) for v, s in decided], (size, faults, ref_faults)
+        assert faults == ref_faults, (size, faults, ref_faults)
 
 
 # ---------------------------------------------------------------------------------- the screen
