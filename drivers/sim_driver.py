@@ -132,7 +132,8 @@ class SimDriver(Driver):
             n = pacer.due(now)
             if n:
                 first, counts = self.device.produce(n)
-                out.extend(self.device.stream_items(first, counts))  # a part program's CONTEXTs in between
+                # a part program's CONTEXTs, and a STATUS where the CNC's applied override moved, in between
+                out.extend(self.device.stream_items(first, counts))
             self.device.update_cnc(now)
             context = self.device.context()
             status = self.device.status()

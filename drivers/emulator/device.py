@@ -13,7 +13,11 @@ device starts there too). The CNC answers the commanded override through its
 own lag and rate limit (``cnc_override.CncOverride``): per sample, the applied
 override goes to the plant (``source.feed_override_pct``) before it makes the
 samples, and STATUS / Modbus input register 6 report the applied one, the
-holding register 102 the commanded one.
+holding register 102 the commanded one. A stream carries a STATUS after each
+frame at whose last sample the applied override (in 0.1 %) moved, within a
+block too (``override_points``): however many samples a block holds (``--fast``
+makes a second of them at once), the host learns of a change where it happened,
+a frame late at most, as from a real DAQ.
 A part program's plant (drivers/sim/program_plant.py) is a CNC of its own: it
 sets program, tool, operation, cycle and monitor by sample index, and the
 device passes each change on with the index of the first sample it holds for.
@@ -137,6 +141,9 @@ class DeviceModel:
         if self._program_source:
             self.program, self.tool, self.operation, self.cnc_flags = source.context()
         self.context_changes: list[tuple[int, Context]] = []  # of the last produce: (offset in it, CONTEXT)
+        # of the last produce: the applied override per sample (0.1 %), and what it was before the block
+        self._override_trace: np.ndarray | None = None
+        self._override_before = self.feed_override
         self._before_first_block = True
         self.cnc_hold_lag_s = max(0.0, cnc_hold_lag_ms) / 1000.0
         self._cnc_pending: collections.deque[tuple[float, bool]] = collections.deque()
@@ -181,21 +188,47 @@ class DeviceModel:
         """The CNC steps its override through the next n samples; the plant feeds with it."""
         applied_pct = self.cnc_override.run(self.feed_override_commanded / 10.0, n)
         self.source.feed_override_pct = applied_pct  # a source without feed (the ramp) ignores it
-        tenths = min(max(int(round(float(applied_pct[-1]) * 10.0)), 0), FEED_OVERRIDE_MAX) if n else None
+        self._override_before = self.feed_override
+        self._override_trace = np.clip(np.rint(np.asarray(applied_pct, dtype=float) * 10.0), 0,
+                                       FEED_OVERRIDE_MAX).astype(np.int64)
+        tenths = int(self._override_trace[-1]) if n else None
         if tenths is not None and tenths != self.feed_override:
             self.feed_override = tenths
             self.log.write("feed_override_applied", value=tenths, index=(self.head + n - 1) % INDEX_MOD)
 
-    def stream_items(self, first: int, counts: np.ndarray) -> list:
+    def override_points(self, frame: int) -> list[tuple[int, int]]:
+        """Where STATUS frames go in the last produced block (version 2): after each run of ``frame``
+        samples at whose last sample the applied override differs from the one before; (offset of the
+        sample after it, the override in 0.1 %)."""
+        trace = self._override_trace
+        if self.protocol < 2 or trace is None or not len(trace):
+            return []
+        n = len(trace)
+        ends = np.minimum(np.arange(frame, n + frame, frame), n)
+        out, last = [], self._override_before
+        for end, tenths in zip(ends.tolist(), trace[ends - 1].tolist()):
+            if tenths != last:
+                out.append((end, tenths))
+                last = tenths
+        return out
+
+    def status_with(self, feed_override: int) -> Status:
+        """STATUS as it was when the applied override was `feed_override` (0.1 %) within the last block."""
+        return replace(self.status(), feed_override=feed_override)
+
+    def stream_items(self, first: int, counts: np.ndarray, frame: int = 10) -> list:
         """The block of the last ``produce`` as the stream carries it: ``Samples``, with each CONTEXT
-        of ``context_changes`` just before the sample it holds for (the in-process driver's frames)."""
+        of ``context_changes`` just before the sample it holds for, and a STATUS after every ``frame``
+        samples in which the applied override moved (the in-process driver's frames)."""
+        marks = sorted([(offset, 0, self.status_with(tenths)) for offset, tenths in self.override_points(frame)]
+                       + [(offset, 1, ctx) for offset, ctx in self.context_changes], key=lambda m: m[:2])
         items: list = []
         done = 0
-        for offset, ctx in self.context_changes:
+        for offset, _, item in marks:
             if offset > done:
                 items.append(Samples((first + done) % INDEX_MOD, counts[done:offset]))
                 done = offset
-            items.append(ctx)
+            items.append(item)
         if done < len(counts) or not items:
             items.append(Samples((first + done) % INDEX_MOD, counts[done:]))
         return items

@@ -137,10 +137,8 @@ class StreamServer:
                 periodic = self.emitter.periodic(now)
                 if n:
                     first, counts = self.device.produce(n)
-                    out = periodic + self.emitter.samples(first, counts, now, self.device.context_changes)
-                    if self.emitter.override_moved():  # the CNC's applied override moved: at most one per block
-                        out += self.emitter.status(now)
-                    self._send(out)
+                    # a STATUS after each frame in which the CNC's applied override moved, within the block
+                    self._send(periodic + self.emitter.block(first, counts, now))
                 else:
                     self._send(periodic)
                 if self.duration_samples is not None and self.pacer.produced >= self.duration_samples:

@@ -43,12 +43,14 @@ class WireEmitter:
         self._next_descriptor = -1.0
         self._last_garbage_time: float | None = None
         self.corrupted_frames = 0
-        # the applied override of the last STATUS sent (at start, the device's own: nothing moved yet)
-        self._status_override: int | None = device.feed_override
 
-    def override_moved(self) -> bool:
-        """Whether the applied override moved by >= 0.1 % since the last STATUS (version 2)."""
-        return self.device.protocol >= 2 and self.device.feed_override != self._status_override
+    def block(self, first_index: int, counts: np.ndarray, now: float) -> bytes:
+        """The device's last produced block on the wire: SAMPLES frames, each CONTEXT of the part program just
+        before the sample it holds for, and a STATUS after each frame in which the CNC's applied override
+        moved (version 2: the host learns of it where it happened, however large the block)."""
+        statuses = [(offset, self.device.status_with(tenths))
+                    for offset, tenths in self.device.override_points(self.per_frame)]
+        return self.samples(first_index, counts, now, self.device.context_changes, statuses)
 
     def _maybe_corrupt(self, frame: bytes, now: float, kind: str, **fields) -> bytes:
         if self.corrupt_fraction <= 0 or self.rng.random() >= self.corrupt_fraction:
@@ -74,8 +76,9 @@ class WireEmitter:
         return self._maybe_corrupt(encode_context(ctx), now, "context")
 
     def status(self, now: float) -> bytes:
-        status = self.device.status()
-        self._status_override = status.feed_override
+        return self._status_frame(self.device.status(), now)
+
+    def _status_frame(self, status, now: float) -> bytes:
         return self._maybe_corrupt(encode_status(status), now, "status")
 
     def periodic(self, now: float) -> bytes:
@@ -92,13 +95,17 @@ class WireEmitter:
                 out += self.rng.bytes(n)
         return out
 
-    def samples(self, first_index: int, counts: np.ndarray, now: float, contexts=()) -> bytes:
-        """SAMPLES frames; each (offset, Context) of ``contexts`` goes just before the sample at offset."""
-        if contexts:
+    def samples(self, first_index: int, counts: np.ndarray, now: float, contexts=(), statuses=()) -> bytes:
+        """SAMPLES frames; each (offset, Context) of ``contexts`` and (offset, Status) of ``statuses`` goes
+        just before the sample at offset (a STATUS first: it tells what held up to there)."""
+        if contexts or statuses:
+            marks = sorted([(offset, 0, st) for offset, st in statuses] + [(offset, 1, ctx) for offset, ctx in contexts],
+                           key=lambda m: m[:2])
             parts, done = [], 0
-            for offset, ctx in contexts:
+            for offset, kind, item in marks:
                 parts.append(self.samples((first_index + done) % (1 << 32), counts[done:offset], now))
-                parts.append(self._maybe_corrupt(encode_context(ctx), now, "context"))
+                parts.append(self._status_frame(item, now) if kind == 0 else
+                             self._maybe_corrupt(encode_context(item), now, "context"))
                 done = max(done, offset)
             parts.append(self.samples((first_index + done) % (1 << 32), counts[done:], now))
             return b"".join(parts)

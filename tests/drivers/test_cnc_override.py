@@ -127,6 +127,53 @@ def test_the_plants_feed_follows_the_applied_override_sample_by_sample():
     assert any(100.0 < r["feed_override_pct"] < 120.0 for r in moving)  # the lag, seen by the machine
 
 
+
+def _stream(items) -> list[tuple[int, int]]:
+    """(samples before it, its override) of each STATUS among stream items, in order."""
+    out, done = [], 0
+    for item in items:
+        if isinstance(item, Status):
+            out.append((done, item.feed_override))
+        elif hasattr(item, "counts"):
+            done += len(item.counts)
+    return out
+
+
+@pytest.mark.parametrize("per_frame", [10, 25])
+def test_a_large_block_carries_a_status_where_the_override_moved(per_frame):
+    """`--fast` makes a second of samples at once: the STATUS of the applied override goes after each frame in
+    which it moved, carrying its value at that frame's last sample, so the host learns of a change where it
+    happened (a frame late at most, as in real time), not a whole block late. On the wire and in process."""
+    from millsense.drivers.emulator.wire import WireEmitter
+    from millsense.drivers.protocol import StreamDecoder
+
+    plant = Plant("afc-step", seed=0, noise_scale=0)
+    dev = DeviceModel(plant, protocol=2, cnc_override_lag_ms=40, cnc_override_rate_pct_s=1000)
+    dev.produce(1000)
+    dev.set_feed_override(1300, now=0.0)
+    first, counts = dev.produce(1000)
+    applied = np.rint(np.asarray(plant.feed_override_pct) * 10).astype(int)  # the plant's, per sample
+    emitter = WireEmitter(dev, per_frame=per_frame)
+    wire = _stream(StreamDecoder().feed(emitter.descriptor(0.0) + emitter.block(first, counts, 0.0)))
+    in_process = _stream(dev.stream_items(first, counts, frame=per_frame))
+    for points in (wire, in_process):
+        assert len(points) > 5, points                          # it moved through the lag, frame by frame
+        assert all(k % per_frame == 0 or k == len(counts) for k, _ in points)
+        assert all(v == applied[k - 1] for k, v in points), points
+        assert points[-1][1] == 1300 and [v for _, v in points] == sorted(v for _, v in points)
+        # every frame after which the override stood elsewhere than at the last STATUS has one
+        ends = list(range(per_frame, len(counts) + 1, per_frame))
+        said = dict(points)
+        last = 1000
+        for k in ends:
+            if applied[k - 1] != last:
+                assert said.get(k) == applied[k - 1], (k, applied[k - 1])
+                last = applied[k - 1]
+    # a block in which nothing moved carries none
+    first, counts = dev.produce(1000)
+    assert _stream(dev.stream_items(first, counts)) == []
+
+
 # -- the real emulator -----------------------------------------------------------------------------
 
 class Events:

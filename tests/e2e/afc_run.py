@@ -8,8 +8,10 @@ estimate the daemon published; the plant's truth says where each depth step
 really lies. `step_outcomes()` reads one run against its steps: how many
 revolutions after the first revolution past each step the torque stays within
 ±5 % of the target, the overshoot from that revolution on, and the spread at
-the end of each level. Shared by the test (tests/e2e/test_afc_closed_loop.py)
-and the report (bench/validate_afc.py).
+the end of each level; on the daemon's estimates (what the controller sees) or,
+`truth=True`, on the plant's own revolutions (the cut's true load, what it
+holds). Shared by the test (tests/e2e/test_afc_closed_loop.py) and the report
+(bench/validate_afc.py).
 
 Estimates and truth are paired by time: the emulator's status log has the
 wall time of its first sample (`start`), the truth the plant time of each
@@ -118,7 +120,7 @@ class StepOutcome:
     allowed_revs: int            # max(5, 3 × the CNC lag in revolutions)
     overshoot: float             # beyond the target, on the side opposite the first error, / target
     final_spread: float          # max |load/target − 1| over the level's last half
-    override_pct: tuple[float, float]  # the commanded override's range over the level's last half
+    override_pct: tuple[float, float]  # the commanded override's range over the level's last half (truth: applied)
 
 
 def walls(scenario: str) -> tuple[list[tuple[float, float]], float, float, float]:
@@ -145,31 +147,44 @@ def leading_edge(loop: Loop) -> list[tuple[float, float, float]]:
     return out
 
 
-def levels(loop: Loop) -> list[tuple[float, float, float, list[dict]]]:
+def truth_rows(loop: Loop) -> list[dict]:
+    """The plant's own cutting revolutions in the estimates' keys: the cut's true torque and force, `t_plant` the
+    plant time of the revolution's end, and the override the CNC applied over it as `afc.override_pct`."""
+    return [{"t_plant": float(r["t_end_s"]), "torque_nm": float(r["torque_nm"]), "force_n": float(r["force_n"]),
+             "spindle_rpm": float(r["spindle_rpm"]), "afc": {"override_pct": float(r["feed_override_pct"])}}
+            for r in loop.truth if r.get("cutting")]
+
+
+def levels(loop: Loop, truth: bool = False) -> list[tuple[float, float, float, list[dict]]]:
     """Each depth step as the tool meets it: (x of the wall, depth beyond it, plant time of the first revolution
-    after it, the estimates of its level). The leading edge reaching the wall is the step: the load changes from
-    there (a slot's edges near the leading side take most of the chip). The first revolution after the step is
-    the first that starts with the leading edge past the wall; the level lasts until the next wall (or the part's
-    end) reaches the leading edge."""
+    after it, the estimates of its level; with `truth`, the plant's own revolutions, `truth_rows`). The leading
+    edge reaching the wall is the step: the load changes from there (a slot's edges near the leading side take
+    most of the chip). The first revolution after the step is the first that starts with the leading edge past
+    the wall; the level lasts until the next wall (or the part's end) reaches the leading edge."""
     steps, part_end, _, _ = walls(loop.scenario)
     edge = leading_edge(loop)
     bounds = [w for w, _ in steps] + [part_end]
-    est = sorted(loop.cutting(), key=lambda e: e["t"])
+    if truth:
+        rows, time_of = truth_rows(loop), (lambda r: r["t_plant"])
+    else:
+        rows, time_of = sorted(loop.cutting(), key=lambda e: e["t"]), loop.plant_time
     out = []
     for (wall, depth), until in zip(steps, bounds[1:]):
         first = next((t for t, lead0, _ in edge if lead0 >= wall), None)
         last = next((t for t, lead0, lead1 in edge if lead1 >= until), None)
         if first is None or last is None:
             continue
-        seg = [e for e in est if first - 0.5 * _rev_s(e) <= loop.plant_time(e) <= last - 0.5 * _rev_s(e)]
+        seg = [e for e in rows if first - 0.5 * _rev_s(e) <= time_of(e) <= last - 0.5 * _rev_s(e)]
         out.append((wall, depth, first, seg))
     return out
 
 
-def step_outcomes(loop: Loop, target: float, quantity: str = "torque_nm") -> list[StepOutcome]:
-    """Each level of `levels()` against the target: settle, overshoot, the spread at its end."""
+def step_outcomes(loop: Loop, target: float, quantity: str = "torque_nm", truth: bool = False) -> list[StepOutcome]:
+    """Each level of `levels()` against the target: settle, overshoot, the spread at its end. With `truth`, of
+    the cut's true load (the plant's revolutions): what the controller holds, where the estimates are what it
+    sees (they lag the cut by about a revolution where the load steps: the spindle drive's speed loop)."""
     outcomes = []
-    for wall, depth, first, seg in levels(loop):
+    for wall, depth, first, seg in levels(loop, truth):
         if len(seg) < 3:
             continue
         allowed = max(5, math.ceil(3 * CNC_LAG_MS / 1000.0 / _rev_s(seg[0])))

@@ -35,11 +35,11 @@ def _steps(tmp_path, scenario: str):
     return loop, target, outcomes
 
 
-# At 1500 rpm the torque is back within ±5 % 5–6 revolutions after the first revolution past the 2 -> 3 mm wall,
-# against the 5: the step itself builds over 3 revolutions there (the wall passes under the leading half
-# of the slot cutter) and a command reaches the cut about 2 revolutions later (the CNC's 40 ms lag, the
-# revolution's mean). That figure is measured and reported by bench/validate_afc.py (docs/validation.md), not
-# asserted here; at 600 rpm (3 revolutions) the test holds it.
+# The settle and overshoot hold for the cut's true torque (the plant's own revolutions) at 600 and 1500 rpm.
+# The daemon's estimate lags the cut by about a revolution where the load steps (the spindle drive's speed loop
+# answers the cut, not the motor's power at once): at 1500 rpm it is back within ±5 % a revolution later than the
+# cut, 6 revolutions after the first past the 2 -> 3 mm wall. Measured and reported by bench/validate_afc.py
+# (docs/validation.md); asserted here on the estimate at 600 rpm, where it settles in 3.
 SETTLE_ASSERTED = {"afc-step": True, "afc-step-1500": False}
 
 
@@ -51,6 +51,11 @@ def test_depth_steps_settle_at_the_target_without_overshoot(tmp_path, scenario):
         if SETTLE_ASSERTED[scenario]:
             assert o.settle_revs <= o.allowed_revs, (scenario, o)
         assert o.overshoot <= OVERSHOOT_MAX, (scenario, o)
+    cut = step_outcomes(loop, target, truth=True)
+    assert [round(o.level_mm, 3) for o in cut] == list(STEPS_MM), cut
+    for o in cut:  # the cut's true torque: what the controller holds
+        assert o.settle_revs is not None and o.settle_revs <= o.allowed_revs, (scenario, "truth", o)
+        assert o.overshoot <= OVERSHOOT_MAX and o.final_spread <= 0.05, (scenario, "truth", o)
     # the controller did the work: above the programmed feed where the cut is light (2 mm, before the first
     # step), below it where heavy (3 mm)
     light = [e["afc"]["override_pct"] for e in loop.cutting() if loop.plant_time(e) < outcomes[0].first_rev_t - 1.0]
