@@ -11,6 +11,8 @@ import numpy as np
 
 from millsense.drivers.protocol import (
     MAX_SAMPLES_PER_FRAME,
+    Samples,
+    Status,
     encode_context,
     encode_descriptor,
     encode_sample_frames,
@@ -45,12 +47,19 @@ class WireEmitter:
         self.corrupted_frames = 0
 
     def block(self, first_index: int, counts: np.ndarray, now: float) -> bytes:
-        """The device's last produced block on the wire: SAMPLES frames, each CONTEXT of the part program just
-        before the sample it holds for, and a STATUS after each frame in which the CNC's applied override
-        moved (version 2: the host learns of it where it happened, however large the block)."""
-        statuses = [(offset, self.device.status_with(tenths))
-                    for offset, tenths in self.device.override_points(self.per_frame)]
-        return self.samples(first_index, counts, now, self.device.context_changes, statuses)
+        """The device's last produced block on the wire, as `DeviceModel.stream_items` orders it: SAMPLES
+        frames, each CONTEXT of the part program just before the sample it holds for, and a STATUS after each
+        frame in which the CNC's applied override moved (version 2: the host learns of it where it happened,
+        however large the block)."""
+        parts = []
+        for item in self.device.stream_items(first_index, counts, frame=self.per_frame):
+            if isinstance(item, Samples):
+                parts.append(self.samples(item.first_index, item.counts, now))
+            elif isinstance(item, Status):
+                parts.append(self._status_frame(item, now))
+            else:
+                parts.append(self._maybe_corrupt(encode_context(item), now, "context"))
+        return b"".join(parts)
 
     def _maybe_corrupt(self, frame: bytes, now: float, kind: str, **fields) -> bytes:
         if self.corrupt_fraction <= 0 or self.rng.random() >= self.corrupt_fraction:
@@ -95,20 +104,8 @@ class WireEmitter:
                 out += self.rng.bytes(n)
         return out
 
-    def samples(self, first_index: int, counts: np.ndarray, now: float, contexts=(), statuses=()) -> bytes:
-        """SAMPLES frames; each (offset, Context) of ``contexts`` and (offset, Status) of ``statuses`` goes
-        just before the sample at offset (a STATUS first: it tells what held up to there)."""
-        if contexts or statuses:
-            marks = sorted([(offset, 0, st) for offset, st in statuses] + [(offset, 1, ctx) for offset, ctx in contexts],
-                           key=lambda m: m[:2])
-            parts, done = [], 0
-            for offset, kind, item in marks:
-                parts.append(self.samples((first_index + done) % (1 << 32), counts[done:offset], now))
-                parts.append(self._status_frame(item, now) if kind == 0 else
-                             self._maybe_corrupt(encode_context(item), now, "context"))
-                done = max(done, offset)
-            parts.append(self.samples((first_index + done) % (1 << 32), counts[done:], now))
-            return b"".join(parts)
+    def samples(self, first_index: int, counts: np.ndarray, now: float) -> bytes:
+        """SAMPLES frames of `per_frame` samples."""
         n = len(counts)
         if n == 0:
             return b""
