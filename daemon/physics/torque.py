@@ -91,13 +91,15 @@ def select_gear(
     """
     if len(max_spindle_rpm) != len(ratios) or not ratios:
         raise ValueError("select_gear: need one max_spindle_rpm per gear ratio, at least one gear")
+    # plain floats: this runs once a revolution in the live daemon, on a handful of gears
     if motor_to_spindle_ratio is not None and math.isfinite(motor_to_spindle_ratio) and motor_to_spindle_ratio > 0:
-        distance = np.abs(np.log(np.asarray(ratios, dtype=float) / motor_to_spindle_ratio))
-        return int(np.argmin(distance))
-    maxima = np.asarray(max_spindle_rpm, dtype=float)
-    order = np.argsort(maxima, kind="stable")
-    fits = np.nonzero(maxima[order] >= abs(spindle_rpm))[0]
-    return int(order[fits[0]] if fits.size else order[-1])
+        quotients = [float(r) / motor_to_spindle_ratio for r in ratios]
+        distance = [abs(math.log(q)) if q > 0.0 else math.inf for q in quotients]   # underflow: as numpy's -inf
+        return distance.index(min(distance))   # the first of equals, as argmin
+    maxima = [float(m) for m in max_spindle_rpm]
+    order = sorted(range(len(maxima)), key=maxima.__getitem__)   # stable
+    speed = abs(spindle_rpm)
+    return next((k for k in order if maxima[k] >= speed), order[-1])
 
 
 @functools.lru_cache(maxsize=16)

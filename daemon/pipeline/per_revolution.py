@@ -469,8 +469,10 @@ class RevolutionPhysics:
             return radial, axial, [None] * count
         status = np.where(cutting, depth_mod.OUT_OF_RANGE, depth_mod.AIR_CUT).tolist()
         todo = np.flatnonzero(cutting & (t_c > 0))
-        if len(todo) and self.method == "torque-only" and self._torque_only_many(tool, torque_nm, t_c, todo,
-                                                                                 radial, axial, status):
+        # one revolution (the live daemon's block) goes the scalar way below: numpy's pass over one
+        # element costs more than the revolution's floats (test_depth_vector holds the two forms equal)
+        if len(todo) > 1 and self.method == "torque-only" and self._torque_only_many(tool, torque_nm, t_c, todo,
+                                                                                     radial, axial, status):
             return radial, axial, status
         if len(todo):
             fx = force_x_n.tolist() if force_x_n is not None else None

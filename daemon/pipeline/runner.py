@@ -436,6 +436,7 @@ class Runner:
                 if kind == "estimate":
                     self._check.on_estimate(item, self.core.alarms.over_limits(item))
         suspect = self._newest_pinned() if self.feed.enabled else None
+        stored: list[dict] = []   # into the history once the block's estimates are out (it never waits for it)
         for kind, item in step.items:
             if kind == "estimate":
                 self._check_power(item)
@@ -448,8 +449,7 @@ class Runner:
                 self.revolutions += 1  # counted before it is out: status never lags what subscribers got
                 self.last_estimate = payload
                 self.sink.estimate(payload)
-                if self.history is not None:
-                    self.history.add_revolution(payload)
+                stored.append(payload)
                 done = time.monotonic()
                 self.latency.add(done - now)
                 self.delay.add(done - _arrival(parts, int(item.get("seq_end", last_seq)), now))
@@ -458,6 +458,9 @@ class Runner:
                 self._publish_process(item)
             else:
                 self._publish_alarm(item, interlock_by_event.get(id(item), self._held()))
+        if self.history is not None:
+            for payload in stored:
+                self.history.add_revolution(payload)
         self._after_step(step)
         if not self.ready.is_set():
             self.state = "running" if not self.faults else "degraded"

@@ -73,6 +73,12 @@ def test_select_gear_by_measured_ratio_wins_at_changeover():
         select_gear(900, [900.0], RATIOS)
 
 
+def test_select_gear_on_floats_takes_any_finite_ratio():
+    """A quotient that underflows to 0 is infinitely far in log (numpy's -inf), not a math domain error."""
+    assert select_gear(100, [900.0, 6000.0], [1e-30, 1.0], motor_to_spindle_ratio=1e300) == 1
+    assert select_gear(100, [900.0, 6000.0], [1.0, 1e-30], motor_to_spindle_ratio=1e300) == 0
+
+
 def test_inertia_torque_is_the_change_of_kinetic_energy_per_radian():
     """½J(ω1² − ω0²) over a revolution of Δt = 2π/ω̄ turned into torque: J·Δω/Δt when ω̄ is the midpoint."""
     from millsense.daemon.physics.torque import inertia_torque_nm
