@@ -7,6 +7,17 @@ scenario `step`, made once at the start) to N TCP ports, paced at 1 kHz in
 and drops what the daemons send back (heartbeats). The feeder shares the box
 but its CPU is not counted.
 
+How the DAQs' streams line up (`--clocks`, both by default, one run each):
+
+- `independent`: each DAQ starts at its own place in the capture (the N + 1
+  streams spread evenly over it) and sends on its own millisecond of the
+  10 ms frame (ten groups). Machines that run apart close their revolutions
+  at different moments, and DAQ clocks are not aligned to each other.
+- `lockstep`: every DAQ sends the same frame at the same instant, so all N
+  daemons close the same revolution within the same millisecond and queue
+  for the two cores together. No plant runs so; it is the worst case, kept
+  beside the other (before stop 21 it was the only one).
+
 Each daemon is a real `millsense run` subprocess (its own config, state
 directory, Zenoh listen endpoint; the environment its systemd unit gives it).
 After a warm-up the bench measures, over a window, the daemons' CPU (user +
@@ -20,7 +31,7 @@ implies (100 / mean); baseline in the same run: a bare blocking `recv` loop on
 one more feeder port. Budget (issue 13): ≥ 30 daemons per core, every daemon
 keeping up, latency p99 ≤ 5 ms.
 
-Run: .venv/bin/python bench/daemons_per_core.py [--daemons 30] [--seconds 20]
+Run: .venv/bin/python bench/daemons_per_core.py [--daemons 30] [--seconds 20] [--clocks independent lockstep]
 """
 
 from __future__ import annotations
@@ -41,6 +52,12 @@ sys.path.insert(0, str(REPO))
 from tests.conftest import free_tcp_port  # noqa: E402
 from tests.procstat import proc_cpu_s  # noqa: E402
 
+CLOCKS = {
+    "independent": "each DAQ at its own place in the capture and its own millisecond of the 10 ms frame, "
+                   "as machines that run apart",
+    "lockstep": "every DAQ the same frame at the same instant: every daemon closes the same revolution together "
+                "(the worst case)",
+}
 BUDGET_PER_CORE = 30
 BUDGET_P99_MS = 5.0
 PER_FRAME = 10
@@ -50,7 +67,7 @@ CAPTURE_S = 30
 # ---------------------------------------------------------------- the feeder (its own process)
 
 
-def feed(capture: str, ports: list[int]) -> None:
+def feed(capture: str, clocks: str, ports: list[int]) -> None:
     from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
     from millsense.drivers.protocol import encode_descriptor, encode_sample_frames
 
@@ -80,16 +97,27 @@ def feed(capture: str, ports: list[int]) -> None:
         for p in ports:
             await serve(p)
         print("ready", flush=True)
+        usable = len(counts) - PER_FRAME
+        if clocks == "lockstep":   # every DAQ the same frame at the same instant
+            offsets, slots = [0] * len(ports), 1
+        else:                      # each DAQ its own place in the capture and its own millisecond of the frame
+            offsets = [k * usable // len(ports) // PER_FRAME * PER_FRAME for k in range(len(ports))]
+            slots = PER_FRAME
         t0, tick = time.monotonic(), 0
         while True:
             first = tick * PER_FRAME
-            a = first % (len(counts) - PER_FRAME)
-            frame = encode_sample_frames(first, counts[a : a + PER_FRAME], PER_FRAME)
-            for writers in clients.values():
-                for w in writers:
-                    w.write(frame)
+            for slot in range(slots):
+                await asyncio.sleep(max(0.0, t0 + (first + slot) / 1000.0 - time.monotonic()))
+                frame, last = None, None
+                for k, port in enumerate(ports):
+                    if k % slots != slot or not clients[port]:
+                        continue
+                    a = (first + offsets[k]) % usable
+                    if a != last:
+                        frame, last = encode_sample_frames(first, counts[a : a + PER_FRAME], PER_FRAME), a
+                    for w in clients[port]:
+                        w.write(frame)
             tick += 1
-            await asyncio.sleep(max(0.0, t0 + tick * PER_FRAME / 1000.0 - time.monotonic()))
 
     asyncio.run(main())
 
@@ -110,7 +138,7 @@ while s.recv(65536):
 # ---------------------------------------------------------------- the bench
 
 
-def run(n: int, seconds: float) -> int:
+def run(n: int, seconds: float, clocks: str) -> int:
     from tests.e2e.helpers import Procs, tcp, write_config
     from tests.ops.unit_file import unit_environment  # the daemons as their unit runs them
 
@@ -123,7 +151,7 @@ def run(n: int, seconds: float) -> int:
                     "--capture", str(capture), "--duration-s", str(CAPTURE_S)], check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     ports = [free_tcp_port() for _ in range(n + 1)]
-    feeder = subprocess.Popen([sys.executable, __file__, "--feed", str(capture), *map(str, ports)],
+    feeder = subprocess.Popen([sys.executable, __file__, "--feed", str(capture), clocks, *map(str, ports)],
                               stdout=subprocess.PIPE, text=True)
     try:
         assert feeder.stdout.readline().strip() == "ready", "the feeder did not start"
@@ -182,7 +210,8 @@ def run(n: int, seconds: float) -> int:
             problems.append(f"m{k}: per-revolution latency p99 {p99} ms")
     mean = float(cpu_pct.mean())
     per_core = 100.0 / mean if mean > 0 else float("inf")
-    print(f"daemons per core: {n} daemons at 1 kHz, 10-sample frames over TCP, {window:.0f} s window")
+    print(f"daemons per core: {n} daemons at 1 kHz, 10-sample frames over TCP, {window:.0f} s window, "
+          f"DAQ clocks {clocks}: {CLOCKS[clocks]}")
     print(f"  daemon CPU     mean {mean:.2f} %  max {cpu_pct.max():.2f} %  total {cpu_pct.sum():.1f} % of one core"
           f"   baseline: bare recv loop {100.0 * (bare1 - bare0) / window:.2f} %")
     print(f"  daemons/core   {per_core:.1f} (100 / mean CPU)   budget >= {BUDGET_PER_CORE}")
@@ -193,14 +222,16 @@ def run(n: int, seconds: float) -> int:
 
 
 def main() -> int:
-    if len(sys.argv) > 2 and sys.argv[1] == "--feed":
-        feed(sys.argv[2], [int(p) for p in sys.argv[3:]])
+    if len(sys.argv) > 3 and sys.argv[1] == "--feed":
+        feed(sys.argv[2], sys.argv[3], [int(p) for p in sys.argv[4:]])
         return 0
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--daemons", type=int, default=30)
     ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--clocks", nargs="+", choices=sorted(CLOCKS), default=["independent", "lockstep"],
+                    help="how the DAQs' streams line up (default: both, one run each)")
     args = ap.parse_args()
-    return run(args.daemons, args.seconds)
+    return max(run(args.daemons, args.seconds, clocks) for clocks in args.clocks)
 
 
 if __name__ == "__main__":
