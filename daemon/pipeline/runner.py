@@ -437,30 +437,32 @@ class Runner:
                     self._check.on_estimate(item, self.core.alarms.over_limits(item))
         suspect = self._newest_pinned() if self.feed.enabled else None
         stored: list[dict] = []   # into the history once the block's estimates are out (it never waits for it)
-        for kind, item in step.items:
-            if kind == "estimate":
-                self._check_power(item)
-                try:
-                    self._afc_revolution(item, now, suspect)
-                except Exception as exc:  # noqa: BLE001 - the controller's error must not stop the estimates
-                    self._afc_error(exc, item)
-                t = self.clock.time_of(int(item.get("seq_end", block.seq + n - 1)))
-                payload = estimate_payload(item, self.machine, t)
-                self.revolutions += 1  # counted before it is out: status never lags what subscribers got
-                self.last_estimate = payload
-                self.sink.estimate(payload)
-                stored.append(payload)
-                done = time.monotonic()
-                self.latency.add(done - now)
-                self.delay.add(done - _arrival(parts, int(item.get("seq_end", last_seq)), now))
-                self._last_rev_mono = now
-            elif kind == "process":
-                self._publish_process(item)
-            else:
-                self._publish_alarm(item, interlock_by_event.get(id(item), self._held()))
-        if self.history is not None:
-            for payload in stored:
-                self.history.add_revolution(payload)
+        try:
+            for kind, item in step.items:
+                if kind == "estimate":
+                    self._check_power(item)
+                    try:
+                        self._afc_revolution(item, now, suspect)
+                    except Exception as exc:  # noqa: BLE001 - the controller's error must not stop the estimates
+                        self._afc_error(exc, item)
+                    t = self.clock.time_of(int(item.get("seq_end", block.seq + n - 1)))
+                    payload = estimate_payload(item, self.machine, t)
+                    self.revolutions += 1  # counted before it is out: status never lags what subscribers got
+                    self.last_estimate = payload
+                    self.sink.estimate(payload)
+                    stored.append(payload)
+                    done = time.monotonic()
+                    self.latency.add(done - now)
+                    self.delay.add(done - _arrival(parts, int(item.get("seq_end", last_seq)), now))
+                    self._last_rev_mono = now
+                elif kind == "process":
+                    self._publish_process(item)
+                else:
+                    self._publish_alarm(item, interlock_by_event.get(id(item), self._held()))
+        finally:  # what went out reaches the history, even if a later item of the block raised
+            if self.history is not None:
+                for payload in stored:
+                    self.history.add_revolution(payload)
         self._after_step(step)
         if not self.ready.is_set():
             self.state = "running" if not self.faults else "degraded"

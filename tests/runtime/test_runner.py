@@ -10,6 +10,7 @@ numbers; the real estimator runs in tests/e2e.
 
 from __future__ import annotations
 
+import sqlite3
 import threading
 import time
 from types import SimpleNamespace
@@ -17,6 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from millsense.daemon.history.store import HistoryStore
 from millsense.daemon.pipeline import runner as runner_module
 from millsense.daemon.pipeline.runner import Runner
 from millsense.daemon.pipeline.status import SeqClock
@@ -263,3 +265,41 @@ def test_test_trip_without_a_daq_confirmation_is_not_ok(rig):
     drv.device.status = lambda: real().__class__(real().outputs & ~1, real().flags, real().last_heartbeat)
     r = runner.test_trip("pytest", wait_s=0.3)
     assert r["ok"] is False and r["daq_confirm_ms"] is None and "did not show" in r["error"]
+
+
+class SinkRefusingAlarms(RecordingSink):
+    """A sink whose alarm hand-off raises: a failure the real ZenohSink's queue cannot be made to show."""
+
+    def alarm(self, payload):
+        raise RuntimeError("the sink refused the alarm")
+
+
+def test_every_published_estimate_reaches_the_history_even_when_the_block_fails_after_it(tmp_path):
+    """The history is handed a block's estimates once they are out (issue 13); an item after them that
+    raises (here the overload alarm that follows revolution 6 in its block) must not keep them out of it."""
+    path = tmp_path / "history.sqlite3"
+    store = HistoryStore(path, machine="rt-01")
+    store.start()
+    drv = SimDriver("ramp", realtime=True)
+    drv.start()
+    try:
+        assert drv.wait_connected(5)
+        wait_for(lambda: drv.descriptor is not None, 5, "descriptor")
+        est = ScriptedEstimator(lambda rev: 35.0 if rev >= 5 else 10.0)   # the overload trips at revolution 6
+        runner = Runner(settings(), drv, estimator_factory=est, check_descriptor=lambda s, d: None, history=store)
+        sink = SinkRefusingAlarms(lambda: drv.device)
+        runner.start(sink)
+        try:
+            wait_for(lambda: len(sink.of("estimate")) >= 8, 5, "revolutions past the failed alarm")
+        finally:
+            runner.stop(1.0)
+        assert drv.device.feed_hold, "the trip comes before the publication that failed"
+    finally:
+        drv.close()
+    assert store.flush(10)
+    store.close()
+    published = sorted(p["rev"] for p, _ in sink.of("estimate"))
+    assert 6 in published
+    with sqlite3.connect(path) as db:
+        stored = sorted(rev for (rev,) in db.execute("SELECT rev FROM revolutions"))
+    assert stored == published
