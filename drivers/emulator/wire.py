@@ -11,6 +11,7 @@ import numpy as np
 
 from millsense.drivers.protocol import (
     MAX_SAMPLES_PER_FRAME,
+    Context,
     Samples,
     Status,
     encode_context,
@@ -56,9 +57,9 @@ class WireEmitter:
             if isinstance(item, Samples):
                 parts.append(self.samples(item.first_index, item.counts, now))
             elif isinstance(item, Status):
-                parts.append(self._status_frame(item, now))
+                parts.append(self.status(now, item))
             else:
-                parts.append(self._maybe_corrupt(encode_context(item), now, "context"))
+                parts.append(self.context(now, item))
         return b"".join(parts)
 
     def _maybe_corrupt(self, frame: bytes, now: float, kind: str, **fields) -> bytes:
@@ -77,18 +78,16 @@ class WireEmitter:
         self._next_descriptor = now + self.descriptor_period_s
         return self._maybe_corrupt(encode_descriptor(self.device.descriptor), now, "descriptor") + self.context(now)
 
-    def context(self, now: float) -> bytes:
-        """The CNC's CONTEXT frame (version 2), b"" on version 1."""
-        ctx = self.device.context()
+    def context(self, now: float, ctx: Context | None = None) -> bytes:
+        """A CONTEXT frame: `ctx`, else the CNC's now (version 2); b"" on version 1."""
+        ctx = self.device.context() if ctx is None else ctx
         if ctx is None:
             return b""
         return self._maybe_corrupt(encode_context(ctx), now, "context")
 
-    def status(self, now: float) -> bytes:
-        return self._status_frame(self.device.status(), now)
-
-    def _status_frame(self, status, now: float) -> bytes:
-        return self._maybe_corrupt(encode_status(status), now, "status")
+    def status(self, now: float, status: Status | None = None) -> bytes:
+        """A STATUS frame: `status`, else the device's now."""
+        return self._maybe_corrupt(encode_status(self.device.status() if status is None else status), now, "status")
 
     def periodic(self, now: float) -> bytes:
         """The once-a-second descriptor when due, and garbage for the time passed."""
