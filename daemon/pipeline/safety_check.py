@@ -40,6 +40,7 @@ from __future__ import annotations
 import collections
 import math
 from dataclasses import dataclass, field
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -157,14 +158,21 @@ class FrameCheck:
     the alarm engine's: after it the check is quiet until `rearm()` (the
     operator's reset).
 
-    Why matrices: this runs 100 times a second on the thread that reads the DAQ,
-    where each numpy call costs microseconds, so a frame takes about a dozen.
-    p_in − p_cu is a quadratic form in the counts (p_in is bilinear in v and i,
-    the copper loss quadratic in i): `Σ_k (c·A)_k c_k`, A read off the physics
-    module's own functions at start (polarisation: A_jj = f(e_j),
-    A_jk = (f(e_j + e_k) − f(e_j) − f(e_k))/2), so the formula lives in one place.
-    The line currents are linear in the counts (`c·M`), and the mean over
-    `SMOOTH_SAMPLES` is one product with a banded matrix.
+    Why plain Python: this runs 100 times a second on the thread that reads the
+    DAQ, which sleeps about 10 ms between frames and comes back to a cold CPU.
+    Warm, a dozen numpy calls on a 10-sample frame and the same arithmetic on
+    Python floats cost the same (about 7 µs); after the sleep the numpy calls
+    cost about 60 µs and the floats about 23 (each numpy call is a long C path
+    of its own to bring back into the caches; the interpreter's loop is shared
+    by every thread). So the frame's arithmetic is straight-line Python,
+    compiled once per descriptor (`_frame_program`, its text in
+    `program_source`): p_in − p_cu is a quadratic form in the counts (p_in is
+    bilinear in v and i, the copper loss quadratic in i), `Σ_jk Q_jk x_j x_k`,
+    Q read off the physics module's own functions at start (polarisation:
+    Q_jj = f(e_j), Q_jk = (f(e_j + e_k) − f(e_j) − f(e_k))/2), so the formula
+    lives in one place; the line currents are linear in the counts. Only a
+    frame whose peak could cross a limit (rare) takes the means and the clip
+    test in numpy (`_crash`).
 
     Not thread-safe: one caller at a time (the runner holds its frame lock).
     Raises `ConfigError` when the configuration does not fit the descriptor.
@@ -197,15 +205,15 @@ class FrameCheck:
             return float(p_in - copper_loss_w(*i, winding, r_s))
 
         q = _quadratic_form(p_meas_w, len(names)) * np.outer(scales, scales)  # in counts
-        self._a = np.zeros((c, c))
-        self._a[np.ix_(cols, cols)] = q
-        # W = [A / gain | M]: one product gives the power's first factor and the three line currents
-        self._w = np.zeros((c, c + 3))
-        for k, key in enumerate(i_keys):
-            line = [1.0 if key == other else -1.0 if other not in i_keys else 0.0 for other in ("u", "v", "w")]
-            self._w[cols[nv + k], c:] = np.array(line) * scales[nv + k]
-        self._gain: float | None = None
-        self._c = c
+        # each line current from the measured ones (a missing third: minus the other two), A per count
+        lines = [[(nv + k, (1.0 if key == other else -1.0) * scales[nv + k]) for k, key in enumerate(i_keys)
+                  if key == other or other not in i_keys] for other in ("u", "v", "w")]
+        self._amps_per_count = np.zeros(c)   # the largest |line current| one count of each column can make
+        for line in lines:
+            for k, coef in line:
+                self._amps_per_count[cols[k]] = max(self._amps_per_count[cols[k]], abs(coef))
+        self._frame_values, self.program_source = _frame_program(
+            cols.tolist(), [float(channels[n].offset) for n in names], q, lines)
         # raw limits per column; columns that are not currents get limits no int16 reaches
         self._lo = np.full(c, -40000)
         self._hi = np.full(c, 40000)
@@ -228,12 +236,12 @@ class FrameCheck:
         self._stall = inf if self.stall_current_a is None else self.stall_current_a
         # a current sample at its sensor's limit reads at least this much: below it none can be clipped
         self._i_gate = min(self._i_limit, min((min(abs(self._lo[k] - self._offsets[k]), abs(self._hi[k] - self._offsets[k]))
-                                               * abs(self._w[k, c:]).max() for k in self._i_cols), default=inf))
+                                               * self._amps_per_count[k] for k in self._i_cols), default=inf))
         self.latched = False
         self._next_seq: int | None = None
-        self._tail = np.zeros((SMOOTH_SAMPLES - 1, 4))  # the last samples (power, |currents|), for the next mean
+        self._tail: tuple[list[float], list[float]] = ([], [])  # the last samples' power, current: the next mean's
         self._prev_peak_w = self._prev_peak_a = -inf
-        self._frame: tuple[np.ndarray, ...] | None = None
+        self._frame: tuple[list[float], list[float], list[float], list[float]] | None = None  # this frame's, tail's
         self._smooth: np.ndarray | None = None
         self._mean: dict[int, np.ndarray] = {}           # frame length -> its banded averaging matrix
 
@@ -250,27 +258,19 @@ class FrameCheck:
             return None, False
         contiguous = self._next_seq == seq0 and not lost_before and not discontinuity
         self._next_seq = seq0 + n
-        if gain != self._gain:  # a new filter gain: once per revolution at most
-            self._gain = gain
-            self._w[:, : self._c] = self._a / gain
-        x = counts - self._offsets if self._offset else counts
-        y = x @ self._w
-        z = np.empty((n, 4))                               # per sample: air-gap power, |line currents|
-        np.einsum("ij,ij->i", y[:, : self._c], x, out=z[:, 0])
-        np.abs(y[:, self._c :], out=z[:, 1:])
-        if contiguous:
-            tail = self._tail
-        else:  # after a gap the mean starts afresh, from the first sample
-            tail = np.repeat(z[:1], SMOOTH_SAMPLES - 1, axis=0)
+        power, current = self._frame_values(counts.tolist(), gain)
         w = SMOOTH_SAMPLES - 1
-        self._tail = z[-w:] if n >= w else np.concatenate((tail, z))[-w:]
-        self._frame = (z, tail)
+        if contiguous:
+            tail_p, tail_i = self._tail
+        else:  # after a gap the mean starts afresh, from the first sample
+            tail_p, tail_i = [power[0]] * w, [current[0]] * w
+        self._tail = (power[-w:], current[-w:]) if n >= w else ((tail_p + power)[-w:], (tail_i + current)[-w:])
+        self._frame = (power, current, tail_p, tail_i)
         self._smooth = None
         self._remember(counts, contiguous)
         # A mean is never above the largest of its samples (this frame's and the tail's, from the frame
         # before): below every limit there, nothing more to do: the common case. NaN is never over a limit.
-        peaks = z.max(axis=0).tolist()
-        peak_w, peak_a = peaks[0], max(peaks[1:])
+        peak_w, peak_a = max(power), max(current)
         bound_w, bound_a = (max(peak_w, self._prev_peak_w), max(peak_a, self._prev_peak_a)) if contiguous else (peak_w, peak_a)
         self._prev_peak_w, self._prev_peak_a = peak_w, peak_a
         high = bound_a > self._stall
@@ -294,12 +294,9 @@ class FrameCheck:
         if self._smooth is None:
             if self._frame is None:
                 return np.empty((0, 2))
-            z, tail = self._frame
-            both = np.concatenate((tail, z))
-            ext = np.empty((len(both), 2))
-            ext[:, 0] = both[:, 0]
-            ext[:, 1] = both[:, 1:].max(axis=1)
-            self._smooth = self._averaging(len(z)) @ ext
+            power, current, tail_p, tail_i = self._frame
+            ext = np.array([tail_p + power, tail_i + current]).T
+            self._smooth = self._averaging(len(power)) @ ext
         return self._smooth
 
     def _averaging(self, n: int) -> np.ndarray:
@@ -354,6 +351,29 @@ def _quadratic_form(f: Any, k: int) -> np.ndarray:
         for m in range(j + 1, k):
             q[j, m] = q[m, j] = 0.5 * (f(eye[j] + eye[m]) - diag[j] - diag[m])
     return q
+
+
+def _frame_program(cols: list[int], offsets: list[float], q: np.ndarray,
+                   lines: list[list[tuple[int, float]]]) -> tuple[Callable[[list, float], tuple[list, list]], str]:
+    """The frame's arithmetic as straight-line Python, compiled once: (function, its source).
+
+    `function(rows, gain)`: `rows` a frame's raw counts as lists (one per sample), `gain` the filter's
+    |H(f_e)|²; returns each sample's air-gap power, W (xᵀQx / gain, x the counts of `cols` less their
+    `offsets`), and its largest |line current|, A (each line Σ coef·x_k over `lines`). The source is made
+    of column numbers and the coefficients' exact reprs only; `program_source` shows it.
+    """
+    names = [f"x{k}" for k in range(len(cols))]
+    products = [f"{float(q[j, j] if j == m else 2.0 * q[j, m])!r} * {names[j]} * {names[m]}"
+                for j in range(len(cols)) for m in range(j, len(cols)) if q[j, m] != 0.0]
+    currents = [f"abs({' + '.join(f'{float(coef)!r} * {names[k]}' for k, coef in line)})" for line in lines if line]
+    body = [f"        {names[k]} = r[{col}]" + (f" - {float(off)!r}" if off else "") for k, (col, off) in enumerate(zip(cols, offsets))]
+    body += [f"        power.append(({' + '.join(products) or '0.0'}) / gain)",
+             f"        current.append({'max(' + ', '.join(currents) + ')' if len(currents) > 1 else currents[0] if currents else '0.0'})"]
+    source = "\n".join(["def frame_values(rows, gain):", "    power = []", "    current = []", "    for r in rows:",
+                        *body, "    return power, current", ""])
+    namespace: dict[str, Any] = {}
+    exec(compile(source, "<FrameCheck program>", "exec"), namespace)  # noqa: S102 - numbers only, see above
+    return namespace["frame_values"], source
 
 
 def _three(got: dict[str, Any], keys: tuple[str, str, str]) -> tuple[Any, ...]:
