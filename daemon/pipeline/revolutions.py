@@ -16,6 +16,14 @@ revolution's sums as that sum plus the split intervals at its two boundaries
 (never a difference of block-long running sums, which costs a sequential pass
 and loses digits). Only the partial revolution is carried between blocks.
 
+A boundary is the first crossing of its whole revolution. An angle reading
+that steps back over the boundary it crossed last and forth again (torsional
+chatter at low speed, where a sample advances the encoder a few counts; a
+noisy count) crosses that number again twice; those crossings are no
+boundaries. Before, each such wobble closed a revolution of one or two samples
+(at 600 rpm: 50 000 rpm and −127 N·m, published valid). After damage (below)
+the next crossing is a boundary whatever its number.
+
 Damage: a revolution that spans lost samples (an index gap) or a discontinuity
 is still closed at its boundary but flagged `damaged`, with its lost-sample
 count; boundaries that fall inside a gap are not trusted, so the whole span is
@@ -154,6 +162,7 @@ class RevolutionSplitter:
         self._acc_damaged = False
         self._acc_stopped = False
         self._acc_start = 0.0
+        self._last_cross: float | None = None   # the whole revolution the angle crossed last
         self._pending_lost = 0
         self._pending_disc = False
         self.lost_total = 0
@@ -226,7 +235,14 @@ class RevolutionSplitter:
                     self._acc_samples += m - carry
                 return _empty(self.k)
             if len(turns) == 1 and self._active:
-                return self._close_one(int(turns[0]), pos, th, x, m, carry, float(dth[turns[0]]), k_pt)
+                t = int(turns[0])
+                dth_t = float(dth[t])
+                if (float(k_pt[t + 1]) if dth_t > 0 else float(k_pt[t])) != self._last_cross:
+                    return self._close_one(t, pos, th, x, m, carry, dth_t, k_pt)
+                # the angle went back over the boundary it crossed last and forth again: no boundary here
+                self._acc += 0.5 * (x[0] + x[-1]) + x[1:-1].sum(axis=0)
+                self._acc_samples += m - carry
+                return _empty(self.k)
 
         dpos = pos[1:] - pos[:-1]
         area = 0.5 * (x[:-1] + x[1:]) * dpos[:, None]
@@ -245,6 +261,8 @@ class RevolutionSplitter:
         cum_stop = np.concatenate([[0], np.cumsum(stop_i)])
 
         j = np.flatnonzero(cross)
+        if len(j):
+            j = self._first_crossings(j, np.where(dth[j] > 0, k_right[j], k_left[j]), cum_dmg)
         if len(j) == 0:
             if self._active:
                 self._acc += area.sum(axis=0)
@@ -254,10 +272,13 @@ class RevolutionSplitter:
                 self._acc_stopped |= bool(cum_stop[-1])
             else:
                 self.lost_idle += int(cum_lost[-1])
+            if cum_dmg[-1]:
+                self._last_cross = None   # the angle across the damage is not trusted: the next crossing counts
             self._abandon_if_stopped(mv[-1])
             return _empty(self.k)
 
         target = np.where(dth[j] > 0, k_right[j], k_left[j])
+        self._last_cross = float(target[-1])
         alpha = np.clip((target - th[j]) / dth[j], 0.0, 1.0)
         cpos = pos[j] + alpha * dpos[j]
         at_end = cpos >= pos[j + 1]                      # the boundary sits on sample j+1 (to rounding)
@@ -303,6 +324,8 @@ class RevolutionSplitter:
         self._acc_damaged = bool(cum_dmg[-1] - cum_dmg[jl + 1])
         self._acc_stopped = bool(cum_stop[-1] - cum_stop[jl])
         self._acc_start = float(cpos[-1])
+        if cum_dmg[-1] > cum_dmg[jl + 1]:
+            self._last_cross = None
         self._abandon_if_stopped(mv[-1])
 
         keep = ~stp
@@ -324,6 +347,7 @@ class RevolutionSplitter:
         where it is one number. This is the live daemon's closing block (the frames since the estimator's last
         wake-up)."""
         target = float(k_pt[j + 1]) if dth_j > 0 else float(k_pt[j])
+        self._last_cross = target
         alpha = min(max((target - float(th[j])) / dth_j, 0.0), 1.0)
         cpos = float(pos[j]) + alpha * float(pos[j + 1] - pos[j])
         at_end = cpos >= float(pos[j + 1])               # the boundary sits on sample j+1 (to rounding)
@@ -353,6 +377,21 @@ class RevolutionSplitter:
             lost=np.array([lost], dtype=np.int64),
             damaged=np.array([bool(damaged)]),
         )
+
+    def _first_crossings(self, j: np.ndarray, crossed: np.ndarray, cum_dmg: np.ndarray) -> np.ndarray:
+        """The crossings `j` (interval indices) that are boundaries: of the whole revolutions `crossed`, each
+        the first crossing of its number. An angle that steps back over the boundary it crossed last and forth
+        again (torsional chatter at low speed, a noisy encoder count) crosses the same number two more times:
+        those are no boundaries, or each wobble would close a revolution of a sample or two. A damaged
+        interval in between (a gap, an impossible step) makes the next crossing a boundary again: the angle
+        across it is not trusted."""
+        before = np.empty(len(j))
+        before[0] = np.nan if self._last_cross is None else self._last_cross
+        before[1:] = crossed[:-1]
+        damaged = np.empty(len(j), dtype=bool)
+        damaged[0] = cum_dmg[j[0]] > 0
+        damaged[1:] = cum_dmg[j[1:]] > cum_dmg[j[:-1] + 1]
+        return j[(crossed != before) | damaged]
 
     def _abandon_if_stopped(self, last_moving: bool) -> None:
         """A spindle that has stopped ends the open revolution: nothing to publish."""

@@ -75,6 +75,25 @@ def test_two_wattmeter_form_with_two_currents_and_two_voltages(tmp_path):
     assert np.all(np.abs(torque - truth) < 0.002 * abs(truth) + 0.01)
 
 
+def test_an_encoder_count_that_steps_back_at_a_boundary_adds_no_revolutions(tmp_path):
+    """The encoder's count wobbling by more than a sample's advance (chatter, a noisy count): each
+    revolution is still closed once, at 600 rpm and its torque. Before, each wobble across a boundary
+    published one- and two-sample revolutions as valid (50 000 rpm, -127 N·m)."""
+    m = Machine()
+    raw = synthetic.counts(m, 6000)
+    enc = [k for k, (_, name) in enumerate(synthetic.CHANNELS) if name == "sp_enc"][0]
+    wobble = np.random.default_rng(11).integers(-60, 61, size=len(raw))   # a sample advances 41 counts
+    raw[:, enc] = (raw[:, enc].astype(np.int64) + wobble).astype(np.int16)   # wraps as the DAQ's int16 does
+    est = Estimator(configs.load(tmp_path), synthetic.descriptor(), 1000)
+    out = _run(est, _blocks(raw))
+    assert 55 <= len(out) <= 61   # 6 s at 10 revolutions a second
+    assert min(e["samples"] for e in out) >= 97
+    good = [e for e in out if e["valid"]][2:]
+    np.testing.assert_allclose([e["spindle_rpm"] for e in good], 600.0, rtol=0.04)
+    truth = m.torque_nm(2.6629, 0.04)
+    assert np.all(np.abs(np.array([e["torque_nm"] for e in good]) - truth) < 0.01 * truth)
+
+
 def test_without_pole_pairs_the_slip_biases_torque_as_expected(tmp_path):
     """Without pole pairs, P_g/ω_sp over-states T_e·g by 1/(1 - s): the reason to configure them."""
     m = Machine(slip=0.04)
