@@ -60,6 +60,7 @@ the revolution to close (`safety_check.py`).
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -88,6 +89,10 @@ ACCEL_RISE_MIN_RPM = 2.0           # but never less than this (steady cutting re
                                    # most 1.8: the encoder's resolution over its 16-sample window)
 ACCEL_STEP_PCT = 0.5               # ... or over the revolution before (steady cutting: < 0.08 % in
                                    # every simulated scenario)
+# An angle step between two samples faster than this many times the fastest gear's top speed is a jump of
+# the reading (an encoder count or a speed sample gone wild for a sample), not a turn: it would move a
+# boundary by up to half a revolution (a revolution of 50 samples at "1200 rpm" next to one of 150 at 600).
+MAX_STEP_FACTOR = 2.0
 P_GAP_SMOOTH_SAMPLES = 5           # moving average of the sample-level air-gap power and line current
 
 NULL_FIELDS = (
@@ -215,7 +220,8 @@ class Estimator:
             if force_magnitude:
                 cols.append("f_mag")
         self._cols = {c: k for k, c in enumerate(cols)}
-        self.splitter = RevolutionSplitter(len(cols))
+        fastest_rpm = max((float(g.max_spindle_rpm) for g in settings.gears), default=math.inf)
+        self.splitter = RevolutionSplitter(len(cols), MAX_STEP_FACTOR * fastest_rpm / 60.0 / self.sample_rate_hz)
         self._feed_channel = feed_force[0] if feed_force else None
         self._phase = _PhaseRate(self.sample_rate_hz)
         self._fe_recent: deque[tuple[float, float]] = deque(maxlen=64)   # (f_e integral, duration)
@@ -383,8 +389,10 @@ class Estimator:
         overrides = track.means([e - max(n, 1) + 1 for e, n in zip(seq_end, samples)], seq_end)
         if seq_end:
             track.forget_before(seq_end[-1])   # the next revolution starts after this sample
-        invalid = ["lost_samples" if dmg else "signals" if prob or s else None
-                   for dmg, prob, s in zip(batch.damaged.tolist(), problems, sat)]
+        # damage from lost samples, a gap or a restart: "lost_samples"; only an impossible angle step: "signals"
+        invalid = ["lost_samples" if dmg and (n_lost or not jmp) else "signals" if dmg or prob or s else None
+                   for dmg, jmp, n_lost, prob, s in zip(batch.damaged.tolist(), batch.jumped.tolist(), lost,
+                                                       problems, sat)]
         c = self._cols
         duration = batch.end_pos - batch.start_pos
         mean = batch.integrals / duration[:, None]

@@ -22,7 +22,10 @@ chatter at low speed, where a sample advances the encoder a few counts; a
 noisy count) crosses that number again twice; those crossings are no
 boundaries. Before, each such wobble closed a revolution of one or two samples
 (at 600 rpm: 50 000 rpm and −127 N·m, published valid). After damage (below)
-the next crossing is a boundary whatever its number.
+the next crossing is a boundary whatever its number. An angle step between two
+samples of `max_step_rev` or more (the estimator's: twice the fastest gear's
+top speed) is a jump of the reading, not a turn: it damages its revolution
+(`jumped`), where it would otherwise move a boundary by up to half a revolution.
 
 Damage: a revolution that spans lost samples (an index gap) or a discontinuity
 is still closed at its boundary but flagged `damaged`, with its lost-sample
@@ -123,6 +126,7 @@ class RevolutionBatch:
     samples: np.ndarray     # (R,) int64: samples received inside the revolution
     lost: np.ndarray        # (R,) int64: samples lost inside the revolution
     damaged: np.ndarray     # (R,) bool: spans a gap, a discontinuity or an impossible angle step
+    jumped: np.ndarray      # (R,) bool: of its damage, an angle step faster than the spindle can turn
 
     def __len__(self) -> int:
         return len(self.end_pos)
@@ -140,7 +144,7 @@ class RevolutionBatch:
 def _empty(k: int) -> RevolutionBatch:
     z = np.empty(0)
     zi = np.empty(0, dtype=np.int64)
-    return RevolutionBatch(z, z, zi, np.empty((0, k)), zi, zi, np.empty(0, dtype=bool))
+    return RevolutionBatch(z, z, zi, np.empty((0, k)), zi, zi, np.empty(0, dtype=bool), np.empty(0, dtype=bool))
 
 
 class RevolutionSplitter:
@@ -150,16 +154,22 @@ class RevolutionSplitter:
     continuous spindle angle in revolutions, `values` an (n, K) array of the
     quantities to integrate, `moving` which samples turn faster than the stop
     speed. It returns the revolutions that closed in this block.
+
+    `max_step_rev`: the largest angle step between two samples that is believed (the estimator gives twice
+    the fastest gear's top speed); a larger one is a jump of the reading, not a turn of the spindle, and
+    damages its revolution (`jumped`).
     """
 
-    def __init__(self, n_quantities: int):
+    def __init__(self, n_quantities: int, max_step_rev: float = 1.0):
         self.k = int(n_quantities)
+        self.max_step_rev = min(1.0, float(max_step_rev))
         self._last: tuple[float, float, np.ndarray, bool] | None = None
         self._active = False            # a revolution is open (its start boundary seen)
         self._acc = np.zeros(self.k)
         self._acc_samples = 0
         self._acc_lost = 0
         self._acc_damaged = False
+        self._acc_jumped = False
         self._acc_stopped = False
         self._acc_start = 0.0
         self._last_cross: float | None = None   # the whole revolution the angle crossed last
@@ -226,7 +236,7 @@ class RevolutionSplitter:
         dth = th[1:] - th[:-1]
         any_gap = bool(gap[0]) if len(gap) else False
         span = k_pt[-1] - k_pt[0]   # whole revolutions between the block's ends: two or more go the general way
-        if not any_gap and -1.0 <= span <= 1.0 and bool(mv.all()) and np.abs(dth).max() < 1.0:   # (nan fails)
+        if not any_gap and -1.0 <= span <= 1.0 and bool(mv.all()) and np.abs(dth).max() < self.max_step_rev:   # (nan fails)
             # the live path's blocks: no gap, spindle turning, the samples one apart
             turns = np.flatnonzero(k_pt[1:] != k_pt[:-1])
             if len(turns) == 0:   # no boundary -> one trapezoid sum
@@ -250,12 +260,13 @@ class RevolutionSplitter:
             area[0] = 0.0                                 # no data inside a gap
         k_left = k_pt[:-1]
         k_right = k_pt[1:]
-        insane = ~np.isfinite(dth) | (np.abs(dth) >= 1.0)
+        insane = ~np.isfinite(dth) | (np.abs(dth) >= self.max_step_rev)
         damage_i = gap | insane
         cross = (k_left != k_right) & ~damage_i
         stop_i = ~(mv[:-1] & mv[1:])
 
         cum_dmg = np.concatenate([[0], np.cumsum(damage_i)])
+        cum_jump = np.concatenate([[0], np.cumsum(insane)])
         cum_lost = np.zeros(m, dtype=np.int64)           # lost samples sit before the block's first sample
         cum_lost[1:] = lost_i[0] if len(lost_i) else 0
         cum_stop = np.concatenate([[0], np.cumsum(stop_i)])
@@ -269,6 +280,7 @@ class RevolutionSplitter:
                 self._acc_samples += m - carry
                 self._acc_lost += int(cum_lost[-1])
                 self._acc_damaged |= bool(cum_dmg[-1])
+                self._acc_jumped |= bool(cum_jump[-1])
                 self._acc_stopped |= bool(cum_stop[-1])
             else:
                 self.lost_idle += int(cum_lost[-1])
@@ -297,6 +309,7 @@ class RevolutionSplitter:
         samples = count_c[1:] - count_c[:-1]
         lost = cum_lost[j[1:] + 1] - cum_lost[j[:-1]]
         dmg = (cum_dmg[j[1:] + 1] - cum_dmg[j[:-1]]) > 0
+        jmp = (cum_jump[j[1:] + 1] - cum_jump[j[:-1]]) > 0
         stp = (cum_stop[j[1:] + 1] - cum_stop[j[:-1]]) > 0
         start = cpos[:-1]
         end = cpos[1:]
@@ -308,6 +321,7 @@ class RevolutionSplitter:
             samples = np.concatenate([[self._acc_samples + count_c[0] - carry], samples])
             lost = np.concatenate([[self._acc_lost + cum_lost[j0 + 1]], lost])
             dmg = np.concatenate([[self._acc_damaged or cum_dmg[j0 + 1] > 0], dmg])
+            jmp = np.concatenate([[self._acc_jumped or cum_jump[j0 + 1] > 0], jmp])
             stp = np.concatenate([[self._acc_stopped or cum_stop[j0 + 1] > 0], stp])
             start = np.concatenate([[self._acc_start], start])
             end = np.concatenate([[cpos[0]], end])
@@ -322,6 +336,7 @@ class RevolutionSplitter:
         self._acc_samples = int(m - count_c[-1])
         self._acc_lost = int(cum_lost[-1] - cum_lost[jl + 1])
         self._acc_damaged = bool(cum_dmg[-1] - cum_dmg[jl + 1])
+        self._acc_jumped = bool(cum_jump[-1] - cum_jump[jl + 1])
         self._acc_stopped = bool(cum_stop[-1] - cum_stop[jl])
         self._acc_start = float(cpos[-1])
         if cum_dmg[-1] > cum_dmg[jl + 1]:
@@ -338,6 +353,7 @@ class RevolutionSplitter:
             samples=samples[keep].astype(np.int64),
             lost=lost[keep].astype(np.int64),
             damaged=dmg[keep],
+            jumped=jmp[keep],
         )
 
     def _close_one(self, j: int, pos: np.ndarray, th: np.ndarray, x: np.ndarray, m: int, carry: int, dth_j: float,
@@ -358,11 +374,13 @@ class RevolutionSplitter:
         closed = self._acc + before + part
         samples = self._acc_samples + count_c - carry
         lost, damaged, stopped, start = self._acc_lost, self._acc_damaged, self._acc_stopped, self._acc_start
+        jumped = self._acc_jumped
         # the revolution left open
         self._acc = area[j:].sum(axis=0) - part
         self._acc_samples = int(m - count_c)
         self._acc_lost = 0
         self._acc_damaged = False
+        self._acc_jumped = False
         self._acc_stopped = False
         self._acc_start = cpos
         if stopped:   # the spindle stopped inside it: not a revolution
@@ -376,6 +394,7 @@ class RevolutionSplitter:
             samples=np.array([samples], dtype=np.int64),
             lost=np.array([lost], dtype=np.int64),
             damaged=np.array([bool(damaged)]),
+            jumped=np.array([bool(jumped)]),
         )
 
     def _first_crossings(self, j: np.ndarray, crossed: np.ndarray, cum_dmg: np.ndarray) -> np.ndarray:

@@ -94,6 +94,28 @@ def test_an_encoder_count_that_steps_back_at_a_boundary_adds_no_revolutions(tmp_
     assert np.all(np.abs(np.array([e["torque_nm"] for e in good]) - truth) < 0.01 * truth)
 
 
+@pytest.mark.parametrize("jump_counts", [2048, -2048, 700])
+def test_an_encoder_count_that_jumps_for_one_sample_invalidates_its_revolution(tmp_path, jump_counts):
+    """One sample of the encoder's count far off (a glitch on its lines): the angle steps faster than any
+    gear turns the spindle. Before, the boundary moved to the glitch and a 50-sample revolution at
+    "1200 rpm" and a 150-sample one at "400 rpm" were published valid; now the revolution that holds it is
+    invalid ("signals": no sample was lost) and every valid one is 600 rpm."""
+    m = Machine()
+    raw = synthetic.counts(m, 3000)
+    enc = [k for k, (_, name) in enumerate(synthetic.CHANNELS) if name == "sp_enc"][0]
+    glitches = (1450, 2170)   # half a revolution before a boundary, and a third of one
+    for g in glitches:
+        raw[g, enc] = np.int16((int(raw[g, enc]) + jump_counts + 32768) % 65536 - 32768)
+    est = Estimator(configs.load(tmp_path), synthetic.descriptor(), 1000)
+    out = _run(est, _blocks(raw))
+    bad = [e for e in out if not e["valid"]]
+    assert [e["invalid"] for e in bad] == ["signals", "signals"]
+    assert [e["seq_end"] - e["samples"] < g <= e["seq_end"] for e, g in zip(bad, glitches)] == [True, True]
+    assert all(e["lost_samples"] == 0 for e in out)
+    good = [e for e in out if e["valid"]][2:]
+    np.testing.assert_allclose([e["spindle_rpm"] for e in good], 600.0, rtol=1 / 4096 * 10)
+
+
 def test_without_pole_pairs_the_slip_biases_torque_as_expected(tmp_path):
     """Without pole pairs, P_g/ω_sp over-states T_e·g by 1/(1 - s): the reason to configure them."""
     m = Machine(slip=0.04)
