@@ -97,6 +97,10 @@ PIN_SAMPLES = 5
 PIN_COUNTS = 2
 KEEP_S = 2.5            # rows kept: the longest revolution (at STOP_RPM, 2 s) and some
 MIN_ROWS = 512
+# Ranges up to this many are checked one by one by the exact check instead of the batched screen: on the live
+# closing block (a fault window and a revolution) that is fewer numpy calls, each of which costs several times
+# more after the estimator thread's sleep (bench/idle_penalty.py). The screen only filters: the same verdicts.
+EXACT_BELOW = 2
 
 
 class SignalCheck:
@@ -132,6 +136,9 @@ class SignalCheck:
         self._vi_scale = self.scale[self.vi_cols].tolist()
         self._vi_signed = signed[self.vi_cols]
         self._vi_scale_arr = self.scale[self.vi_cols]
+        # the same as plain Python numbers, for the checks of one range (`_problems`)
+        self._lo_l, self._hi_l, self._vi_l = self.lo.tolist(), self.hi.tolist(), self.vi_cols.tolist()
+        self._v_names = [self.names[k] for k in self.v_cols.tolist()]
         # for each voltage/current column, the other columns of its kind (padded with the spare column)
         others = [[g for g in grp if g != j] for grp in self._groups for j in grp]
         width = max(1, max(len(o) for o in others))
@@ -391,6 +398,8 @@ class SignalCheck:
         a hair (relative 1e-9) tighter, so a range the exact check would fault is never passed clean.
         """
         q = len(a)
+        if q <= EXACT_BELOW:   # the live closing block's two (a window, a revolution): the exact check is cheaper
+            return [self._problems(x, y) for x, y in zip(a.tolist(), b.tolist())]
         idx = np.empty(2 * q, dtype=np.intp)
         idx[0::2] = a
         idx[1::2] = b
@@ -455,14 +464,15 @@ class SignalCheck:
         if b <= a:
             return {}, False, set()
         out: dict[str, str] = {}
-        sums = self.sums[a:b].sum(axis=0)
+        sums = self.sums[a:b].sum(axis=0).tolist()   # a few numbers: plain Python from here, numpy only if clipped
         n = sums[0]
         v = self.v[a:b]
         mn = v.min(axis=0)
         mx = v.max(axis=0)
+        mn_l, mx_l = mn.tolist(), mx.tolist()
         saturated = False
         saturated_names: set[str] = set()
-        if (mn <= self.lo).any() or (mx >= self.hi).any():
+        if any(x <= lo for x, lo in zip(mn_l, self._lo_l)) or any(x >= hi for x, hi in zip(mx_l, self._hi_l)):
             lo_n = (v <= self.lo).sum(axis=0)
             hi_n = (v >= self.hi).sum(axis=0)
             for k in np.flatnonzero((lo_n > 0) | (hi_n > 0)):
@@ -476,14 +486,14 @@ class SignalCheck:
             high = clipped & (swing >= HIGH_FRAC * (self.hi[cols] - self.lo[cols]))
             saturated = bool(high.any())
             saturated_names = {self.names[k] for k in cols[high]}
-        self._flat(a, b, mn, mx, sums, out)
-        if not any(self.names[k] in out for k in self.v_cols):  # f_e from a bad voltage means nothing
+        self._flat(a, b, mn_l, mx_l, sums, out)
+        if not any(name in out for name in self._v_names):  # f_e from a bad voltage means nothing
             self._speed(sums, out)
         return out, saturated, saturated_names
 
-    def _flat(self, a: int, b: int, mn: np.ndarray, mx: np.ndarray, sums: np.ndarray, out: dict[str, str]) -> None:
+    def _flat(self, a: int, b: int, mn: list[int], mx: list[int], sums: list[float], out: dict[str, str]) -> None:
         # six numbers at most: plain Python is cheaper than numpy here
-        swing = (mx[self.vi_cols] - mn[self.vi_cols]).tolist()
+        swing = [mx[k] - mn[k] for k in self._vi_l]
         live = [w >= LIVE_COUNTS for w in swing]
         n_live = sum(live)
         if not n_live:
@@ -500,7 +510,7 @@ class SignalCheck:
                     out[name] = (f"{name}: flat (peak-to-peak {swing[j]} counts over {n} samples) while the drive "
                                  f"runs: a stuck, dead or unplugged sensor")
 
-    def _should_swing_alike(self, a: int, b: int, group: range, others: list[float], sums: np.ndarray) -> bool:
+    def _should_swing_alike(self, a: int, b: int, group: range, others: list[float], sums: list[float]) -> bool:
         """Evidence that the phases of `group` should have swung alike over rows [a, b): with all three
         measured, they do not sum to zero (Kirchhoff); with two, the field turned through an electrical
         period (f_e over the samples with a voltage). A kind of which nothing swings while the other kind
@@ -514,7 +524,7 @@ class SignalCheck:
             return float(total.max() - total.min()) >= KIRCHHOFF_SHARE * max(others)
         return abs(float(sums[self.FE_ON])) / self.rate >= 1.0
 
-    def _speed(self, sums: np.ndarray, out: dict[str, str]) -> None:
+    def _speed(self, sums: list[float], out: dict[str, str]) -> None:
         n, moving_n, on_n = sums[self.N], sums[self.MOVING], sums[self.ON]
         if n <= 0:
             return
