@@ -161,10 +161,10 @@ class FrameCheck:
     Why plain Python: this runs 100 times a second on the thread that reads the
     DAQ, which sleeps about 10 ms between frames and comes back to a cold CPU.
     Warm, a dozen numpy calls on a 10-sample frame and the same arithmetic on
-    Python floats cost the same (about 7 µs); after the sleep the numpy calls
-    cost about 60 µs and the floats about 23 (each numpy call is a long C path
-    of its own to bring back into the caches; the interpreter's loop is shared
-    by every thread). So the frame's arithmetic is straight-line Python,
+    Python floats cost about the same (6–8 µs); after the sleep the numpy calls
+    cost 3–6 times what the floats do (`bench/idle_penalty.py`: each numpy call
+    is a long C path of its own to bring back into the caches; the
+    interpreter's loop is shared by every thread). So the frame's arithmetic is straight-line Python,
     compiled once per descriptor (`_frame_program`, its text in
     `program_source`): p_in − p_cu is a quadratic form in the counts (p_in is
     bilinear in v and i, the copper loss quadratic in i), `Σ_jk Q_jk x_j x_k`,
