@@ -39,8 +39,8 @@ from __future__ import annotations
 
 import collections
 import math
-from dataclasses import dataclass, field
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -164,9 +164,9 @@ class FrameCheck:
     Python floats cost about the same (6–8 µs); after the sleep the numpy calls
     cost 3–6 times what the floats do (`bench/idle_penalty.py`: each numpy call
     is a long C path of its own to bring back into the caches; the
-    interpreter's loop is shared by every thread). So the frame's arithmetic is straight-line Python,
-    compiled once per descriptor (`_frame_program`, its text in
-    `program_source`): p_in − p_cu is a quadratic form in the counts (p_in is
+    interpreter's loop is shared by every thread). So the frame's arithmetic
+    is straight-line Python, compiled once per descriptor (`_frame_program`,
+    its text in `program_source`): p_in − p_cu is a quadratic form in the counts (p_in is
     bilinear in v and i, the copper loss quadratic in i), `Σ_jk Q_jk x_j x_k`,
     Q read off the physics module's own functions at start (polarisation:
     Q_jj = f(e_j), Q_jk = (f(e_j + e_k) − f(e_j) − f(e_k))/2), so the formula
@@ -269,7 +269,8 @@ class FrameCheck:
         self._smooth = None
         self._remember(counts, contiguous)
         # A mean is never above the largest of its samples (this frame's and the tail's, from the frame
-        # before): below every limit there, nothing more to do: the common case. NaN is never over a limit.
+        # before): below every limit there, nothing more to do: the common case. No NaN reaches here: integer
+        # counts, finite coefficients, a gain in (0, 1].
         peak_w, peak_a = max(power), max(current)
         bound_w, bound_a = (max(peak_w, self._prev_peak_w), max(peak_a, self._prev_peak_a)) if contiguous else (peak_w, peak_a)
         self._prev_peak_w, self._prev_peak_a = peak_w, peak_a
