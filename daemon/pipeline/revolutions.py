@@ -239,19 +239,16 @@ class RevolutionSplitter:
         if not any_gap and -1.0 <= span <= 1.0 and bool(mv.all()) and np.abs(dth).max() < self.max_step_rev:   # (nan fails)
             # the live path's blocks: no gap, spindle turning, the samples one apart
             turns = np.flatnonzero(k_pt[1:] != k_pt[:-1])
-            if len(turns) == 0:   # no boundary -> one trapezoid sum
-                if self._active:
-                    self._acc += 0.5 * (x[0] + x[-1]) + x[1:-1].sum(axis=0)
-                    self._acc_samples += m - carry
-                return _empty(self.k)
             if len(turns) == 1 and self._active:
                 t = int(turns[0])
                 dth_t = float(dth[t])
                 if (float(k_pt[t + 1]) if dth_t > 0 else float(k_pt[t])) != self._last_cross:
                     return self._close_one(t, pos, th, x, m, carry, dth_t, k_pt)
-                # the angle went back over the boundary it crossed last and forth again: no boundary here
-                self._acc += 0.5 * (x[0] + x[-1]) + x[1:-1].sum(axis=0)
-                self._acc_samples += m - carry
+                turns = turns[:0]   # back over the boundary it crossed last and forth again: none here
+            if len(turns) == 0:   # no boundary -> one trapezoid sum
+                if self._active:
+                    self._acc += 0.5 * (x[0] + x[-1]) + x[1:-1].sum(axis=0)
+                    self._acc_samples += m - carry
                 return _empty(self.k)
 
         dpos = pos[1:] - pos[:-1]
