@@ -83,7 +83,7 @@ def frame_cases(settings, desc, blocks: list, sleep_s: float) -> tuple[float, fl
     frames = [b.counts[k:k + 10] for b in blocks for k in range(0, len(b.counts), 10)][:2 * FRAMES]
     # the baseline: Q in counts read back from the compiled program by polarisation, and the line currents as
     # a diagonal (the demo config: no offsets, the three line currents measured, each its own column)
-    assert not fc._offset and "r[" in fc.program_source
+    assert not fc._offsets.any() and "r[" in fc.program_source
     c = frames[0].shape[1]
     probe = np.eye(c, dtype=np.int64)
     ones = [fc._frame_values([list(row)], 1.0)[0][0] for row in probe]

@@ -192,7 +192,6 @@ class FrameCheck:
         scales = np.array([float(channels[n].scale) for n in names])
         self._offsets = np.zeros(c)
         self._offsets[cols] = [float(channels[n].offset) for n in names]
-        self._offset = bool(self._offsets.any())
         nv = len(v_keys)
         winding = str(settings.motor.winding)
         r_s = float(settings.motor.stator_resistance_ohm)

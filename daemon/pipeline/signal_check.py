@@ -100,7 +100,7 @@ MIN_ROWS = 512
 # Ranges up to this many are checked one by one by the exact check instead of the batched screen: on the live
 # closing block (a fault window and a revolution) that is fewer numpy calls, each of which costs several times
 # more after the estimator thread's sleep (bench/idle_penalty.py). The screen only filters: the same verdicts.
-EXACT_BELOW = 2
+EXACT_UP_TO = 2
 
 
 class SignalCheck:
@@ -396,9 +396,10 @@ class SignalCheck:
         flat or dead channel, a speed near or past its tolerance: rare) go through the exact
         `_problems`, which words the reasons. The screen errs towards "could": its speed limits are
         a hair (relative 1e-9) tighter, so a range the exact check would fault is never passed clean.
+        Up to `EXACT_UP_TO` ranges skip the screen and go straight to the exact check: fewer numpy calls.
         """
         q = len(a)
-        if q <= EXACT_BELOW:   # the live closing block's two (a window, a revolution): the exact check is cheaper
+        if q <= EXACT_UP_TO:   # the live closing block's two (a window, a revolution): the exact check is cheaper
             return [self._problems(x, y) for x, y in zip(a.tolist(), b.tolist())]
         idx = np.empty(2 * q, dtype=np.intp)
         idx[0::2] = a
