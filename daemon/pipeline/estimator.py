@@ -93,6 +93,9 @@ ACCEL_STEP_PCT = 0.5               # ... or over the revolution before (steady c
 # the reading (an encoder count or a speed sample gone wild for a sample), not a turn: it would move a
 # boundary by up to half a revolution (a revolution of 50 samples at "1200 rpm" next to one of 150 at 600).
 MAX_STEP_FACTOR = 2.0
+# up to this many gain steps in a block (revolutions closed in it, plus one) are divided slice by slice: fewer
+# numpy calls than building the per-sample gains, for the live blocks' one or two
+SLICED_STEPS = 4
 P_GAP_SMOOTH_SAMPLES = 5           # moving average of the sample-level air-gap power and line current
 
 NULL_FIELDS = (
@@ -333,11 +336,16 @@ class Estimator:
         # sample-level air-gap power and line current for the crash trip
         both = np.empty((2, n))
         steps = self.gain_steps   # one step per revolution closed in the block
-        # each sample over its own step's gain (a step per revolution closed: one or two in a live block)
-        for k, (start, gain) in enumerate(steps):
-            a = start - seq0
-            b = steps[k + 1][0] - seq0 if k + 1 < len(steps) else n
-            np.divide(p_meas[a:b], gain, out=both[0, a:b])
+        # each sample over its own step's gain (a step per revolution closed: one or two in a live block,
+        # thousands in a replay's; those get one division by the gains repeated over their steps' samples)
+        if len(steps) <= SLICED_STEPS:
+            for k, (start, gain) in enumerate(steps):
+                a = start - seq0
+                b = steps[k + 1][0] - seq0 if k + 1 < len(steps) else n
+                np.divide(p_meas[a:b], gain, out=both[0, a:b])
+        else:
+            bounds = np.array([start for start, _ in steps] + [seq0 + n], dtype=np.int64)
+            np.divide(p_meas, np.repeat([gain for _, gain in steps], np.diff(bounds)), out=both[0])
         np.abs(np.stack((i_u, i_v, i_w)), out=None).max(axis=0, out=both[1])
         p_gap, current = self._smooth.push(both, contiguous)
         # a stuck encoder reads "stopped": not believed while a speed source is among the signal problems
