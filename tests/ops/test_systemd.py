@@ -53,6 +53,7 @@ def test_unit_has_the_required_settings():
         "NoNewPrivileges": "yes", "ProtectSystem": "strict", "ProtectHome": "yes", "PrivateTmp": "yes",
         "MemoryDenyWriteExecute": "yes", "SystemCallArchitectures": "native", "CapabilityBoundingSet": "",
         "AmbientCapabilities": "", "RestrictAddressFamilies": "AF_UNIX AF_INET AF_INET6 AF_NETLINK", "DevicePolicy": "closed",
+        "Nice": "-5",
     }
     for key, value in expected.items():
         assert o.get(key) == [value], key
@@ -62,6 +63,16 @@ def test_unit_has_the_required_settings():
     for key in ("ProtectKernelTunables", "ProtectKernelModules", "ProtectKernelLogs", "ProtectControlGroups", "ProtectClock",
                 "ProtectHostname", "RestrictNamespaces", "RestrictRealtime", "RestrictSUIDSGID", "LockPersonality"):
         assert o.get(key) == ["yes"], key
+
+
+def test_the_daemon_comes_before_the_hmi_units_for_the_cpu():
+    """The crash check runs on the daemon's reader thread: under load it must not wait behind the dashboard,
+    the OPC UA server or the router (bench/crash_latency.py --hog measures what the priority buys)."""
+    daemon = int(unit_options()["Nice"][-1])
+    for name in ("millsense-dashboard.service", "millsense-opcua.service", "millsense-router.service"):
+        hmi = [line.split("=", 1)[1] for line in (UNIT.parent / name).read_text().splitlines()
+               if line.startswith("Nice=")]
+        assert daemon < int(hmi[-1] if hmi else 0), name
 
 
 @needs_systemd
