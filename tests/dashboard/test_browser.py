@@ -43,24 +43,8 @@ def _start_daemon(procs, cfg, name="daemon"):
     return procs.start(name, ["run", "--config", str(cfg), "--connect-timeout", "120"])
 
 
-def _start_dashboard(procs, z_port):
-    """The dashboard on a free port, picked just before it starts. A port free when picked can be taken before
-    the dashboard binds it: the daemon's and Zenoh's outgoing connections draw their local ports from the same
-    range (CI saw "Address already in use" once). Then another port, at most three times."""
-    for attempt in range(3):
-        http_port = free_tcp_port()
-        name = f"dash{attempt}"
-        dash = procs.start(name, ["dashboard", "--listen", f"127.0.0.1:{http_port}", "--connect", tcp(z_port),
-                                  "--no-scouting"])
-        wait_for(lambda: "serving on" in procs.text(name) or dash.poll() is not None, 60.0, "dashboard serving")
-        if dash.poll() is None:
-            return dash, http_port
-        assert "Address already in use" in procs.text(name), procs.text(name)
-    raise AssertionError("three free ports taken before the dashboard could bind them")
-
-
 def test_page_shows_live_values_alarm_and_releases_a_held_feed(tmp_path, browser):
-    daq_port, z_port = free_tcp_port(), free_tcp_port()
+    daq_port, z_port, http_port = free_tcp_port(), free_tcp_port(), free_tcp_port()
     cfg = write_config(
         tmp_path / "d.toml", machine=MACHINE,
         daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}',
@@ -74,7 +58,10 @@ def test_page_shows_live_values_alarm_and_releases_a_held_feed(tmp_path, browser
                             "--status-log", str(log_path), "--watchdog-ms", "1000"])
         wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
         daemon = _start_daemon(procs, cfg)
-        dash, http_port = _start_dashboard(procs, z_port)
+        dash = procs.start("dash", ["dashboard", "--listen", f"127.0.0.1:{http_port}", "--connect", tcp(z_port),
+                                    "--no-scouting"])
+        wait_for(lambda: "serving on" in procs.text("dash") or dash.poll() is not None, 60.0, "dashboard serving")
+        assert dash.poll() is None, procs.text("dash")
         sub = Subscriber([tcp(z_port)], MACHINE, read=False)
         try:
             browser.get(f"http://127.0.0.1:{http_port}/")
@@ -132,4 +119,4 @@ def test_page_shows_live_values_alarm_and_releases_a_held_feed(tmp_path, browser
         finally:
             sub.close()
             dash.send_signal(signal.SIGTERM)
-            assert dash.wait(30) == 0, procs.text(dash.name)
+            assert dash.wait(30) == 0, procs.text("dash")

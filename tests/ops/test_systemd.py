@@ -70,9 +70,7 @@ def test_the_daemon_comes_before_the_hmi_units_for_the_cpu():
     the OPC UA server or the router (bench/crash_latency.py --hog measures what the priority buys)."""
     daemon = int(unit_options()["Nice"][-1])
     for name in ("millsense-dashboard.service", "millsense-opcua.service", "millsense-router.service"):
-        hmi = [line.split("=", 1)[1] for line in (UNIT.parent / name).read_text().splitlines()
-               if line.startswith("Nice=")]
-        assert daemon < int(hmi[-1] if hmi else 0), name
+        assert daemon < int(unit_options(UNIT.parent / name).get("Nice", ["0"])[-1]), name
 
 
 @needs_systemd

@@ -3,15 +3,17 @@ tests and benchmarks that run the daemon as the service does)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from tests.config.helpers import REPO
 
 UNIT = REPO / "systemd" / "millsense@.service"
 
 
-def unit_options() -> dict[str, list[str]]:
-    """Every `Key=value` of the unit, values in order (a key may repeat)."""
+def unit_options(unit: Path = UNIT) -> dict[str, list[str]]:
+    """Every `Key=value` of a unit (the daemon's by default), values in order (a key may repeat)."""
     opts: dict[str, list[str]] = {}
-    for line in UNIT.read_text().splitlines():
+    for line in unit.read_text().splitlines():
         if "=" in line and not line.lstrip().startswith(("#", "[")):
             k, v = line.split("=", 1)
             opts.setdefault(k.strip(), []).append(v.strip())
