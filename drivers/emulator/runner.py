@@ -21,7 +21,9 @@ class EmulatorError(Exception):
 
 
 def list_text() -> str:
-    return "\n".join(f"{name:<16} {desc}" for name, desc in list_sources())
+    sources = list(list_sources())
+    width = max(len(name) for name, _ in sources)
+    return "\n".join(f"{name:<{width}} {desc}" for name, desc in sources)
 
 
 PROGRAM_OPTIONS = ("parts", "wear", "broken_flute", "missing_part", "wrong_tool")

@@ -10,7 +10,7 @@ program resumes where it stopped.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from millsense.drivers.sim.machine import MATERIALS, MCH10, TOOL_D, TOOL_P, Machine, Material, Tool
 
@@ -114,6 +114,7 @@ def _speed_sweep(material) -> list[Scenario]:
 # scenario: 300 and 600 rpm in the low-speed gear, 1500 and 3000 rpm in the high-speed one (top 4500 rpm).
 AFC_STEP_MM = (2.0, 3.0, 2.5)
 AFC_STEP_LEN_MM = 25.0
+AFC_LATE_START_MM = 0.12  # afc-step-1500-late: 0.4 of a revolution's travel at 150 % (0.3 mm)
 
 
 def _afc(sm45c, ss41) -> list[Scenario]:
@@ -125,6 +126,13 @@ def _afc(sm45c, ss41) -> list[Scenario]:
         out.append(_cut(name, f"AFC depth steps: [P] slot, {material.name}, {rpm} rpm, {feed:g} mm/min, "
                         "d.o.c. 2->3->2.5 mm, 25 mm each (adaptive feed control)",
                         TOOL_P, material, rpm, ((-math.inf, feed),), steps, part_end=end))
+    # The settle count depends on where in a revolution the tool meets a wall (docs/afc.md); this start puts
+    # the 3 mm wall just before a revolution begins under the controller: the late phase
+    at_1500 = next(sc for sc in out if sc.name == "afc-step-1500")
+    out.append(replace(at_1500, name="afc-step-1500-late", start_mm=at_1500.start_mm + AFC_LATE_START_MM,
+                       description=at_1500.description.replace(
+                           "(adaptive feed control)",
+                           f"(adaptive feed control), the tool starting {AFC_LATE_START_MM:g} mm nearer")))
     out.append(_cut("afc-taper", "AFC taper: [P] slot, SM45C, 600 rpm, 200 mm/min, d.o.c. 1->3 mm over 75 mm "
                     "(cycle time at constant load)", TOOL_P, sm45c, 600, ((-math.inf, 200.0),),
                     ((0.0, 1.0), (75.0, 3.0)), part_end=75))

@@ -37,13 +37,16 @@ def _steps(tmp_path, scenario: str):
 
 # The settle and overshoot hold for the cut's true torque (the plant's own revolutions) at 600 and 1500 rpm.
 # The daemon's estimate lags the cut by about a revolution where the load steps (the spindle drive's speed loop
-# answers the cut, not the motor's power at once): at 1500 rpm it is back within ±5 % a revolution later than the
-# cut, 6 revolutions after the first past the 2 -> 3 mm wall. Measured and reported by bench/validate_afc.py
-# (docs/validation.md); asserted here on the estimate at 600 rpm, where it settles in 3.
-SETTLE_ASSERTED = {"afc-step": True, "afc-step-1500": False}
+# answers the cut, not the motor's power at once): at 1500 rpm it is back within ±5 % up to a revolution later than
+# the cut, 5-6 revolutions after the first past the 2 -> 3 mm wall. Measured and reported by bench/validate_afc.py
+# (docs/validation.md); asserted here on the estimate at 600 rpm, where it settles in 3. Where in a revolution the
+# tool meets the wall moves the count (docs/afc.md, "Where the wall falls"): afc-step-1500-late starts the tool
+# 0.12 mm nearer, so that it meets the 3 mm wall just before a revolution begins, the phase that gave 6 with a
+# one-revolution lambda.
+SETTLE_ASSERTED = {"afc-step": True, "afc-step-1500": False, "afc-step-1500-late": False}
 
 
-@pytest.mark.parametrize("scenario", ["afc-step", "afc-step-1500"])
+@pytest.mark.parametrize("scenario", ["afc-step", "afc-step-1500", "afc-step-1500-late"])
 def test_depth_steps_settle_at_the_target_without_overshoot(tmp_path, scenario):
     loop, target, outcomes = _steps(tmp_path, scenario)
     for o in outcomes:
