@@ -54,7 +54,7 @@ sys.path.insert(0, str(REPO))
 
 from millsense.daemon.pipeline.latch_store import state_dir  # noqa: E402
 from millsense.daemon.pipeline.local_control import LocalControlError, local_command  # noqa: E402
-from millsense.drivers.emulator.device import DeviceModel  # noqa: E402
+from millsense.drivers.emulator.device import DeviceModel, StatusLog  # noqa: E402
 from millsense.drivers.emulator.pacing import Pacer  # noqa: E402
 from millsense.drivers.emulator.ramp import RAMP_CHANNELS  # noqa: E402
 from millsense.drivers.emulator.stream_server import StreamServer  # noqa: E402
@@ -113,9 +113,9 @@ class PulseSource:
 class Emulator:
     """The emulator's stream server on its own asyncio loop, stamping the pulse's frame as it is sent."""
 
-    def __init__(self, transport: str, where: str | tuple[str, int]):
+    def __init__(self, transport: str, where: str | tuple[str, int], status_log: Path | None = None):
         self.source = PulseSource()
-        self.device = DeviceModel(self.source)
+        self.device = DeviceModel(self.source, status_log=StatusLog(str(status_log) if status_log else None))
         self.server = StreamServer(self.device, WireEmitter(self.device, per_frame=10), Pacer(1000, realtime=True, quantum=10))
         self.sent_mono: float | None = None
         send = self.server._send
@@ -180,7 +180,8 @@ def run_trips(transport: str, trips: int, daemon_nice: int | None = None) -> dic
         port = free_tcp_port()
         where = ("127.0.0.1", port)
         daq = f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {port}'
-    emu = Emulator(transport, where)
+    device_log = tmp / "device.jsonl"
+    emu = Emulator(transport, where, device_log)
     cfg = write_config(tmp / "bench.toml", machine="crashbench", daq=daq, zenoh_listen=[tcp(free_tcp_port())],
                        alarms="crash_power_w = 12000.0\ncrash_current_a = 55.0", interlock="enabled = true")
     sdir = state_dir("crashbench", {"XDG_STATE_HOME": str(tmp / "state")})
@@ -188,6 +189,7 @@ def run_trips(transport: str, trips: int, daemon_nice: int | None = None) -> dic
     own_ms: list[float] = []
     missed = 0
     why: list[str] = []   # of each trip missed
+    detail: list[str] = []  # what the device and the daemon said of it
     try:
         with Procs(tmp) as procs:
             at = {} if daemon_nice is None else {"preexec_fn": lambda: os.setpriority(os.PRIO_PROCESS, 0, daemon_nice)}
@@ -201,6 +203,7 @@ def run_trips(transport: str, trips: int, daemon_nice: int | None = None) -> dic
                     why.append("the pulse's frame was never sent" if emu.sent_mono is None else
                                "the feed was already held at the device" if held_before or emu.source.feed_hold else
                                "no feed hold within 2 s")
+                    detail.append(_what_held(device_log, procs.text("daemon", "out") + procs.text("daemon")))
                 else:
                     lat_ms.append((emu.source.hold_mono - emu.sent_mono) * 1e3)
                 if not _wait(lambda: _reset(sdir), 10.0):
@@ -214,7 +217,20 @@ def run_trips(transport: str, trips: int, daemon_nice: int | None = None) -> dic
                 time.sleep(0.02)
     finally:
         emu.close()
-    return {"lat": np.array(lat_ms), "own": np.array(own_ms), "missed": missed, "why": why}
+    return {"lat": np.array(lat_ms), "own": np.array(own_ms), "missed": missed, "why": why, "detail": detail}
+
+
+def _what_held(device_log: Path, daemon_log: str) -> str:
+    """A missed trip's evidence: the device's last two output changes (their cause: a command, or its
+    watchdog) and the daemon's last holds, resets and faults (its log: stdout under the unit's environment)."""
+    try:
+        lines = device_log.read_text().splitlines()
+    except OSError:
+        lines = []
+    outputs = [line for line in lines if '"event": "outputs"' in line][-2:]
+    said = [line for line in daemon_log.splitlines() if any(w in line for w in ("interlock.feed_hold", "interlock.reset\"",
+                                                                            "\"fault\"", "recovered"))]
+    return "\n".join(["device: " + o for o in outputs] + ["daemon: " + d[:300] for d in said[-4:]])
 
 
 def _status(sdir: Path) -> dict:
@@ -290,6 +306,8 @@ def report(label: str, r: dict) -> bool:
           f"{r['missed']} missed)  {verdict}{own_txt}")
     for reason in sorted(set(r["why"])):
         print(f"    missed {r['why'].count(reason)}: {reason}")
+    for d in r.get("detail", []):
+        print("      " + d.replace("\n", "\n      "))
     return verdict == "OK"
 
 

@@ -37,8 +37,8 @@ from doc_section import write_section  # noqa: E402
 
 BEGIN, END = "<!-- afc:begin -->", "<!-- afc:end -->"
 FIGURE = "validation/afc-steps.png"
-STEP_SCENARIOS = ("afc-step", "afc-step-1500", "afc-step-300", "afc-step-3000")  # settle at the first two
-SETTLE_SCENARIOS = ("afc-step", "afc-step-1500")
+STEP_SCENARIOS = ("afc-step", "afc-step-1500", "afc-step-1500-late", "afc-step-300", "afc-step-3000")  # settle: first 3
+SETTLE_SCENARIOS = ("afc-step", "afc-step-1500", "afc-step-1500-late")  # the late phase: docs/afc.md
 TARGET_DEPTH_MM = 2.5      # the target: the programmed feed's torque at the last level (as the tests)
 FAULT_ONSET_S = 9.0        # plant time: in the 2 mm level, where the controller runs above 100 %
 FAULT_PIN = "i_u=0"        # a current sensor torn off: the daemon goes blind

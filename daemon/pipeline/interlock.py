@@ -281,7 +281,8 @@ class ResetCheck:
 
     1. a blind condition (fault `signals` or `descriptor`): nothing can be judged;
     2. no samples since the hold, or the DAQ link lost or stalled;
-    3. the spindle stopped since the hold and nothing new is over: the condition is gone;
+    3. the spindle stopped since the hold and nothing new is over: the condition is gone (a block that
+       stands still while stalled or over a crash limit is not "stopped" here: it is over);
     4. the latest block is stalled (the stall check holds);
     5. the latest block's sample-level peaks at or over `crash_power_w` / `crash_current_a`;
     6. the latest closed valid revolution over an armed overload limit (a
@@ -322,8 +323,11 @@ class ResetCheck:
     def on_block(self, first_seq: int, peaks: dict[str, float], stalled: bool, stopped: bool) -> None:
         if not self.marked or not self._after(first_seq):
             return
-        if stopped:
-            # the condition is gone with the spindle; what comes after a restart is judged afresh
+        over = self._peaks_over(peaks)
+        if stopped and not stalled and over is None:
+            # the condition is gone with the spindle; what comes after a restart is judged afresh. Not while
+            # the block is over a sample-level limit: a jammed spindle stands still at its stall current, and
+            # a crash's current outlasts the turning
             self._evidence_reset()
             self.stopped_since = True
             self.stopped_now = True
@@ -332,13 +336,17 @@ class ResetCheck:
         self.blocks += 1
         self.stopped_now = False
         self.stalled = bool(stalled)
-        self.peaks_over = None
+        self.peaks_over = over
+
+    def _peaks_over(self, peaks: dict[str, float]) -> str | None:
+        """What in a block's peaks is over a crash limit, said for the refusal; None: nothing."""
         p_w, i_a = _number(peaks.get("p_gap_w")), _number(peaks.get("current_a"))
         if self.crash_power_w is not None and p_w is not None and p_w >= self.crash_power_w:
-            self.peaks_over = f"air-gap power peak {p_w:.0f} W >= crash_power_w {self.crash_power_w:g} W"
-        elif self.crash_current_a is not None and i_a is not None and i_a >= self.crash_current_a:
+            return f"air-gap power peak {p_w:.0f} W >= crash_power_w {self.crash_power_w:g} W"
+        if self.crash_current_a is not None and i_a is not None and i_a >= self.crash_current_a:
             shown = "clipped at the sensor's limit" if i_a == float("inf") else f"{i_a:.1f} A"
-            self.peaks_over = f"current peak {shown} >= crash_current_a {self.crash_current_a:g} A"
+            return f"current peak {shown} >= crash_current_a {self.crash_current_a:g} A"
+        return None
 
     def on_estimate(self, est: dict[str, Any], over: list[str]) -> None:
         """A closed revolution; `over` = AlarmEngine.over_limits(est)."""

@@ -215,6 +215,17 @@ def test_a_spindle_stopped_since_the_hold_is_the_condition_gone():
     assert refused(c) == "overload"
 
 
+def test_a_block_standing_still_over_a_crash_limit_or_stalled_is_not_the_condition_gone():
+    # a crash's current outlasts the turning, and a jammed spindle stands still at its stall current
+    c = check(crash_power_w=15000.0, crash_current_a=60.0)
+    c.on_block(1000, {"p_gap_w": 900.0, "current_a": 75.0}, False, True)
+    assert refused(c) == "crash"
+    c.on_block(1010, {"p_gap_w": 900.0, "current_a": 30.0}, True, True)
+    assert refused(c) == "stall"
+    c.on_block(1020, {"p_gap_w": 0.0, "current_a": 0.5}, False, True)
+    assert refused(c) is None
+
+
 def test_blind_or_no_data_refuses_and_a_test_trip_needs_no_revolution():
     c = check()
     assert refused(c) == "no_data"

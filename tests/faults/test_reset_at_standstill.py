@@ -1,0 +1,110 @@
+"""A reset asked for while the spindle stands still and the current is still over a crash limit is refused.
+
+Found by bench/crash_latency.py under load (stop 24): a crash pulse with the
+spindle stopped held the feed; the reset, asked for 2 ms later, was granted on
+the next block, which still carried the pulse's tail over the limit, because a
+stopped spindle counted as "the condition is gone" whatever that block's
+peaks were; the reader's check, re-armed by the reset, held the feed again on
+the following frame. A stall is the same case at its worst: a jammed spindle
+stands still at its limit current, and the feed was released into it until the
+stall check tripped again.
+
+The whole pipeline is real (config, estimator, safety and signal checks,
+alarms, runner, interlock) on the in-process simulated DAQ; the blocks are
+handed to the runner's block handler directly, cut where the test needs them
+(where the hold falls in a block is a matter of timing live).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from millsense.daemon.config import load_config
+from millsense.daemon.pipeline.runner import Runner
+from millsense.drivers.base import SampleBlock
+from millsense.drivers.sim_driver import SimDriver
+from tests.e2e.helpers import write_config
+from tests.runtime.test_runner import RecordingSink, wait_for
+
+# counts, as the crash bench's pulse: 300 V line voltages (0.02 V/count), currents 30 A and 60 A (0.002 A/count),
+# every line swinging (none looks flat); the spindle's speed and encoder channels stay at 0: it stands still
+PULSE = np.array([15000, 15000, -30000, 15000, 15000, -30000, 0, 0], dtype=np.int16)
+STALL = np.array([0, 0, 0, 10000, -5000, -5000, 0, 0], dtype=np.int16)   # 20 A standing, no voltage swing
+
+
+@pytest.fixture
+def runner(tmp_path):
+    made = []
+
+    def make(alarms: str) -> tuple[Runner, SimDriver]:
+        cfg = write_config(tmp_path / "standstill.toml", machine="standstill-01",
+                           daq='transport = "sim"\nscenario = "step"', alarms=alarms,
+                           interlock='enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 10000\nreset = "open"')
+        drv = SimDriver("step", realtime=True, loop=True)
+        drv.start()
+        assert drv.wait_connected(5)
+        wait_for(lambda: drv.descriptor is not None, 5, "descriptor")
+        r = Runner(load_config(cfg), drv)
+        r.sink = RecordingSink(lambda: drv.device)
+        r.core.on_descriptor(drv.descriptor)
+        r.interlock.start()                     # the runner's threads are not started: this test is its thread
+        made.append((r, drv))
+        return r, drv
+
+    yield make
+    for r, drv in made:
+        r.stop(1.0)
+        drv.close()
+
+
+class Feed:
+    """Blocks of counts handed to the runner one after the other, numbered as a DAQ numbers them."""
+
+    def __init__(self, r: Runner):
+        self.r, self.seq = r, 0
+
+    def __call__(self, counts: np.ndarray) -> None:
+        self.r._on_block(SampleBlock(self.seq, self.seq, counts, 0, False), time.monotonic())
+        self.seq += len(counts)
+
+
+def rows(row: np.ndarray, n: int) -> np.ndarray:
+    return np.repeat(row[None, :], n, axis=0)
+
+
+def still(n: int) -> np.ndarray:
+    return np.zeros((n, len(PULSE)), dtype=np.int16)
+
+
+def test_a_pulse_whose_tail_is_still_over_the_limit_is_not_gone_with_the_spindle(runner):
+    r, drv = runner("crash_power_w = 12000.0\ncrash_current_a = 55.0")
+    feed = Feed(r)
+    feed(still(500))
+    assert not r.interlock.latched
+    feed(np.concatenate([still(7), rows(PULSE, 3)]))    # the hold: the pulse's first 3 samples end the block
+    assert r.interlock.latched and r.interlock.reason.startswith("crash"), r.interlock.reason
+    feed(np.concatenate([rows(PULSE, 7), still(3)]))    # its tail: after the hold, still over, spindle stopped
+    refused = r.reset("test")
+    assert not refused["ok"] and refused["condition"] == "crash", refused
+    assert r.interlock.latched and drv.device.feed_hold
+    feed(still(100))                                    # quiet, the spindle still stopped: gone
+    assert r.reset("test")["ok"]
+    feed(still(100))
+    assert not r.interlock.latched and not drv.device.feed_hold  # not held again by the tail
+
+
+def test_a_stalled_spindle_still_at_its_current_is_not_gone_with_the_spindle(runner):
+    r, drv = runner("stall_current_a = 15.0")
+    feed = Feed(r)
+    feed(still(500))
+    feed(rows(STALL, 6000))                             # standing still at 20 A: a stall, held
+    assert r.interlock.latched and "stall" in r.interlock.reason, r.interlock.reason
+    feed(rows(STALL, 100))                              # after the hold: still stalled
+    refused = r.reset("test")
+    assert not refused["ok"] and refused["condition"] == "stall", refused
+    assert drv.device.feed_hold
+    feed(still(100))                                    # the drive let go: gone with the spindle
+    assert r.reset("test")["ok"]
