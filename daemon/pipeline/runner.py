@@ -320,7 +320,9 @@ class Runner:
         """The driver's sample_hook: the crash check on one frame, where it lands. (checked, wake now).
 
         A crash holds the feed from here, before the frame is even queued; the estimator thread
-        publishes it with the frame (`_frame_events`).
+        publishes it with the frame (`_frame_events`). While the check is latched (the feed held) it
+        judges nothing: such a frame goes on unchecked, and the estimator judges it. A reset may come
+        before the estimator has taken it, and then nobody else would.
         """
         t0 = time.monotonic()
         try:
@@ -330,6 +332,7 @@ class Runner:
                     return False, True  # no check fits the DAQ: the estimator thread checks every block
                 est = self.core.estimator
                 gain = float(getattr(getattr(est, "physics", None), "last_gain", 1.0) or 1.0)
+                judged = not fc.latched
                 crash, current_high = fc.check(seq, counts, lost, disc, gain)
                 if crash is not None:
                     self._frame_events.append(crash)
@@ -344,7 +347,7 @@ class Runner:
             self.last_trip_ms = round((time.monotonic() - t0) * 1e3, 3)  # frame decoded → output written
             return True, True
         wake_at = self._wake_at_seq
-        return True, current_high or (wake_at is not None and last >= wake_at)
+        return judged, current_high or (wake_at is not None and last >= wake_at)
 
     def _frame_check_for(self, desc: Any) -> FrameCheck | None:
         if desc is not self._frame_desc:
