@@ -220,6 +220,9 @@ def run_trips(transport: str, trips: int, daemon_nice: int | None = None) -> dic
     return {"lat": np.array(lat_ms), "own": np.array(own_ms), "missed": missed, "why": why, "detail": detail}
 
 
+DAEMON_SAYS = ('interlock.feed_hold', 'interlock.reset"', '"fault"', 'recovered')  # a missed trip's log lines
+
+
 def _what_held(device_log: Path, daemon_log: str) -> str:
     """A missed trip's evidence: the device's last two output changes (their cause: a command, or its
     watchdog) and the daemon's last holds, resets and faults (its log: stdout under the unit's environment)."""
@@ -228,8 +231,7 @@ def _what_held(device_log: Path, daemon_log: str) -> str:
     except OSError:
         lines = []
     outputs = [line for line in lines if '"event": "outputs"' in line][-2:]
-    said = [line for line in daemon_log.splitlines() if any(w in line for w in ("interlock.feed_hold", "interlock.reset\"",
-                                                                            "\"fault\"", "recovered"))]
+    said = [line for line in daemon_log.splitlines() if any(w in line for w in DAEMON_SAYS)]
     return "\n".join(["device: " + o for o in outputs] + ["daemon: " + d[:300] for d in said[-4:]])
 
 

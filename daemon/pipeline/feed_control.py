@@ -34,11 +34,9 @@ STATES = ("unavailable", "off", "idle", "air", "armed", "saturated", "safe")
 
 NEUTRAL_PCT = 100.0          # the programmed feed
 WIRE_STEP_PCT = 0.1          # the override's step on the wire (daq-protocol.md: uint16 in 0.1 %)
-# Default lambda: 0.62 revolution (80 % of the predicted error per update), and at least the loop's delay / 6:
-# the damping analysis (docs/afc.md, "The predictor and the tuning": a gain 0.6-1.6x the assumed one stays
-# damped) covers up to 80 % per update and up to 6 revolutions of delay; beyond, lambda grows with the delay
-LAMBDA_REVOLUTIONS = 1.0 / math.log(5.0)
-DAMPED_DELAY_REVOLUTIONS = 6.0
+LAMBDA_REVOLUTIONS = 1.0     # default lambda: one revolution (63 % of the predicted error per update) ...
+DAMPED_DELAY_REVOLUTIONS = 6.0  # ... up to this many revolutions of delay; beyond, lambda grows with the delay
+                                # (docs/afc.md, "The tuning": a gain 0.6-1.6x the assumed one stays damped)
 MIN_REV_S = 0.001            # a revolution's duration is bounded: a glitched speed cannot make dt absurd
 MAX_REV_S = 1.0
 STALE_REVOLUTIONS = 3.0
@@ -76,8 +74,8 @@ def tune(revolution_s: float, *, batch_s: float, cnc_lag_s: float, gain: float, 
     CNC's lag. The predictor takes the delay out of the loop the PI sees, which is then the static gain alone:
     an integral action ki = 1/(gain·lambda) makes it a first-order loop of time constant lambda, with no
     proportional part needed (kp = 0: there is no lag left for it to answer). The delay still sets lambda: it is
-    what a wrong gain turns into ringing. Default lambda: LAMBDA_REVOLUTIONS revolutions, or the delay over
-    DAMPED_DELAY_REVOLUTIONS where that is longer.
+    what a wrong gain turns into ringing. Default lambda: LAMBDA_REVOLUTIONS revolutions while the delay is at
+    most DAMPED_DELAY_REVOLUTIONS revolutions, longer in proportion beyond.
     """
     gain = max(gain, MIN_GAIN)
     delay_s = revolution_s + batch_s + cnc_lag_s

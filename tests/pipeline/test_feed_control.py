@@ -57,9 +57,8 @@ def reach(cut: Cut, level_mm: float, target: float, afc: AfcSettings) -> str:
 def test_the_tuning_starts_from_the_loops_delay():
     t = tune(0.1, batch_s=0.05, cnc_lag_s=CNC_LAG_S, gain=0.56)
     assert t.delay_s == pytest.approx(0.1 + 0.05 + CNC_LAG_S)
-    # the predictor takes the delay out: a first-order loop, integral action only, taking 80 % of the predicted
-    # error per revolution (the fastest the damping analysis covers, docs/afc.md)
-    assert 1.0 - math.exp(-0.1 / t.lambda_s) == pytest.approx(0.8) and t.kp == 0.0
+    # the predictor takes the delay out: a first-order loop of one revolution, integral action only
+    assert t.lambda_s == pytest.approx(0.1) and t.kp == 0.0
     assert t.ki_per_s == pytest.approx(1.0 / (0.56 * t.lambda_s))
     # a delay beyond DAMPED_DELAY_REVOLUTIONS revolutions slows the loop in proportion
     fast = tune(0.01, batch_s=0.05, cnc_lag_s=CNC_LAG_S, gain=0.56)
