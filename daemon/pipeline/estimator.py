@@ -75,7 +75,7 @@ from millsense.daemon.physics.power import (
     input_power_two_wattmeter_w,
 )
 from millsense.daemon.pipeline.override_track import OverrideTrack
-from millsense.daemon.pipeline.per_revolution import RevolutionColumns, RevolutionPhysics
+from millsense.daemon.pipeline.per_revolution import RevolutionColumns, RevolutionMeans, RevolutionPhysics
 from millsense.daemon.pipeline.revolutions import STOP_RPM, EncoderAngle, RevolutionSplitter, SpeedAngle
 from millsense.daemon.pipeline.scaling import Scaler
 from millsense.daemon.pipeline.signal_check import SignalCheck
@@ -353,16 +353,44 @@ class Estimator:
         return BlockResult(estimates=estimates, p_gap_w=p_gap, seq=seq0, spindle_stopped=self._stopped,
                            current_a=current, clip_seq=clip_seq, signal_changes=self.signals.changes)
 
+    def _one_revolution(self, batch, i: int, rpm: float, mean: np.ndarray, f_e_hz: float, prev_rpm: float,
+                        override_pct: float | None) -> tuple[dict[str, list], list[bool]]:
+        """`_estimates`' physics of a block that closed one good revolution `i` (the live daemon's block):
+        its floats to `RevolutionPhysics.estimate`, the numbers of the columns' path (`estimate_many`)."""
+        c = self._cols
+        row = mean[i].tolist()
+
+        def column(name):
+            return row[c[name]] if name in c else None
+
+        rise = float(batch.integrals[i, c["rpm_rise"]])
+        means = RevolutionMeans(
+            spindle_rpm=rpm, p_in_meas_w=row[c["p_in"]], p_cu_meas_w=row[c["p_cu"]],
+            p_gap_sq_meas_w2=row[c["p_gap_sq"]], samples=int(batch.samples[i]),
+            f_e_hz=None if math.isnan(f_e_hz) else f_e_hz, motor_rpm=column("motor_rpm"),
+            feed_rate_mm_min=column("feed_rate"), feed_current_a=column("feed_current"),
+            force_x_n=column("fx"), force_y_n=column("fy"), speed_rise_rpm=rise,
+            prev_spindle_rpm=None if math.isnan(prev_rpm) else prev_rpm, feed_override_pct=override_pct,
+        )
+        end = int(batch.seq_end[i])
+        phys = {k: [v] for k, v in self.physics.estimate(means, None if self.tool_at is None
+                                                          else self.tool_at(end)).items()}
+        if end < self._last_seq:   # its filter gain holds for the sample-level power from the sample after it
+            self.gain_steps.append((end + 1, self.physics.last_gain))
+        if "f_mag" in c:
+            phys["force_measured_n"] = [row[c["f_mag"]]]
+        return phys, [bool(self._accelerating(rpm, rise, prev_rpm))]
+
     @staticmethod
-    def _accelerating(spindle_rpm: np.ndarray, rise_rpm: np.ndarray, prev_rpm: np.ndarray) -> np.ndarray:
+    def _accelerating(spindle_rpm, rise_rpm, prev_rpm):
         """Sped up against the revolution just before (nan: none), or within this one while not slowing on
-        the whole; over arrays of revolutions."""
+        the whole; over arrays of revolutions, or one revolution's floats."""
         step_pct = 100.0 * (spindle_rpm - prev_rpm) / spindle_rpm
         # A rise within the revolution while its mean speed fell clearly is a drive catching up after a
         # spindle bogged down by its load: that torque is load, and the overload must see it.
         slowing = step_pct < -ACCEL_STEP_PCT
         rising = rise_rpm > np.maximum(ACCEL_RISE_PCT / 100.0 * spindle_rpm, ACCEL_RISE_MIN_RPM)
-        return (step_pct > ACCEL_STEP_PCT) | (rising & ~slowing)
+        return (step_pct > ACCEL_STEP_PCT) | (rising & np.logical_not(slowing))
 
     def _f_e_hz(self, integral_hz: float, duration: float, mean_v_sq: float) -> float | None:
         """Mean f_e over this revolution, extended back over recent ones to MIN_FE_WINDOW samples."""
@@ -426,7 +454,11 @@ class Estimator:
 
         phys: dict[str, list] = {}
         accelerating: list[bool] = []
-        if good:
+        if len(good) == 1:   # the live daemon's block: one revolution, on plain floats
+            i = good[0]
+            phys, accelerating = self._one_revolution(batch, i, rpm_l[i], mean, f_e[0], prev_rpm[0],
+                                                      overrides[i] if track.reported else None)
+        elif good:
             g = np.array(good, dtype=np.intp)
             m = mean[g]
             rise = batch.integrals[g, c["rpm_rise"]]   # end − start speed: the inertia term's Δω
@@ -447,7 +479,7 @@ class Estimator:
             tools = None if tool_at is None else [tool_at(s) for s in batch.seq_end[g].tolist()]
             phys = self.physics.estimate_many(cols, tools)
             # each revolution's filter gain holds for the sample-level power from the sample after it
-            ends, gains = batch.seq_end[g].tolist(), self.physics.gains.tolist()
+            ends, gains = batch.seq_end[g].tolist(), self.physics.gains
             self.gain_steps += [(e + 1, gain) for e, gain in zip(ends, gains) if e < self._last_seq]
             accelerating = self._accelerating(rpm[g], rise, prev).tolist()
             if "f_mag" in c:

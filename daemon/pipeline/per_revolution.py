@@ -1,16 +1,20 @@
-"""Closed revolutions' means -> the `estimate` payload fields, every revolution of a block at once.
+"""Closed revolutions' means -> the `estimate` payload fields: one revolution, or every revolution of a block.
 
-The chain of `shared/spec/physics.md`, over (R,) columns: filter gain divided out
+The chain of `docs/physics.md`, over (R,) columns: filter gain divided out
 of the measured powers, air-gap power ([P] eq. 11), gear from the measured
 motor/spindle ratio, cutting torque ([P] eq. 13, slip-free power speed),
 its uncertainty ([P] eq. 20), resultant force ([P] eq. 18), feed-drive force,
 feed per tooth, and depths of cut ([D] §3) by the configured method.
 
 Kept apart from the sample-level code in `estimator.py` so that the physics of
-a revolution can be read (and tested): `estimate` takes one revolution's plain
-floats, `estimate_many` the columns of a block's revolutions (the live path).
-Revolution by revolution stay only the feed check (a state machine) and, when
-configured, the depth's root finding.
+a revolution can be read (and tested). Two forms of one chain, step for step:
+`estimate` takes one revolution's plain floats (the live daemon's block closes
+one revolution: after its thread slept, numpy calls on one-element columns cost
+several times the arithmetic, docs/performance.md), `estimate_many` the columns
+of a block's revolutions (replay). tests/estimator/test_one_revolution.py holds
+them equal in every branch. In `estimate_many`, revolution by revolution stay
+only the feed check (a state machine) and, when configured, the depth's root
+finding.
 
 Tools by number (`[tools.N]`): feed per tooth, forces and depths use the tool in
 the spindle. `estimate_many` takes the CNC tool number of each revolution; a
@@ -30,7 +34,14 @@ import numpy as np
 
 from millsense.daemon.physics import depth as depth_mod
 from millsense.daemon.physics.force import cf_model, resultant_force_magnitudes_n
-from millsense.daemon.physics.milling import Material, average_chip_thickness_mm, engagement_angles_rad
+from millsense.daemon.physics.milling import (
+    SCALAR,
+    Material,
+    _chip_xp,
+    _engagement_xp,
+    average_chip_thickness_mm,
+    engagement_angles_rad,
+)
 from millsense.daemon.physics.power import air_gap_power_w, butterworth_power_gain
 from millsense.daemon.physics.torque import (
     cutting_torque_nm,
@@ -75,6 +86,8 @@ class FeedCheck:
         configured = None if self.configured_mm_min is None else self.configured_mm_min * override_pct / 100.0
         if configured is None or measured_mm_min is None or last is None or not steady_cutting:
             return
+        if not configured > 0.0:
+            return   # the CNC's override at 0 %: the axes stand, no feed to compare with
         if abs(measured_mm_min - last) > FEED_STEADY_REL * max(abs(last), 1e-9):
             return   # a feed change inside the revolution: its mean is neither feed
         if abs(measured_mm_min - configured) > FEED_MISMATCH_REL * configured:
@@ -118,7 +131,8 @@ class RevolutionMeans:
     force_y_n: float | None
     speed_rise_rpm: float = 0.0      # spindle speed at the revolution's end minus at its start
     prev_spindle_rpm: float | None = None  # mean speed of the revolution just before (None: not contiguous)
-    feed_override_pct: float = 100.0      # the CNC's applied feed override, time-weighted over the revolution
+    feed_override_pct: float | None = None  # the CNC's applied feed override, time-weighted over the revolution;
+                                            # None: no report (100 %)
 
 
 @dataclass(frozen=True)
@@ -228,7 +242,7 @@ class RevolutionPhysics:
         self.feed_force = feed_force            # (channel, newton_per_amp, friction_n) or None
         self.method = self._resolve_method(str(settings.depth.method), has_dynamometer)
         self.last_gain = 1.0
-        self.gains = np.ones(0)
+        self.gains: list[float] = []
 
     def _resolve_method(self, method: str, has_dynamometer: bool) -> str:
         """`auto` -> the best source of a second force this configuration has ([D] §3)."""
@@ -246,23 +260,114 @@ class RevolutionPhysics:
 
     def estimate(self, r: RevolutionMeans, tool: int | None = None) -> dict:
         """All physical fields of one good revolution (payload of interfaces.md), on plain floats;
-        `tool`: the CNC number of the tool in the spindle (None: unknown, `[tool]`)."""
-        def col(v):
-            return None if v is None else np.array([v], dtype=float)
+        `tool`: the CNC number of the tool in the spindle (None: unknown, `[tool]`).
 
-        cols = RevolutionColumns(
-            spindle_rpm=np.array([r.spindle_rpm]), p_in_meas_w=np.array([r.p_in_meas_w]),
-            p_cu_meas_w=np.array([r.p_cu_meas_w]), p_gap_sq_meas_w2=np.array([r.p_gap_sq_meas_w2]),
-            samples=np.array([r.samples], dtype=np.int64),
-            f_e_hz=np.array([np.nan if r.f_e_hz is None else r.f_e_hz]),
-            motor_rpm=col(r.motor_rpm), feed_rate_mm_min=col(r.feed_rate_mm_min),
-            feed_current_a=col(r.feed_current_a), force_x_n=col(r.force_x_n), force_y_n=col(r.force_y_n),
-            speed_rise_rpm=np.array([r.speed_rise_rpm]),
-            prev_spindle_rpm=np.array([np.nan if r.prev_spindle_rpm is None else r.prev_spindle_rpm]),
-            feed_override_pct=np.array([r.feed_override_pct]),
-        )
-        out = self.estimate_many(cols, None if tool is None else [tool])
-        return {k: v[0] for k, v in out.items()}
+        The live daemon's block closes one revolution: this is its path. The chain is `estimate_many`'s,
+        step for step in the same order on Python floats (after its thread slept, a numpy call on one
+        element costs several times the float arithmetic it stands for: docs/performance.md). The two
+        forms give the same numbers: tests/estimator/test_one_revolution.py holds them equal over the
+        configurations' branches, test_vectorised.py over whole captures cut into blocks of any size.
+        """
+        rpm = r.spindle_rpm
+        f_e = math.nan if r.f_e_hz is None else r.f_e_hz
+        has_fe = math.isfinite(f_e)
+        gain = self._filter_gain(f_e)
+        gi = self._gear_index_of(rpm, r.motor_rpm, f_e)
+        gear = self.gears[gi]
+        omega = TWO_PI * rpm / 60.0
+        p_in_w = r.p_in_meas_w / gain
+        p_gap_w = (r.p_in_meas_w - r.p_cu_meas_w) / gain                                       # eq. (11)
+        if self.pole_pairs and has_fe and f_e != 0.0:
+            power_omega = 2.0 * math.pi * f_e / self.pole_pairs / gear.ratio                     # eq. (10)
+        else:
+            power_omega = omega
+        per_power_omega = power_omega if power_omega > 0.0 else math.nan
+        torque_nm = p_gap_w / per_power_omega - gear.friction_torque_nm - gear.viscous_nms * omega  # eq. (13)
+        prev = r.prev_spindle_rpm
+        band = max(self.STEADY_STEP_RPM, self.STEADY_STEP_PCT / 100.0 * rpm)
+        steady = abs(r.speed_rise_rpm) <= self.STEADY_RISE_RPM and (prev is None or abs(rpm - prev) <= band)
+        p_inertia_w = None
+        if gear.inertia_kgm2 is not None:
+            inertia_nm = 0.0
+            if omega > 0.0 and not steady:
+                d_omega = TWO_PI * r.speed_rise_rpm / 60.0
+                w0, w1 = omega - d_omega / 2.0, omega + d_omega / 2.0
+                inertia_nm = 0.5 * gear.inertia_kgm2 * (w1 * w1 - w0 * w0) / (TWO_PI / omega * omega)
+            torque_nm = torque_nm - inertia_nm                                                  # eq. (13) + J·dω/dt
+            p_inertia_w = inertia_nm * omega
+        p_gap_meas = r.p_in_meas_w - r.p_cu_meas_w
+        var_w2 = max(r.p_gap_sq_meas_w2 - p_gap_meas * p_gap_meas, 0.0)
+        sigma_p_w = math.sqrt(var_w2 / max(r.samples, 1)) / gain                                 # std. error of the mean
+        sigma_nm = sigma_p_w / per_power_omega                                                  # eq. (20)
+
+        override = r.feed_override_pct
+        feed_mm_min = r.feed_rate_mm_min
+        if feed_mm_min is None and self.feed_mm_min is not None:
+            feed_mm_min = self.feed_mm_min if override is None else self.feed_mm_min * override / 100.0
+        force_feed_n = None
+        if self.feed_force is not None and r.feed_current_a is not None:
+            _, n_per_a, friction_n = self.feed_force
+            force_feed_n = n_per_a * r.feed_current_a - friction_n
+
+        cutting = torque_nm >= self.min_torque_nm
+        self.feed_check.update(r.feed_rate_mm_min, cutting and steady, 100.0 if override is None else override)
+        noise_nm = self.min_torque_nm + self.FORCE_NOISE_SIGMAS * (sigma_nm if math.isfinite(sigma_nm) else 0.0)
+        geometry = self.tools.get(tool, self.tool)
+        t_c = feed_mm_min / (geometry.flutes * rpm) if feed_mm_min is not None and rpm > 0 else math.nan  # f/(N·n)
+        tangential_n = torque_nm / (geometry.radius_mm * 1e-3)                                  # eq. (16)
+        radial_mm = axial_mm = None
+        status = None
+        if self.method != "off":
+            status = depth_mod.OUT_OF_RANGE if cutting else depth_mod.AIR_CUT
+            if cutting and t_c > 0:
+                d = self._depth(geometry, torque_nm, tangential_n, force_feed_n, t_c, r.force_x_n, r.force_y_n)
+                status, radial_mm, axial_mm = d.status, _known(d.radial_depth_mm), _known(d.axial_depth_mm)
+        force_n = self._force_one(geometry, torque_nm, t_c, radial_mm, noise_nm)
+        self.last_gain = gain
+        self.gains = [gain]
+        return {
+            "spindle_rpm": rpm,
+            "gear": gear.name,
+            "p_in_w": p_in_w,
+            "p_gap_w": p_gap_w,
+            "p_inertia_w": p_inertia_w,
+            "spindle_accel_rad_s2": TWO_PI / 60.0 * r.speed_rise_rpm * rpm / 60.0,
+            "torque_nm": torque_nm,
+            "torque_sigma_nm": sigma_nm,
+            "force_n": None if math.isnan(force_n) else force_n,
+            "force_tangential_n": tangential_n,
+            "force_feed_n": force_feed_n,
+            "feed_per_tooth_mm": t_c if math.isfinite(t_c) else None,
+            "radial_depth_mm": radial_mm,
+            "axial_depth_mm": axial_mm,
+            "depth_status": status,
+            "cutting": cutting,
+        }
+
+    def _force_one(self, tool: ToolGeometry, torque_nm: float, t_c: float, radial_mm: float | None,
+                   noise_nm: float) -> float:
+        """`_force_many` of one revolution on floats: [P] eq. (18), nan where none."""
+        if torque_nm < -noise_nm:
+            return math.nan
+        if tool.cf_model:
+            if self.mode == "slot":
+                radial_mm = 2.0 * tool.radius_mm
+            elif radial_mm is None:
+                radial_mm = self.known_radial_mm
+            if radial_mm is None or not math.isfinite(radial_mm) or not t_c > 0:
+                return math.nan
+            ratio = 2.0 if self.mode == "slot" else radial_mm / tool.radius_mm
+            if not 0.0 < ratio <= 2.0:
+                return math.nan
+            entry, exit_ = _engagement_xp(SCALAR, ratio, self.mode)
+            t_a = _chip_xp(SCALAR, t_c, entry, exit_)                                           # [D] eq. 8
+            if not (math.isfinite(t_a) and t_a > 0):
+                return math.nan
+            r1_t = self.material.r1 * t_a ** self.material.r1_exp
+            cf = math.sqrt(1.0 + r1_t ** 2)                                                     # [D] eq. 9
+        else:
+            cf = tool.cf
+        return cf * (max(torque_nm, 0.0) / (tool.radius_mm * 1e-3))                            # [P] eq. 18
 
     def estimate_many(self, c: RevolutionColumns, tools: Sequence[int | None] | None = None) -> dict[str, list]:
         """All physical fields of R good revolutions at once: {field: list of R plain values (None: null)}.
@@ -342,7 +447,7 @@ class RevolutionPhysics:
                 for i, st in zip(rows.tolist(), part.status):
                     status[i] = st
         self.last_gain = float(gain[-1])
-        self.gains = gain   # of each revolution of this call, for the sample-level power after each
+        self.gains = gain.tolist()   # of each revolution of this call, for the sample-level power after each
         t_c_ok = np.isfinite(t_c)
         return {
             "spindle_rpm": rpm.tolist(),
@@ -408,15 +513,24 @@ class RevolutionPhysics:
             ratio = None
         return select_gears(rpm, self._max_rpm, self._ratio_list, motor_to_spindle_ratio=ratio)
 
+    def _filter_gain(self, f_e_hz: float) -> float:
+        """`_filter_gains` of one revolution on floats: |H(f_e)|² (physics.md §1), 1 with no filter or no f_e."""
+        if self.cutoff_hz <= 0.0 or not math.isfinite(f_e_hz):
+            return 1.0
+        return 1.0 / (1.0 + (f_e_hz / self.cutoff_hz) ** (2 * self.filter_order))
+
     def _gear_index(self, c: RevolutionColumns) -> int:
-        """`_gear_indices` of a one-revolution batch: `select_gear` on its floats (test_vectorised.py holds
-        `select_gears` to it), with the measured ratio clipped as `select_gears` clips it."""
-        rpm = float(c.spindle_rpm[0])
+        """`_gear_indices` of a one-revolution batch."""
+        return self._gear_index_of(float(c.spindle_rpm[0]), None if c.motor_rpm is None else float(c.motor_rpm[0]),
+                                   float(c.f_e_hz[0]))
+
+    def _gear_index_of(self, rpm: float, motor_rpm: float | None, f_e: float) -> int:
+        """One revolution's gear: `select_gear` on its floats (test_vectorised.py holds `select_gears` to it),
+        with the measured ratio clipped as `select_gears` clips it; `f_e` nan: none."""
         ratio: float | None = None
-        if c.motor_rpm is not None:
-            ratio = float(c.motor_rpm[0]) / rpm if rpm > 0 else math.nan
+        if motor_rpm is not None:
+            ratio = motor_rpm / rpm if rpm > 0 else math.nan
         elif self.pole_pairs:
-            f_e = float(c.f_e_hz[0])
             usable = math.isfinite(f_e) and f_e != 0.0 and rpm > 0
             ratio = (60.0 * f_e / self.pole_pairs) / rpm if usable else math.nan
         if ratio is not None and math.isfinite(ratio) and ratio > 0:
@@ -559,6 +673,12 @@ class RevolutionPhysics:
         usable &= np.isfinite(t_a) & (t_a > 0)
         cf = cf_model(np.where(usable, t_a, 1.0), self.material.r1, self.material.r1_exp)        # [D] eq. 9
         return np.where(usable, resultant_force_magnitudes_n(torque_nm, tool.radius_mm, cf, noise_nm), np.nan)
+
+
+def _known(value: float | None) -> float | None:
+    """A plain float, None for nan: as `_optional` gives it from a column (the root finders may hand back a
+    numpy float)."""
+    return None if value is None or math.isnan(value) else float(value)
 
 
 def _optional(values: np.ndarray, known: np.ndarray) -> list:

@@ -67,6 +67,20 @@ def test_only_steady_cutting_revolutions_are_judged():
     assert FeedCheck(None).take() == [] and FeedCheck(250.0).take() == []
 
 
+def test_a_feed_held_at_zero_override_is_not_judged():
+    """The operator turns the feed override to 0 % with the tool in the cut: the axes stop, the spindle turns
+    on (rubbing: torque over the cutting threshold) and the feed-rate channel reads its noise. Zero
+    configured feed is no feed to compare with. Before, the warning's `off_pct` divided by it: a
+    ZeroDivisionError in the estimator thread, found by tests/estimator/test_one_revolution.py."""
+    check = FeedCheck(250.0)
+    for _ in range(5):
+        check.update(0.4, True, 0.0)
+    assert check.take() == [] and not check.warned
+    for _ in range(2):                   # the knob back to 100 %: judged again
+        check.update(500.0, True, 100.0)
+    assert [e for e, _ in check.take()] == ["feed.mismatch"]
+
+
 @pytest.fixture(scope="module")
 def fig6(tmp_path_factory):
     return simcase.capture(tmp_path_factory.mktemp("fig6"), "fig6", seed=3)
