@@ -62,12 +62,11 @@ from millsense.drivers.emulator.wire import WireEmitter  # noqa: E402
 from millsense.drivers.protocol import Descriptor  # noqa: E402
 from tests.conftest import free_tcp_port  # noqa: E402
 from tests.e2e.helpers import Procs, tcp, write_config  # noqa: E402
+from tests.faults.helpers import PULSE  # noqa: E402 - the crash pulse, in counts
 from tests.ops.unit_file import unit_environment, unit_options  # noqa: E402 - the daemon as its unit runs it
 
 BUDGET_P99_MS = 3.0
 PULSE_SAMPLES = 10
-# counts: 300 V line voltage (0.02 V/count), 30 A / 60 A line currents (0.002 A/count); sums are zero
-PULSE = np.array([15000, 15000, -30000, 15000, 15000, -30000, 0, 0], dtype=np.int16)
 
 
 class PulseSource:

@@ -91,7 +91,7 @@ def revolutions(draw):
     gap = p_in - p_cu
     # the mean of the square: at, above (a cut's ripple) or, by rounding, a hair under the square of the mean
     p_gap_sq = gap * gap * draw(st.sampled_from([1.0, 1.0 - 1e-12])) + draw(st.floats(0.0, 1e6))
-    f_e = draw(_maybe(st.one_of(st.floats(0.0, 400.0), st.just(0.0))))
+    f_e = draw(_maybe(st.one_of(st.floats(1e-3, 400.0), st.just(0.0))))   # none, a drive stopped, turning
     motor = draw(_maybe(st.sampled_from([4.81, 1.157, 2.0, 0.0]).map(lambda g: g * rpm)))
     # a steady spindle, a step inside the speed bands, a ramp or a crash
     rise = draw(st.one_of(st.just(0.0), st.floats(-2.5, 2.5), st.floats(-300.0, 300.0)))

@@ -10,9 +10,18 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
+import numpy as np
+
 from tests.e2e.helpers import Subscriber, wait_for
+
+# One sample of a crash pulse on the simulated DAQ's eight channels, in counts: 300 V line voltages
+# (0.02 V/count), line currents 30 A and 60 A (0.002 A/count) summing to zero, every line swinging (none looks
+# flat); the spindle's speed and encoder channels at 0: it stands still. bench/crash_latency.py sends it.
+PULSE = np.array([15000, 15000, -30000, 15000, 15000, -30000, 0, 0], dtype=np.int16)
 
 # Every physical quantity of an estimate (daemon/pipeline/estimator.py NULL_FIELDS):
 # null in an estimate built on damaged data.
@@ -91,3 +100,30 @@ def assert_clean_exit(procs, name: str) -> None:
 def outputs(events: list[dict], **match: Any) -> list[dict]:
     """The emulator status log's output changes, filtered by field values."""
     return [e for e in events if e.get("event") == "outputs" and all(e.get(k) == v for k, v in match.items())]
+
+
+@contextmanager
+def runner_on_the_sim(settings) -> Iterator[tuple[Any, Any, Any]]:
+    """(runner, driver, sink): the real `Runner` on the in-process simulated DAQ (`step`, its device and
+    interlock live), its threads not started. The test is its estimator thread: it hands the runner's block
+    handler (`_on_block`) blocks cut where it needs them, which live is a matter of timing (a catch-up after
+    the thread fell behind, where a hold falls in a block). The sink records what would be published."""
+    from millsense.daemon.pipeline.runner import Runner
+    from millsense.drivers.sim_driver import SimDriver
+    from tests.runtime.test_runner import RecordingSink
+
+    drv = SimDriver("step", realtime=True, loop=True)
+    drv.start()
+    runner = None
+    try:
+        assert drv.wait_connected(5)
+        wait_for(lambda: drv.descriptor is not None, 5, "descriptor")
+        runner = Runner(settings, drv)
+        runner.sink = sink = RecordingSink(lambda: drv.device)
+        runner.core.on_descriptor(drv.descriptor)
+        runner.interlock.start()
+        yield runner, drv, sink
+    finally:
+        if runner is not None:
+            runner.stop(1.0)
+        drv.close()

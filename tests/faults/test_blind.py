@@ -20,6 +20,7 @@ from millsense.daemon.config import load_config
 from millsense.daemon.pipeline.runner import Runner
 from millsense.drivers.sim_driver import SimDriver
 from tests.e2e.helpers import write_config
+from tests.faults.helpers import runner_on_the_sim
 from tests.runtime.test_runner import RecordingSink, wait_for
 
 
@@ -122,22 +123,10 @@ def test_a_blind_spell_raised_and_cleared_inside_one_block_still_holds_the_feed(
     il = 'enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 10000\nreset = "open"'
     cfg = write_config(tmp_path / "spell.toml", machine="spell-01", daq='transport = "sim"\nscenario = "step"',
                        interlock=il)
-    settings = load_config(cfg)
-    drv = SimDriver("step", realtime=True, loop=True)
-    drv.start()
-    try:
-        assert drv.wait_connected(5)
-        wait_for(lambda: drv.descriptor is not None, 5, "descriptor")
-        runner = Runner(settings, drv)
-        runner.sink = sink = RecordingSink(lambda: drv.device)
-        runner.core.on_descriptor(drv.descriptor)
-        runner.interlock.start()              # the runner's threads are not started: this test is its thread
+    with runner_on_the_sim(load_config(cfg)) as (runner, drv, sink):
         counts = np.array(make_source("step", seed=4).step(4000), dtype=np.int16, copy=True)
         counts[1000:1500, list(drv.descriptor.names).index("i_u")] = 32767
         runner._on_block(SampleBlock(0, 0, counts, 0, False), time.monotonic())
         assert runner.interlock.latched and runner.interlock.reason.startswith("blind: signals: i_u")
         assert [a["level"] for a, _ in sink.of("alarm")] == ["overload", "clear"]
         assert "signals" not in runner.faults and drv.device.feed_hold
-        runner.stop(1.0)
-    finally:
-        drv.close()

@@ -19,6 +19,7 @@ handed to the runner's block handler directly, cut where the test needs them
 from __future__ import annotations
 
 import time
+from contextlib import ExitStack
 
 import numpy as np
 import pytest
@@ -26,50 +27,44 @@ import pytest
 from millsense.daemon.config import load_config
 from millsense.daemon.pipeline.runner import Runner
 from millsense.drivers.base import SampleBlock
-from millsense.drivers.sim_driver import SimDriver
 from tests.e2e.helpers import write_config
-from tests.runtime.test_runner import RecordingSink, wait_for
+from tests.faults.helpers import PULSE, runner_on_the_sim
 
-# counts, as the crash bench's pulse: 300 V line voltages (0.02 V/count), currents 30 A and 60 A (0.002 A/count),
-# every line swinging (none looks flat); the spindle's speed and encoder channels stay at 0: it stands still
-PULSE = np.array([15000, 15000, -30000, 15000, 15000, -30000, 0, 0], dtype=np.int16)
 STALL = np.array([0, 0, 0, 10000, -5000, -5000, 0, 0], dtype=np.int16)   # 20 A standing, no voltage swing
 
 
 @pytest.fixture
 def runner(tmp_path):
-    made = []
+    with ExitStack() as stack:
+        def make(alarms: str):
+            cfg = write_config(tmp_path / "standstill.toml", machine="standstill-01",
+                               daq='transport = "sim"\nscenario = "step"', alarms=alarms,
+                               interlock='enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 10000\nreset = "open"')
+            r, drv, _ = stack.enter_context(runner_on_the_sim(load_config(cfg)))
+            return r, drv
 
-    def make(alarms: str) -> tuple[Runner, SimDriver]:
-        cfg = write_config(tmp_path / "standstill.toml", machine="standstill-01",
-                           daq='transport = "sim"\nscenario = "step"', alarms=alarms,
-                           interlock='enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 10000\nreset = "open"')
-        drv = SimDriver("step", realtime=True, loop=True)
-        drv.start()
-        assert drv.wait_connected(5)
-        wait_for(lambda: drv.descriptor is not None, 5, "descriptor")
-        r = Runner(load_config(cfg), drv)
-        r.sink = RecordingSink(lambda: drv.device)
-        r.core.on_descriptor(drv.descriptor)
-        r.interlock.start()                     # the runner's threads are not started: this test is its thread
-        made.append((r, drv))
-        return r, drv
-
-    yield make
-    for r, drv in made:
-        r.stop(1.0)
-        drv.close()
+        yield make
 
 
 class Feed:
-    """Blocks of counts handed to the runner one after the other, numbered as a DAQ numbers them."""
+    """Blocks of counts for the runner, numbered as a DAQ numbers them. `feed(counts)`: to the block handler
+    (the estimator thread). `feed.land(counts)`: through the reader's frame hook first, as the driver hands a
+    frame over; it returns the block the reader queues, for `feed.take(block)`, the estimator thread's turn."""
 
     def __init__(self, r: Runner):
         self.r, self.seq = r, 0
 
-    def __call__(self, counts: np.ndarray) -> None:
-        self.r._on_block(SampleBlock(self.seq, self.seq, counts, 0, False), time.monotonic())
+    def land(self, counts: np.ndarray, through_reader: bool = True) -> SampleBlock:
+        checked = self.r._on_frame(self.seq, counts, 0, False)[0] if through_reader else False
+        block = SampleBlock(self.seq, self.seq, counts, 0, False, checked)
         self.seq += len(counts)
+        return block
+
+    def take(self, block: SampleBlock) -> None:
+        self.r._on_block(block, time.monotonic())
+
+    def __call__(self, counts: np.ndarray) -> None:
+        self.take(self.land(counts, through_reader=False))
 
 
 def rows(row: np.ndarray, n: int) -> np.ndarray:
@@ -118,26 +113,15 @@ def test_a_crash_the_reader_skipped_while_held_is_judged_after_a_reset(runner):
     stop 24): the reader had not looked at it, and the block said it had. Here the frames go through the
     reader's hook first, as the driver hands them over, then to the block handler."""
     r, drv = runner("crash_power_w = 12000.0\ncrash_current_a = 55.0")
-    seq = 0
-
-    def land(counts):                                   # the reader: the frame check, then the queue
-        nonlocal seq
-        checked, _ = r._on_frame(seq, counts, 0, False)
-        block = SampleBlock(seq, seq, counts, 0, False, checked)
-        seq += len(counts)
-        return block
-
-    def take(block):                                    # the estimator thread
-        r._on_block(block, time.monotonic())
-
+    feed = Feed(r)
     for _ in range(50):
-        take(land(still(10)))
-    take(land(rows(PULSE, 10)))                         # a crash: held on the reader thread
+        feed.take(feed.land(still(10)))
+    feed.take(feed.land(rows(PULSE, 10)))               # a crash: held on the reader thread
     assert r.interlock.latched and drv.device.feed_hold
     for _ in range(10):
-        take(land(still(10)))                           # quiet, stopped: the condition is gone
-    late = land(rows(PULSE, 10))                        # a second crash lands while held; not taken yet
+        feed.take(feed.land(still(10)))                 # quiet, stopped: the condition is gone
+    late = feed.land(rows(PULSE, 10))                   # a second crash lands while held; not taken yet
     assert r.reset("test")["ok"]                        # judged on what the estimator has taken: quiet
-    take(late)
+    feed.take(late)
     assert r.interlock.latched and r.interlock.reason.startswith("crash"), r.interlock.reason
     assert drv.device.feed_hold
