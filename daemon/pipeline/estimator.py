@@ -5,8 +5,10 @@ and copper loss ([P] eq. 11 terms), the voltage space vector's rotation rate,
 spindle angle (encoder or integrated speed), then exact per-revolution
 integrals (`revolutions.py`). Per block, over all the revolutions it closed at
 once: their plausibility (`signal_check.py`) and the physics chain of
-`per_revolution.py` on (R,) columns; only what one revolution hands the next
-(the previous speed, the f_e window) is a short loop on plain floats.
+`per_revolution.py` on (R,) columns, or, when the block closed one good
+revolution (the live daemon's block), the same chain on that revolution's
+plain floats (`_one_revolution`); only what one revolution hands the next (the
+previous speed, the f_e window) is a short loop on plain floats.
 
 The electrical frequency f_e (filter gain, gear, slip-free speed) is the mean
 rotation rate of the Clarke voltage vector over the revolution — or over the
