@@ -2,7 +2,7 @@
 
 One module per step, each formula beside its equation number in the source
 papers ([P] spindle power → force; [D] average forces → depth of cut); see
-``shared/spec/physics.md``. No I/O, no state: numpy arrays or scalars in and out.
+``docs/physics.md``. No I/O, no state: numpy arrays or scalars in and out.
 
 - ``power``: stator power, phase currents, copper loss, electrical frequency,
   anti-alias filter gain, air-gap power ([P] eq. 11)
@@ -12,4 +12,5 @@ papers ([P] spindle power → force; [D] average forces → depth of cut); see
 - ``depth``: exact inversions with a status ([D] §3)
 - ``calibration``: least-squares friction and C_f ([P] §4.2)
 - ``table3``: [D] Table 3 polynomial, for comparison only
+- ``numbers``: one formula for a plain float (the live revolution) and arrays
 """

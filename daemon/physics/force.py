@@ -11,19 +11,22 @@ the true mean resultant is smaller.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from millsense.daemon.physics.milling import Material
+from millsense.daemon.physics.numbers import sqrt, values
 
 
 def tangential_force_n(torque_nm, tool_radius_mm):
     """Mean tangential force, N: ``F_T = T_c/R`` ([P] eq. 16), R in metres."""
-    return np.asarray(torque_nm, dtype=float) / (np.asarray(tool_radius_mm, dtype=float) * 1e-3)
+    return values(torque_nm) / (values(tool_radius_mm) * 1e-3)
 
 
 def resultant_force_n(torque_nm, tool_radius_mm, cf):
     """Mean in-plane resultant force, N: ``F_res = C_f·T_c/R`` ([P] eq. 18), R in metres."""
-    return np.asarray(cf, dtype=float) * tangential_force_n(torque_nm, tool_radius_mm)
+    return values(cf) * tangential_force_n(torque_nm, tool_radius_mm)
 
 
 def resultant_force_magnitude_n(torque_nm: float, tool_radius_mm: float, cf: float, noise_nm: float) -> float | None:
@@ -45,15 +48,17 @@ def resultant_force_magnitude_n(torque_nm: float, tool_radius_mm: float, cf: flo
 def resultant_force_magnitudes_n(torque_nm, tool_radius_mm: float, cf, noise_nm):
     """``resultant_force_magnitude_n`` over arrays of revolutions, N: nan where eq. (18) does not apply
     (a torque more than ``noise_nm`` below zero), else ``C_f·max(T_c, 0)/R`` ([P] eq. 18)."""
-    torque = np.asarray(torque_nm, dtype=float)
+    torque = values(torque_nm)
+    if isinstance(torque, float):   # one revolution
+        return math.nan if torque < -noise_nm else resultant_force_n(max(torque, 0.0), tool_radius_mm, cf)
     applies = ~(torque < -np.asarray(noise_nm, dtype=float))
     return np.where(applies, resultant_force_n(np.maximum(torque, 0.0), tool_radius_mm, cf), np.nan)
 
 
 def cf_model(average_chip_thickness_mm, r1, r1_exp):
     """C_f = √(1 + r₁²) with r₁ = k₁·t_a^p₁ ([P] eq. 17 with [D] eq. 9)."""
-    r1_t = r1 * np.asarray(average_chip_thickness_mm, dtype=float) ** r1_exp
-    return np.sqrt(1.0 + r1_t**2)
+    r1_t = r1 * values(average_chip_thickness_mm) ** r1_exp
+    return sqrt(1.0 + r1_t**2)
 
 
 def slot_cf(feed_per_tooth_mm, material: Material):

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from millsense.daemon.physics.numbers import values
+
 WINDINGS = ("delta", "wye")
 _SQRT3 = np.sqrt(3.0)
 
@@ -76,9 +78,9 @@ def butterworth_power_gain(frequency_hz, cutoff_hz: float, order: int):
 
     2nd order at 200 Hz: 0.992 at 60 Hz, 0.788 at 144 Hz (900 rpm × 4.81, 2 pole pairs).
     """
-    f = np.asarray(frequency_hz, dtype=float)
+    f = values(frequency_hz)
     if cutoff_hz == 0:
-        return np.ones_like(f)
+        return 1.0 if isinstance(f, float) else np.ones_like(f)
     if cutoff_hz < 0 or order < 1:
         raise ValueError(f"filter cutoff {cutoff_hz} Hz must be >= 0 and order {order} >= 1")
     return 1.0 / (1.0 + (f / cutoff_hz) ** (2 * order))
@@ -90,7 +92,7 @@ def air_gap_power_w(p_in_w, p_cu_w, filter_power_gain=1.0):
     Both measured powers come through the anti-alias filter and are low by the same
     |H(f_e)|², so one division restores them.
     """
-    return (np.asarray(p_in_w, dtype=float) - np.asarray(p_cu_w, dtype=float)) / np.asarray(filter_power_gain)
+    return (values(p_in_w) - values(p_cu_w)) / values(filter_power_gain)
 
 
 def clarke_alpha_beta_v(v_uv, v_vw, v_wu):

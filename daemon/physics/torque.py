@@ -26,6 +26,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from millsense.daemon.physics.numbers import positive_or_nan, values
+
 
 def cutting_torque_nm(p_gap_w, spindle_omega_rad_s, friction_torque_nm, viscous_nms, power_omega_rad_s=None):
     """Cutting torque at the spindle, N·m ([P] eq. 13); nan where the dividing speed is not > 0.
@@ -33,10 +35,9 @@ def cutting_torque_nm(p_gap_w, spindle_omega_rad_s, friction_torque_nm, viscous_
     ``power_omega_rad_s``: the speed P_g is divided by (default ω_sp; pass
     ``synchronous_spindle_omega_rad_s(f_e, ...)`` for eq. 10's exact ω_s).
     """
-    omega_sp = np.asarray(spindle_omega_rad_s, dtype=float)
-    omega_p = omega_sp if power_omega_rad_s is None else np.asarray(power_omega_rad_s, dtype=float)
-    safe = np.where(omega_p > 0.0, omega_p, np.nan)
-    return np.asarray(p_gap_w, dtype=float) / safe - friction_torque_nm - viscous_nms * omega_sp
+    omega_sp = values(spindle_omega_rad_s)
+    omega_p = omega_sp if power_omega_rad_s is None else values(power_omega_rad_s)
+    return values(p_gap_w) / positive_or_nan(omega_p) - friction_torque_nm - viscous_nms * omega_sp
 
 
 def inertia_torque_nm(inertia_kgm2, omega_start_rad_s, omega_end_rad_s, duration_s, omega_mean_rad_s):
@@ -48,18 +49,14 @@ def inertia_torque_nm(inertia_kgm2, omega_start_rad_s, omega_end_rad_s, duration
     ω̄ ∓ Δω/2 it is ``J·Δω/Δt``. Negative while slowing down: the masses give
     energy back, to the cut or to friction. nan where ω̄ or Δt is not > 0.
     """
-    w0 = np.asarray(omega_start_rad_s, dtype=float)
-    w1 = np.asarray(omega_end_rad_s, dtype=float)
-    dt = np.asarray(duration_s, dtype=float)
-    wm = np.asarray(omega_mean_rad_s, dtype=float)
-    ok = (dt > 0.0) & (wm > 0.0)
-    energy_j = 0.5 * np.asarray(inertia_kgm2, dtype=float) * (w1 * w1 - w0 * w0)
-    return np.where(ok, energy_j / np.where(ok, dt * wm, 1.0), np.nan)
+    w0, w1 = values(omega_start_rad_s), values(omega_end_rad_s)
+    energy_j = 0.5 * values(inertia_kgm2) * (w1 * w1 - w0 * w0)
+    return energy_j / (positive_or_nan(values(duration_s)) * positive_or_nan(values(omega_mean_rad_s)))
 
 
 def synchronous_spindle_omega_rad_s(electrical_frequency_hz, pole_pairs: int, gear_ratio: float):
     """Synchronous speed referred to the spindle, rad/s: ``2π·f_e/pole_pairs/g`` ([P] eq. 5)."""
-    return 2.0 * np.pi * np.asarray(electrical_frequency_hz, dtype=float) / pole_pairs / gear_ratio
+    return 2.0 * np.pi * values(electrical_frequency_hz) / pole_pairs / gear_ratio
 
 
 def torque_sigma_nm(power_sigma_w, spindle_omega_rad_s):
@@ -67,8 +64,7 @@ def torque_sigma_nm(power_sigma_w, spindle_omega_rad_s):
 
     Worst at low spindle speed: the same watt of noise is more torque.
     """
-    omega = np.asarray(spindle_omega_rad_s, dtype=float)
-    return np.asarray(power_sigma_w, dtype=float) / np.where(omega > 0.0, omega, np.nan)
+    return values(power_sigma_w) / positive_or_nan(values(spindle_omega_rad_s))
 
 
 def rpm_to_rad_s(rpm):

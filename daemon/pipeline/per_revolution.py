@@ -263,9 +263,9 @@ class RevolutionPhysics:
         `tool`: the CNC number of the tool in the spindle (None: unknown, `[tool]`).
 
         The live daemon's block closes one revolution: this is its path. The chain is `estimate_many`'s,
-        step for step in the same order on Python floats (after its thread slept, a numpy call on one
-        element costs several times the float arithmetic it stands for: docs/performance.md). The two
-        forms give the same numbers: tests/estimator/test_one_revolution.py holds them equal over the
+        step for step in the same order, through the same physics functions on Python floats (after its
+        thread slept, a numpy call on one element costs several times the float arithmetic it stands for:
+        docs/performance.md; `physics/numbers.py`). The two forms give the same numbers: tests/estimator/test_one_revolution.py holds them equal over the
         configurations' branches, test_vectorised.py over whole captures cut into blocks of any size.
         """
         rpm = r.spindle_rpm
@@ -276,13 +276,13 @@ class RevolutionPhysics:
         gear = self.gears[gi]
         omega = TWO_PI * rpm / 60.0
         p_in_w = r.p_in_meas_w / gain
-        p_gap_w = (r.p_in_meas_w - r.p_cu_meas_w) / gain                                       # eq. (11)
+        p_gap_w = air_gap_power_w(r.p_in_meas_w, r.p_cu_meas_w, gain)                            # eq. (11)
         if self.pole_pairs and has_fe and f_e != 0.0:
-            power_omega = 2.0 * math.pi * f_e / self.pole_pairs / gear.ratio                     # eq. (10)
+            power_omega = synchronous_spindle_omega_rad_s(f_e, self.pole_pairs, gear.ratio)        # eq. (10)
         else:
             power_omega = omega
-        per_power_omega = power_omega if power_omega > 0.0 else math.nan
-        torque_nm = p_gap_w / per_power_omega - gear.friction_torque_nm - gear.viscous_nms * omega  # eq. (13)
+        torque_nm = cutting_torque_nm(p_gap_w, omega, gear.friction_torque_nm, gear.viscous_nms,
+                                      power_omega_rad_s=power_omega)                            # eq. (13)
         prev = r.prev_spindle_rpm
         band = max(self.STEADY_STEP_RPM, self.STEADY_STEP_PCT / 100.0 * rpm)
         steady = abs(r.speed_rise_rpm) <= self.STEADY_RISE_RPM and (prev is None or abs(rpm - prev) <= band)
@@ -291,14 +291,14 @@ class RevolutionPhysics:
             inertia_nm = 0.0
             if omega > 0.0 and not steady:
                 d_omega = TWO_PI * r.speed_rise_rpm / 60.0
-                w0, w1 = omega - d_omega / 2.0, omega + d_omega / 2.0
-                inertia_nm = 0.5 * gear.inertia_kgm2 * (w1 * w1 - w0 * w0) / (TWO_PI / omega * omega)
+                inertia_nm = inertia_torque_nm(gear.inertia_kgm2, omega - d_omega / 2.0, omega + d_omega / 2.0,
+                                               TWO_PI / omega, omega)
             torque_nm = torque_nm - inertia_nm                                                  # eq. (13) + J·dω/dt
             p_inertia_w = inertia_nm * omega
         p_gap_meas = r.p_in_meas_w - r.p_cu_meas_w
         var_w2 = max(r.p_gap_sq_meas_w2 - p_gap_meas * p_gap_meas, 0.0)
         sigma_p_w = math.sqrt(var_w2 / max(r.samples, 1)) / gain                                 # std. error of the mean
-        sigma_nm = sigma_p_w / per_power_omega                                                  # eq. (20)
+        sigma_nm = torque_sigma_nm(sigma_p_w, power_omega)                                      # eq. (20)
 
         override = r.feed_override_pct
         feed_mm_min = r.feed_rate_mm_min
@@ -347,8 +347,7 @@ class RevolutionPhysics:
     def _force_one(self, tool: ToolGeometry, torque_nm: float, t_c: float, radial_mm: float | None,
                    noise_nm: float) -> float:
         """`_force_many` of one revolution on floats: [P] eq. (18), nan where none."""
-        if torque_nm < -noise_nm:
-            return math.nan
+        cf = tool.cf
         if tool.cf_model:
             if self.mode == "slot":
                 radial_mm = 2.0 * tool.radius_mm
@@ -363,11 +362,8 @@ class RevolutionPhysics:
             t_a = _chip_xp(SCALAR, t_c, entry, exit_)                                           # [D] eq. 8
             if not (math.isfinite(t_a) and t_a > 0):
                 return math.nan
-            r1_t = self.material.r1 * t_a ** self.material.r1_exp
-            cf = math.sqrt(1.0 + r1_t ** 2)                                                     # [D] eq. 9
-        else:
-            cf = tool.cf
-        return cf * (max(torque_nm, 0.0) / (tool.radius_mm * 1e-3))                            # [P] eq. 18
+            cf = cf_model(t_a, self.material.r1, self.material.r1_exp)                           # [D] eq. 9
+        return resultant_force_magnitudes_n(torque_nm, tool.radius_mm, cf, noise_nm)            # [P] eq. 18
 
     def estimate_many(self, c: RevolutionColumns, tools: Sequence[int | None] | None = None) -> dict[str, list]:
         """All physical fields of R good revolutions at once: {field: list of R plain values (None: null)}.
@@ -517,7 +513,7 @@ class RevolutionPhysics:
         """`_filter_gains` of one revolution on floats: |H(f_e)|² (physics.md §1), 1 with no filter or no f_e."""
         if self.cutoff_hz <= 0.0 or not math.isfinite(f_e_hz):
             return 1.0
-        return 1.0 / (1.0 + (f_e_hz / self.cutoff_hz) ** (2 * self.filter_order))
+        return butterworth_power_gain(f_e_hz, self.cutoff_hz, self.filter_order)
 
     def _gear_index(self, c: RevolutionColumns) -> int:
         """`_gear_indices` of a one-revolution batch."""
