@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import math
 import re
 from typing import Annotated, Any, Literal
 
@@ -46,6 +47,20 @@ class _Section(BaseModel):
 
 
 # --------------------------------------------------------------------------- [daq]
+MIN_FILTER_CUTOFF_HZ = 1.0
+
+
+def _filter_cutoff(value: float) -> float:
+    """0 (no filter to divide out) or a real analog anti-alias filter's cutoff: at least 1 Hz and finite.
+    Far below it the gain divided out at f_e, 1/(1 + (f_e/f_c)^(2n)), underflows (an inf power)."""
+    if value == 0:
+        return value
+    if not math.isfinite(value) or value < MIN_FILTER_CUTOFF_HZ:
+        raise ValueError(f"{value!r} is below any real anti-alias filter "
+                         f"(0 = no filter to divide out, else a cutoff of at least {MIN_FILTER_CUTOFF_HZ:g} Hz)")
+    return value
+
+
 class DaqSettings(_Section):
     """`[daq]`: which transport reaches the DAQ, and the DAQ's analog filter.
 
@@ -66,7 +81,7 @@ class DaqSettings(_Section):
     # The rate the DAQ is wired and set for (additive key). A DESCRIPTOR that claims
     # another rate is refused as fault `descriptor`: every speed and torque would scale with it.
     sample_rate_hz: int = Field(1000, ge=1, le=65535)
-    filter_cutoff_hz: float = Field(200.0, ge=0)  # 0 = no anti-alias filter to divide out
+    filter_cutoff_hz: Annotated[float, AfterValidator(_filter_cutoff)] = 200.0  # 0 = no anti-alias filter to divide out
     filter_order: int = Field(2, ge=1, le=8)
 
     @model_validator(mode="after")

@@ -29,8 +29,9 @@ def resultant_force_n(torque_nm, tool_radius_mm, cf):
     return values(cf) * tangential_force_n(torque_nm, tool_radius_mm)
 
 
-def resultant_force_magnitude_n(torque_nm: float, tool_radius_mm: float, cf: float, noise_nm: float) -> float | None:
-    """One revolution's |F_res| of eq. (18), N: never negative; None when eq. (18) does not apply.
+def resultant_force_magnitudes_n(torque_nm, tool_radius_mm: float, cf, noise_nm):
+    """Each revolution's |F_res| of eq. (18), N (a float or an array of revolutions): never negative;
+    nan where eq. (18) does not apply, else ``C_f·max(T_c, 0)/R`` ([P] eq. 18).
 
     Eq. (18) turns a cutting torque, which is never below zero, into a force. An
     estimate below zero is either noise around an air cut (within ``noise_nm``:
@@ -38,16 +39,8 @@ def resultant_force_magnitude_n(torque_nm: float, tool_radius_mm: float, cf: flo
     energy back from the spindle — after a crash the speed overshoots and the
     drive brakes it, or a speed drop whose J·dω/dt is not compensated. Then
     ``P_g/ω`` says nothing about a cutting force, and a number (negative, or a
-    clamped 0 that reads "no force") would mislead: None.
+    clamped 0 that reads "no force") would mislead: nan (published as null).
     """
-    if torque_nm < -noise_nm:
-        return None
-    return float(resultant_force_n(max(torque_nm, 0.0), tool_radius_mm, cf))
-
-
-def resultant_force_magnitudes_n(torque_nm, tool_radius_mm: float, cf, noise_nm):
-    """``resultant_force_magnitude_n`` over arrays of revolutions, N: nan where eq. (18) does not apply
-    (a torque more than ``noise_nm`` below zero), else ``C_f·max(T_c, 0)/R`` ([P] eq. 18)."""
     torque = values(torque_nm)
     if isinstance(torque, float):   # one revolution
         return math.nan if torque < -noise_nm else resultant_force_n(max(torque, 0.0), tool_radius_mm, cf)

@@ -283,9 +283,7 @@ class RevolutionPhysics:
             power_omega = omega
         torque_nm = cutting_torque_nm(p_gap_w, omega, gear.friction_torque_nm, gear.viscous_nms,
                                       power_omega_rad_s=power_omega)                            # eq. (13)
-        prev = r.prev_spindle_rpm
-        band = max(self.STEADY_STEP_RPM, self.STEADY_STEP_PCT / 100.0 * rpm)
-        steady = abs(r.speed_rise_rpm) <= self.STEADY_RISE_RPM and (prev is None or abs(rpm - prev) <= band)
+        steady = self.steady(r.speed_rise_rpm, rpm, r.prev_spindle_rpm)
         p_inertia_w = None
         if gear.inertia_kgm2 is not None:
             inertia_nm = 0.0
@@ -391,7 +389,7 @@ class RevolutionPhysics:
             power_omega = omega
         torque_nm = cutting_torque_nm(p_gap_w, omega, self._friction[gi], self._viscous[gi],
                                       power_omega_rad_s=power_omega)                            # eq. (13)
-        steady = self.steady_many(c.speed_rise_rpm, rpm, c.prev_spindle_rpm)
+        steady = self.steady(c.speed_rise_rpm, rpm, c.prev_spindle_rpm)
         inertia = self._inertia[gi]
         has_j = np.isfinite(inertia)
         if has_j.any():
@@ -510,8 +508,9 @@ class RevolutionPhysics:
         return select_gears(rpm, self._max_rpm, self._ratio_list, motor_to_spindle_ratio=ratio)
 
     def _filter_gain(self, f_e_hz: float) -> float:
-        """`_filter_gains` of one revolution on floats: |H(f_e)|² (physics.md §1), 1 with no filter or no f_e."""
-        if self.cutoff_hz <= 0.0 or not math.isfinite(f_e_hz):
+        """`_filter_gains` of one revolution on floats: |H(f_e)|² (physics.md §1), 1 with no f_e
+        (`butterworth_power_gain` gives 1 with no filter)."""
+        if not math.isfinite(f_e_hz):
             return 1.0
         return butterworth_power_gain(f_e_hz, self.cutoff_hz, self.filter_order)
 
@@ -546,8 +545,13 @@ class RevolutionPhysics:
     STEADY_STEP_PCT = 0.05
 
     @staticmethod
-    def steady_many(speed_rise_rpm: np.ndarray, spindle_rpm: np.ndarray, prev_spindle_rpm: np.ndarray) -> np.ndarray:
-        """Is the speed's change over each revolution within the speed readings' noise? (nan prev: none before)"""
+    def steady(speed_rise_rpm, spindle_rpm, prev_spindle_rpm):
+        """Is the speed's change over each revolution within the speed readings' noise? Plain floats (one
+        revolution; prev None: none before) or arrays of revolutions (prev nan: none before)."""
+        if isinstance(spindle_rpm, float):
+            band = max(RevolutionPhysics.STEADY_STEP_RPM, RevolutionPhysics.STEADY_STEP_PCT / 100.0 * spindle_rpm)
+            return abs(speed_rise_rpm) <= RevolutionPhysics.STEADY_RISE_RPM and (
+                prev_spindle_rpm is None or abs(spindle_rpm - prev_spindle_rpm) <= band)
         band = np.maximum(RevolutionPhysics.STEADY_STEP_RPM, RevolutionPhysics.STEADY_STEP_PCT / 100.0 * spindle_rpm)
         step_ok = np.isnan(prev_spindle_rpm) | (np.abs(spindle_rpm - prev_spindle_rpm) <= band)
         return (np.abs(speed_rise_rpm) <= RevolutionPhysics.STEADY_RISE_RPM) & step_ok

@@ -276,3 +276,16 @@ def test_modbus_rtu_timeout_covers_the_longest_answer_at_the_baud_rate():
     assert problem.startswith("daq.timeout_ms: 200 is too short for a 125-register answer at 19200 baud (146 ms"), problem
     doc["daq"]["baudrate"] = 115200
     assert load_config_text(dumps(doc)).daq.baudrate == 115200
+
+
+@pytest.mark.parametrize("cutoff", [1e-25, 0.5, -1.0, float("inf"), float("nan")])
+def test_filter_cutoff_is_zero_or_a_real_filter(cutoff):
+    """A cutoff far below any real anti-alias filter made the gain divided out of the power underflow:
+    (f_e/f_c)^(2n) overflowed in the one-revolution path (an estimator fault, the feed held)."""
+    doc = base()
+    doc["daq"]["filter_cutoff_hz"] = cutoff
+    probs = problems_of(doc)
+    assert len(probs) == 1 and probs[0].startswith("daq.filter_cutoff_hz: "), probs
+    for ok in (0.0, 1.0, 200.0):
+        doc["daq"]["filter_cutoff_hz"] = ok
+        assert load_config_text(dumps(doc)).daq.filter_cutoff_hz == ok

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, assume, given, settings as hyp_settings, strategies as st
 
-from millsense.daemon.physics.force import resultant_force_magnitude_n, resultant_force_magnitudes_n
+from millsense.daemon.physics.force import resultant_force_magnitudes_n
 from millsense.daemon.physics.torque import select_gear, select_gears
 from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
 from millsense.daemon.pipeline.estimator import Estimator
@@ -202,6 +202,10 @@ def test_select_gears_is_select_gear_per_revolution(rpm, ratio):
 
 @given(torque=st.lists(st.floats(-100, 100), min_size=1, max_size=20), noise=st.floats(0, 5))
 def test_force_magnitudes_are_the_one_revolution_form(torque, noise):
+    """The columns and the float form (one revolution) of eq. 18 agree, nan where it does not apply."""
     got = resultant_force_magnitudes_n(np.array(torque), 8.0, 1.075, noise).tolist()
-    want = [resultant_force_magnitude_n(t, 8.0, 1.075, noise) for t in torque]
-    assert [None if math.isnan(g) else g for g in got] == want
+    want = [resultant_force_magnitudes_n(t, 8.0, 1.075, noise) for t in torque]
+    assert all(isinstance(w, float) for w in want)
+    assert [None if math.isnan(g) else g for g in got] == [None if math.isnan(w) else w for w in want]
+    assert all(math.isnan(g) == (t < -noise) for g, t in zip(got, torque))
+    assert all(g >= 0.0 for g in got if not math.isnan(g))
