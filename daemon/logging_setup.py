@@ -129,6 +129,9 @@ class NonBlockingWriter:
                 self._cv.notify()
 
     def _drain(self) -> None:
+        from millsense.drivers.base import name_os_thread  # here: every command imports this module; numpy stays out of it
+
+        name_os_thread("ms-log")
         while True:
             with self._cv:
                 while not self._q and not self._live_dirty and not self._closed:

@@ -35,6 +35,8 @@ from typing import Any, Callable
 
 import structlog
 
+from millsense.drivers.base import name_os_thread
+
 log = structlog.get_logger("millsense.latch")
 
 LATCH_FILE = "latch.json"
@@ -150,6 +152,7 @@ class LatchStore:
             self._thread = None
 
     def _run(self) -> None:
+        name_os_thread("ms-latch")
         while True:
             with self._cond:
                 self._cond.wait_for(lambda: self._has_pending or self._closing)

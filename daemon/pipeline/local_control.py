@@ -36,6 +36,8 @@ from typing import Any
 
 import structlog
 
+from millsense.drivers.base import name_os_thread
+
 log = structlog.get_logger("millsense.local_control")
 
 SOCKET_NAME = "control.sock"
@@ -172,6 +174,7 @@ class LocalControl:
                 pass
 
     def _serve(self) -> None:
+        name_os_thread("ms-local-ctl")
         while not self._stop.is_set():
             try:
                 conn, _ = self._sock.accept()

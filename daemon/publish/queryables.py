@@ -33,6 +33,7 @@ import zenoh
 from millsense.daemon.publish.command_auth import Answer, CommandGate
 from millsense.daemon.publish.payload import JSON_ENCODING, MAX_QUERY_BYTES, dumps, loads_object
 from millsense.daemon.throttle import Throttle
+from millsense.drivers.base import name_os_thread
 
 RING_CAPACITY = 8
 LOG_EVERY_S = 10.0
@@ -88,13 +89,14 @@ class QueryServer:
             raise
         self._budget_lock = threading.Lock()
         self._tick_end, self._served = time.monotonic() + 0.1, 0
-        self._threads = [threading.Thread(target=self._run, args=(e,), name=f"zenoh-query-{e.key.rsplit('/', 1)[-1]}",
-                                          daemon=True) for e in self._entries]
+        self._threads = [threading.Thread(target=self._run, args=(e,), name=_thread_name(e), daemon=True)
+                         for e in self._entries]
         for t in self._threads:
             t.start()
 
     # ---- workers ---------------------------------------------------------------------
     def _run(self, entry: _Entry) -> None:
+        name_os_thread(_thread_name(entry, os_name=True))
         while not self._stop.is_set():
             try:
                 query = entry.queryable.handler.recv()  # blocks in Zenoh, GIL released
@@ -249,3 +251,11 @@ class QueryServer:
             except Exception:  # noqa: BLE001 - already undeclared, or the session closed
                 pass
         self._entries = []
+
+
+def _thread_name(entry: _Entry, os_name: bool = False) -> str:
+    """`zenoh-query-status` … and `zenoh-cmd-reset` …; in the OS (15 bytes: `top -H`) `ms-q-status`, `ms-c-reset`."""
+    tail = entry.key.rsplit("/", 1)[-1]
+    if entry.command is not None:
+        return f"ms-c-{tail}" if os_name else f"zenoh-cmd-{tail}"
+    return f"ms-q-{tail}" if os_name else f"zenoh-query-{tail}"

@@ -160,3 +160,23 @@ def test_a_flood_of_large_queries_does_not_stop_a_legit_command(daemon):
     assert len(controls.requesters) == 1  # ran once
     assert status_replies == [("ok", {"state": "running", "interlock": "clear"})]
     assert answers["ok"] == 0  # not one flood query was answered as if it were a request
+
+
+def test_every_query_worker_carries_its_name_into_the_os(daemon):
+    """`top -H` shows which queryable costs what (docs/architecture.md, the thread table)."""
+    import os
+    from pathlib import Path
+
+    sink, controls, b = daemon
+
+    def names() -> set[str]:
+        out = set()
+        for task in os.listdir("/proc/self/task"):
+            try:
+                out.add(Path(f"/proc/self/task/{task}/comm").read_text().strip())
+            except OSError:
+                pass  # a thread that ended meanwhile
+        return out
+
+    want = {"ms-q-status", "ms-q-config", "ms-c-reset", "ms-zenoh-sink"}
+    wait_for(lambda: want <= names(), 5.0, f"threads named {sorted(want)}")
