@@ -111,6 +111,7 @@ class Replay:
         from millsense.daemon.pipeline.power_check import PowerSignCheck
 
         self.power_check = PowerSignCheck()
+        self.loss_check = None              # the share of the stream lost (loss_check.py), from the descriptor's rate
         self.warnings: list[str] = []       # what the live daemon would raise: the wiring check, fault `signals`
         # contiguous SAMPLES runs joined into one block (seq, first index, lost before, discontinuity, parts)
         self._pending: tuple[int, int, int, bool, list] | None = None
@@ -133,6 +134,8 @@ class Replay:
                     self.first_seq = seq
                 self.counts["lost_samples"] += lost
                 self.counts["discontinuities"] += int(disc)
+                if self.loss_check is not None:   # frame by frame, as the live daemon's blocks come
+                    self._note_fault_change("signals", seq, self.loss_check.update(seq, n, lost, disc))
                 if lost or disc or self._pending_n + n > JOIN_SAMPLES:
                     self._flush(lines)
                 if self._pending is None:
@@ -149,6 +152,9 @@ class Replay:
                     self.tracker.mark_discontinuity()
                 if self.core.on_descriptor(frame):  # ConfigError: the capture does not fit the config
                     self.rate = float(frame.sample_rate_hz)
+                    from millsense.daemon.pipeline.loss_check import LossCheck
+
+                    self.loss_check = LossCheck(self.rate)
                 continue
             if isinstance(frame, Context):  # protocol 2: what the CNC does from frame.index on
                 if frame != self._context:
@@ -182,9 +188,15 @@ class Replay:
     def _note_faults(self, step) -> None:
         """The faults the live daemon would raise or clear, at the sample where each was decided."""
         for kind, seq, reason in step.fault_changes:
-            t = self._t(seq)
-            at = "?" if t is None else f"{t:.3f}"
-            self.warnings.append(f"fault {kind} from t={at} s: {reason}" if reason else f"fault {kind} cleared at t={at} s")
+            self._note_fault_change(kind, seq, reason)
+
+    def _note_fault_change(self, kind: str, seq: int, reason: str | None) -> None:
+        """A reason: raised at `seq`; "": cleared; None: no change."""
+        if reason is None:
+            return
+        t = self._t(seq)
+        at = "?" if t is None else f"{t:.3f}"
+        self.warnings.append(f"fault {kind} from t={at} s: {reason}" if reason else f"fault {kind} cleared at t={at} s")
 
     def _write_items(self, items: list, lines: list[bytes]) -> None:
         from millsense.daemon.pipeline.alarms import alarm_payload

@@ -65,6 +65,7 @@ from millsense.daemon.pipeline.alarms import AlarmEvent, alarm_payload
 from millsense.daemon.pipeline.feed_control import FeedController
 from millsense.daemon.pipeline.feed_output import OverrideOutput
 from millsense.daemon.pipeline.interlock import TEST_TRIP, Interlock, ResetCheck
+from millsense.daemon.pipeline.loss_check import LossCheck
 from millsense.daemon.pipeline.power_check import PowerSignCheck
 from millsense.daemon.pipeline.run_core import PipelineCore, estimate_payload, process_payload
 from millsense.daemon.pipeline.safety_check import FrameCheck
@@ -164,6 +165,7 @@ class Runner:
         self.delay = LatencyStats()    # per revolution: its frame decoded by the reader → sink (queue wait too)
         self.clock: SeqClock | None = None
         self.power_check = PowerSignCheck()
+        self.loss_check = LossCheck(float(getattr(getattr(settings, "daq", None), "sample_rate_hz", 1000)))
         # Adaptive feed control (issue 15, docs/afc.md): off at start unless [afc] enabled. The controller decides per
         # revolution on the estimator thread; any thread that sees a fault or trips sets the override to
         # min(current, 100 %) at once (`_afc_safe`). One lock orders the controller's state and the writes.
@@ -432,6 +434,7 @@ class Runner:
             self._signal_source(kind, "plausibility", reason)
         for kind in step.clear_faults:
             self._signal_source(kind, "plausibility", None)
+        self._check_loss(block, n)
         self._check_blind()
         with self._check_lock:  # evidence for a reset: only what is newer than the hold counts
             self._check.on_block(block.seq, step.peaks, step.stalled, self._spindle_stopped)
@@ -704,8 +707,16 @@ class Runner:
         elif verdict == "":
             self._signal_source("signals", "wiring", None)
 
+    def _check_loss(self, block: Any, n: int) -> None:
+        """Most of the stream lost (loss_check.py): blind, fault `signals` from source `data_loss`."""
+        verdict = self.loss_check.update(block.seq, n, block.lost_before, block.discontinuity)
+        if verdict:
+            self._signal_source("signals", "data_loss", verdict)
+        elif verdict == "":
+            self._signal_source("signals", "data_loss", None)
+
     def _signal_source(self, kind: str, source: str, reason: str | None) -> None:
-        """One fault kind fed by several checks (`signals`: plausibility and the wiring check):
+        """One fault kind fed by several checks (`signals`: plausibility, the wiring check, the data loss):
         raised while any of them holds it, recovered only when none does."""
         sources = self._fault_sources.setdefault(kind, {})
         if reason is None:

@@ -1,0 +1,128 @@
+"""A stream that loses most of its frames is blind, live: the daemon says so and holds the feed.
+
+The emulator (`millsense sim --corrupt-fraction`) corrupts that share of its frames on the wire,
+as a bad cable or ground does; each is counted and skipped, and its samples are lost. At 35 %
+hardly a revolution at 600 rpm arrives whole (0.65^10 of them): every revolution is published
+invalid, as it must be, and the overload passes unseen. Before the loss check the status said
+`running`, interlock `armed`, no fault, and the heartbeat went on (the probe of stop 26). Now:
+fault `signals` naming the share lost, and the feed held (`on_blind = "hold"`, the default).
+The same daemon on a clean stream from the same emulator raises nothing.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from millsense.daemon.pipeline.loss_check import CLEAR_SHARE, LINK_GAP_S, RAISE_SHARE, LossCheck
+from tests.conftest import free_tcp_port
+from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
+from tests.faults.helpers import outputs, status, wait_status
+
+
+def _daemon_on_a_lossy_stream(tmp_path, corrupt_fraction: float):
+    daq_port, z_port = free_tcp_port(), free_tcp_port()
+    machine = "lossy-01"
+    sim_log = tmp_path / "sim.jsonl"
+    cfg = write_config(
+        tmp_path / "d.toml",
+        machine=machine,
+        daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}',
+        zenoh_listen=[tcp(z_port)],
+        interlock='enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 1000\nreset = "open"',
+    )
+    procs = Procs(tmp_path)
+    procs.__enter__()
+    procs.start("sim", ["sim", "--scenario", "step", "--loop", "--tcp", f"127.0.0.1:{daq_port}", "--realtime",
+                        "--watchdog-ms", "1000", "--status-log", str(sim_log), "--seed", "7",
+                        "--corrupt-fraction", str(corrupt_fraction)])
+    wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
+    daemon = procs.start("daemon", ["run", "--config", str(cfg)])
+    return procs, daemon, Subscriber([tcp(z_port)], machine), machine, sim_log
+
+
+def test_a_stream_losing_a_third_of_its_frames_is_blind_and_holds_the_feed(tmp_path):
+    procs, daemon, sub, machine, sim_log = _daemon_on_a_lossy_stream(tmp_path, 0.35)
+    try:
+        st = wait_status(sub, machine, lambda s: "signals" in s.get("faults", {}) or s["samples_received"] > 20000,
+                         90.0, "fault signals")
+        assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
+        reason = st["faults"].get("signals", "")
+        assert "of the DAQ's samples over the last 2 s lost" in reason, st["faults"]
+        held = wait_for(lambda: outputs(read_jsonl(sim_log), feed_hold=True, cause="command"), 10.0,
+                        "the daemon holds the feed (on_blind = hold)")
+        assert held
+        st = status(sub, machine)
+        assert st["state"] == "degraded" and st["interlock"] == "feed_hold"
+        assert not [e for e in sub.get("estimate") if e.get("valid") and e.get("lost_samples")]
+    finally:
+        sub.close()
+        procs.__exit__(None, None, None)
+
+
+def test_a_few_corrupt_frames_are_not_blindness(tmp_path):
+    """1 % of the frames corrupt: revolutions here and there invalid, no fault, the feed free."""
+    procs, daemon, sub, machine, sim_log = _daemon_on_a_lossy_stream(tmp_path, 0.01)
+    try:
+        st = wait_status(sub, machine, lambda s: s["samples_received"] > 6000 and s.get("bad_frames", 0) > 0,
+                         90.0, "6 s of samples, some frames corrupt")
+        assert "signals" not in st.get("faults", {}), st["faults"]
+        assert st["interlock"] != "feed_hold"
+        assert not outputs(read_jsonl(sim_log), feed_hold=True, cause="command")
+    finally:
+        sub.close()
+        procs.__exit__(None, None, None)
+
+
+def _feed(check: LossCheck, pattern, seconds: float, rate: int = 1000, frame: int = 10, seq: int = 0):
+    """Frames of `frame` samples for `seconds`; `pattern(k)` says whether frame k is lost. Returns (verdicts, seq)."""
+    out, lost = [], 0
+    for k in range(int(seconds * rate / frame)):
+        if pattern(k):
+            lost += frame
+        else:
+            v = check.update(seq, frame, lost)
+            lost = 0
+            if v is not None:
+                out.append(v)
+        seq += frame
+    return out, seq
+
+
+@pytest.mark.parametrize("share", [0.25, 0.5, 0.9])
+def test_the_share_lost_raises_and_clears_with_hysteresis(share):
+    check = LossCheck(1000)
+    every = round(1 / share) if share <= 0.5 else None
+    lossy = (lambda k: k % every == 0) if every else (lambda k: k % 10 != 0)
+    got, seq = _feed(check, lossy, 3.0)
+    assert len(got) == 1 and got[0] and check.faulted, got
+    # half the old share still lost: above CLEAR_SHARE, the fault stays
+    got, seq = _feed(check, lambda k: k % 12 == 0, 3.0, seq=seq)
+    assert got == [] and check.faulted
+    got, seq = _feed(check, lambda k: False, 3.0, seq=seq)
+    assert got == [""] and not check.faulted
+
+
+def test_losses_under_the_limit_and_link_interruptions_are_not_a_lossy_stream():
+    check = LossCheck(1000)
+    got, seq = _feed(check, lambda k: k % 8 == 0, 5.0)   # 12.5 %: revolutions lost, not blind
+    assert got == [] and RAISE_SHARE > 0.125 > CLEAR_SHARE
+    # the link away for a second, then a clean stream: one gap, reported by the link's faults
+    assert check.update(seq + int(LINK_GAP_S * 1000) + 500, 10, int(LINK_GAP_S * 1000) + 500) is None
+    got, _ = _feed(check, lambda k: False, 3.0, seq=seq + int(LINK_GAP_S * 1000) + 510)
+    assert got == [] and not check.faulted
+
+
+def test_replay_says_where_the_stream_went_blind(tmp_path, millsense_cmd):
+    """`millsense replay` warns of the same fault, at the sample where the live daemon would raise it."""
+    import subprocess
+
+    cap = tmp_path / "lossy.cap"
+    subprocess.run(millsense_cmd + ["sim", "--scenario", "step", "--once", "--duration-s", "12", "--capture", str(cap),
+                                    "--fast", "--corrupt-fraction", "0.35", "--seed", "7"], check=True, capture_output=True)
+    from tests.config.helpers import DEMO_TOML
+
+    p = subprocess.run(millsense_cmd + ["replay", "--config", str(DEMO_TOML), str(cap)], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert "warning: fault signals from t=" in p.stderr and "of the DAQ's samples over the last 2 s lost" in p.stderr
+    assert "Traceback" not in p.stderr
