@@ -97,6 +97,7 @@ class Replay:
         from millsense.drivers.base import IndexTracker
         from millsense.drivers.protocol import StreamDecoder
 
+        self.settings = settings
         self.machine = str(settings.machine)
         self.core = PipelineCore(settings)
         self.decoder = StreamDecoder()
@@ -112,6 +113,7 @@ class Replay:
 
         self.power_check = PowerSignCheck()
         self.loss_check = None              # the share of the stream lost (loss_check.py), from the descriptor's rate
+        self.phase_check = None             # the currents against each other and the voltages (phase_check.py)
         self.warnings: list[str] = []       # what the live daemon would raise: the wiring check, fault `signals`
         # contiguous SAMPLES runs joined into one block (seq, first index, lost before, discontinuity, parts)
         self._pending: tuple[int, int, int, bool, list] | None = None
@@ -155,6 +157,9 @@ class Replay:
                     from millsense.daemon.pipeline.loss_check import LossCheck
 
                     self.loss_check = LossCheck(self.rate)
+                    from millsense.daemon.pipeline.phase_check import PhaseCheck
+
+                    self.phase_check = PhaseCheck(self.settings, frame)
                 continue
             if isinstance(frame, Context):  # protocol 2: what the CNC does from frame.index on
                 if frame != self._context:
@@ -184,6 +189,9 @@ class Replay:
         step = self.core.process(SampleBlock(seq, index, counts, lost, disc))
         self._write_items(step.items, lines)
         self._note_faults(step)
+        if self.phase_check is not None:
+            verdict = self.phase_check.update(counts, lost, disc)
+            self._note_fault_change("signals", seq + self.phase_check.decided_at, verdict)
 
     def _note_faults(self, step) -> None:
         """The faults the live daemon would raise or clear, at the sample where each was decided."""

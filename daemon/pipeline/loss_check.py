@@ -14,7 +14,9 @@ The share is counted over the last `WINDOW_S` of sample numbers: the samples the
 blocks carried and the gaps before them (`lost_before`). A single gap longer than
 `LINK_GAP_S` is an interruption, not a lossy stream: the link's own faults
 (`daq_link`, `daq_stalled`) and the revolutions' `lost_samples` report it, and the
-window starts again after it. A discontinuity (the DAQ restarted) does too.
+window starts again after it. So does the gap before the first block after the link
+came back (`link_restarted`: a link cut for 0.3 s is fault `daq_link`, each time), and
+a discontinuity (the DAQ restarted).
 """
 
 from __future__ import annotations
@@ -39,6 +41,11 @@ class LossCheck:
         self._received = 0
         self._lost = 0
         self._gaps = 0
+        self._link_restarted = False
+
+    def link_restarted(self) -> None:
+        """The link came back: the gap before the next block is the outage's (fault `daq_link`), not loss."""
+        self._link_restarted = True
 
     def update(self, seq0: int, n: int, lost_before: int = 0, discontinuity: bool = False) -> str | None:
         """One block of `n` samples from sample `seq0`, after `lost_before` lost ones. Returns the fault's
@@ -46,7 +53,7 @@ class LossCheck:
         if n <= 0:
             return None
         lost = int(lost_before)
-        if discontinuity or lost >= self.link_gap:
+        if discontinuity or lost >= self.link_gap or self._link_restarted:
             self._restart()
             lost = 0
         last = seq0 + n - 1
@@ -76,5 +83,6 @@ class LossCheck:
         return None
 
     def _restart(self) -> None:
+        self._link_restarted = False
         self._blocks.clear()
         self._received = self._lost = self._gaps = 0

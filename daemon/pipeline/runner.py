@@ -66,6 +66,7 @@ from millsense.daemon.pipeline.feed_control import FeedController
 from millsense.daemon.pipeline.feed_output import OverrideOutput
 from millsense.daemon.pipeline.interlock import TEST_TRIP, Interlock, ResetCheck
 from millsense.daemon.pipeline.loss_check import LossCheck
+from millsense.daemon.pipeline.phase_check import PhaseCheck
 from millsense.daemon.pipeline.power_check import PowerSignCheck
 from millsense.daemon.pipeline.run_core import PipelineCore, estimate_payload, process_payload
 from millsense.daemon.pipeline.safety_check import FrameCheck
@@ -166,6 +167,8 @@ class Runner:
         self.clock: SeqClock | None = None
         self.power_check = PowerSignCheck()
         self.loss_check = LossCheck(float(getattr(getattr(settings, "daq", None), "sample_rate_hz", 1000)))
+        self.phase_check: PhaseCheck | None = None   # for the estimator's descriptor (`_check_phase`)
+        self._phase_desc: Any = None
         # Adaptive feed control (issue 15, docs/afc.md): off at start unless [afc] enabled. The controller decides per
         # revolution on the estimator thread; any thread that sees a fault or trips sets the override to
         # min(current, 100 %) at once (`_afc_safe`). One lock orders the controller's state and the writes.
@@ -470,6 +473,7 @@ class Runner:
                 for payload in stored:
                     self.history.add_revolution(payload)
         self._after_step(step)
+        self._safe(self._check_phase, block)
         if not self.ready.is_set():
             self.state = "running" if not self.faults else "degraded"
             self.ready.set()
@@ -707,6 +711,23 @@ class Runner:
         elif verdict == "":
             self._signal_source("signals", "wiring", None)
 
+    def _check_phase(self, block: Any) -> None:
+        """The currents against each other and the voltages (phase_check.py): fault `signals`, source `phase`.
+        Once a second, after the block's estimates are published: a wiring mistake is judged over seconds."""
+        desc = self.core.descriptor
+        if desc is not self._phase_desc:
+            self._phase_desc, self.phase_check = desc, None
+            if desc is not None:
+                self.phase_check = PhaseCheck(self.settings, desc)   # the estimator accepted it: so does this
+        if self.phase_check is None:
+            return
+        verdict = self.phase_check.update(block.counts, block.lost_before, block.discontinuity)
+        if verdict:
+            self._signal_source("signals", "phase", verdict)
+            self._check_blind()
+        elif verdict == "":
+            self._signal_source("signals", "phase", None)
+
     def _check_loss(self, block: Any, n: int) -> None:
         """Most of the stream lost (loss_check.py): blind, fault `signals` from source `data_loss`."""
         verdict = self.loss_check.update(block.seq, n, block.lost_before, block.discontinuity)
@@ -795,6 +816,7 @@ class Runner:
 
     def _on_link(self, ev: Any) -> None:
         if ev.up:  # the driver logged it (`daq.link_up`, with transport and address)
+            self.loss_check.link_restarted()
             # A DAQ that restarted forgot its watchdog and maybe the latched output; its override is 100 %, or
             # (a link that only dropped) still what it was: set again at its first STATUS.
             self.feed_out.device_restarted()

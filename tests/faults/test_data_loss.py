@@ -126,3 +126,17 @@ def test_replay_says_where_the_stream_went_blind(tmp_path, millsense_cmd):
     assert p.returncode == 0, p.stderr
     assert "warning: fault signals from t=" in p.stderr and "of the DAQ's samples over the last 2 s lost" in p.stderr
     assert "Traceback" not in p.stderr
+
+
+def test_the_gap_after_the_link_came_back_is_the_links_fault_not_loss():
+    """A link cut for 0.45 s every 2 s is fault `daq_link` each time (tests/faults/test_link.py), not a lossy stream."""
+    check = LossCheck(1000)
+    seq, got = 0, []
+    for _ in range(5):
+        out, seq = _feed(check, lambda k: False, 1.7, seq=seq)
+        got += out
+        check.link_restarted()
+        seq += 450   # the outage, under LINK_GAP_S
+        assert check.update(seq, 10, 450) is None
+        seq += 10
+    assert got == [] and not check.faulted
