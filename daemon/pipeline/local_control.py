@@ -20,8 +20,11 @@ that changes something is recorded in the audit log, granted or refused, with
 the peer's uid and pid.
 
 Requests are served one at a time by one thread (a test-trip takes up to a
-few seconds; a second request waits for it), each with a read deadline, so a
-client that connects and says nothing cannot hold the socket.
+few seconds; a second request waits for it). The whole request must arrive within
+`READ_DEADLINE_S` of the connection (a client that connects and says nothing, or
+dribbles a byte a second, is cut off then), and from a uid that may not command
+the daemon within `DENIED_READ_S`: its refusal is audited and it holds the socket
+for no longer than that.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import os
 import socket
 import struct
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +47,8 @@ log = structlog.get_logger("millsense.local_control")
 SOCKET_NAME = "control.sock"
 COMMANDS = ("reset", "test-trip", "status", "limits", "afc")
 MAX_REQUEST_BYTES = 4096
-READ_DEADLINE_S = 2.0
+READ_DEADLINE_S = 2.0    # the whole request, from the connection
+DENIED_READ_S = 0.25     # ... from a uid that may not command: read only to name its command in the audit log
 SOCKET_MODE = 0o660
 # How long a local client waits for the daemon's answer. An edge box can be loaded (a slicer, a
 # backup, another daemon): a daemon that is running answers, only later, and an operator at the
@@ -106,9 +111,16 @@ def local_command(state_dir: Path, command: str, timeout_s: float = CLIENT_TIMEO
     return reply
 
 
-def _read_line(sock: socket.socket) -> bytes:
+def _read_line(sock: socket.socket, deadline_s: float | None = None) -> bytes:
+    """One line; with `deadline_s`, all of it within that many seconds from now (socket.timeout if not)."""
+    end = None if deadline_s is None else time.monotonic() + deadline_s
     buf = b""
     while b"\n" not in buf and len(buf) <= MAX_REQUEST_BYTES * 64:
+        if end is not None:
+            left = end - time.monotonic()
+            if left <= 0:
+                raise socket.timeout("no complete request in time")
+            sock.settimeout(left)
         chunk = sock.recv(65536)
         if not chunk:
             break
@@ -193,16 +205,21 @@ class LocalControl:
                 conn.close()
 
     def _handle(self, conn: socket.socket) -> None:
-        conn.settimeout(READ_DEADLINE_S)
         pid, uid, _gid = peer_credentials(conn)
         requester = f"local uid={uid} pid={pid}"
+        audit = self.runner.audit
+        allowed = uid in self.allowed_uids
         try:
-            line = _read_line(conn)
-        except (socket.timeout, OSError):
+            line = _read_line(conn, READ_DEADLINE_S if allowed else DENIED_READ_S)
+        except socket.timeout:
+            if allowed:
+                audit.record("?", requester, False, reason=f"no complete request within {READ_DEADLINE_S:g} s: cut off")
+                return
+            line = b""   # refused all the same, below: its command unknown
+        except OSError:
             return
         command, args = _command_of(line)
-        audit = self.runner.audit
-        if uid not in self.allowed_uids:
+        if not allowed:
             reply = {"ok": False, "error": f"uid {uid} may not command this daemon (root or uid {os.getuid()} only)"}
             audit.record(command or "?", requester, False, reason=reply["error"])
         elif command is None:

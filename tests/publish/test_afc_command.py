@@ -192,3 +192,75 @@ def test_local_afc_is_refused_for_a_uid_it_does_not_know(local, tmp_path):
     assert controls.calls == [] and not controls.feed.enabled
     (line,) = _audit(tmp_path / "audit.log")
     assert line["command"] == "afc" and line["granted"] is False
+
+
+class _Dribbler:
+    """A client of the local socket that sends a byte every `every_s` and never a whole line (a slow loris)."""
+
+    def __init__(self, path, every_s: float = 0.3):
+        import socket
+        import threading
+
+        self.sock = socket.socket(socket.AF_UNIX)
+        self.sock.connect(str(path))
+        self.stop = threading.Event()
+        self.cut = threading.Event()      # the daemon closed it (or answered it)
+        self.reply = b""
+        self.thread = threading.Thread(target=self._run, args=(every_s,), daemon=True)
+        self.thread.start()
+
+    def _run(self, every_s: float) -> None:
+        self.sock.settimeout(every_s)
+        while not self.stop.is_set():
+            try:
+                self.sock.send(b" ")
+                data = self.sock.recv(4096)
+                self.reply += data
+                if not data:
+                    break
+            except TimeoutError:
+                continue
+            except OSError:
+                break
+            if b"\n" in self.reply:
+                break
+        self.cut.set()
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(5.0)
+        self.sock.close()
+
+
+def test_a_client_that_dribbles_its_request_is_cut_off_and_the_next_is_served(local, tmp_path):
+    """A byte a second, never a newline, held the one server thread for as long as it went on (a probe of stop 26):
+    `millsense reset --local` at the machine timed out behind it. The whole request must now come within
+    READ_DEADLINE_S of the connection."""
+    from millsense.daemon.pipeline.local_control import SOCKET_NAME
+
+    controls = local((os.getuid(),))
+    state = tmp_path / "state"
+    loris = _Dribbler(state / SOCKET_NAME)
+    try:
+        wait_for(lambda: loris.reply or loris.thread.is_alive(), 2.0, "the dribbler connected")
+        reply = local_command(state, "afc", 8.0, args={"action": "status"})   # behind the dribbler
+        assert reply["ok"] is True
+        assert loris.cut.wait(5.0) and not loris.stop.is_set(), "the dribbler was cut off by the daemon"
+    finally:
+        loris.close()
+    lines = _audit(tmp_path / "audit.log")
+    assert any(x["command"] == "?" and not x["granted"] and "no complete request" in x["reason"] for x in lines), lines
+
+
+def test_a_uid_that_may_not_command_is_refused_without_waiting_for_its_request(local, tmp_path):
+    from millsense.daemon.pipeline.local_control import SOCKET_NAME
+
+    local((os.getuid() + 4242,))
+    loris = _Dribbler(tmp_path / "state" / SOCKET_NAME)
+    try:
+        assert loris.cut.wait(5.0), "refused at once"
+        assert b"may not command" in loris.reply
+    finally:
+        loris.close()
+    (line,) = _audit(tmp_path / "audit.log")
+    assert line["command"] == "?" and line["granted"] is False
