@@ -51,6 +51,13 @@ from millsense.daemon.pipeline.override_track import load_scale
 
 # Levels of the fixed limits that keep a process from teaching (`note_alarm`).
 _FIXED_LEVELS = frozenset({"warning", "overload", "crash", "tool_breakage", "daq_lost"})
+# The most process keys and tools one machine keeps. A real machine's are hundreds; a CNC adapter (or a peer
+# on an open network) putting a new context every revolution would otherwise grow them without end, and
+# every `status` and `limits` answer with them (a probe of stop 26: 8,000 keys in 10 minutes, then queries that
+# starved the estimator thread until the DAQ's watchdog held the feed). At the cap a new key or tool is not
+# learned (said once in the log, `learning.full`); those learned so far keep theirs.
+MAX_KEYS = 2000
+MAX_TOOLS = 1000
 NO_CONTEXT = ("no context from the CNC (the DAQ's CONTEXT frames or millsense/<machine>/context): "
               "no processes, no learned limits; the fixed [alarms] limits stay armed")
 
@@ -93,6 +100,8 @@ class ProcessMonitor:
         self._noted_no_context = False
         self._changed_keys: set[str] = set()     # by commands, handed out with the next step
         self._changed_tools: set[int] = set()
+        self.refused_keys = 0                    # new keys not learned at MAX_KEYS (tools: MAX_TOOLS)
+        self.refused_tools = 0
 
     # -- inputs ---------------------------------------------------------------
     def on_revolution(self, est: dict[str, Any], ctx: Ctx | None) -> MonitorStep:
@@ -269,14 +278,15 @@ class ProcessMonitor:
         if env is not None and "envelope_low" not in proc.raised and not proc.too_damaged:
             self._end_checks(step, proc, env)
         verdict = self._verdict(proc, ks, incomplete)
-        if verdict in ("learning", "good") and ks is None:
-            ks = self.keys[proc.key] = KeyState()
-        if verdict == "learning" and ks.state == "learning":
+        if verdict == "learning" and ks is None and proc.teaches:   # a key for a process that teaches, no other
+            ks = self._new_key(step, proc.key)
+        if verdict == "learning" and ks is not None and ks.state == "learning":
             self._teach(step, proc, ks)
         if proc.raised:
-            ks = self.keys.setdefault(proc.key, KeyState())
-            ks.last_alarms = seen_outside(proc)
-            step.changed_keys.add(proc.key)
+            ks = self.keys.get(proc.key) or self._new_key(step, proc.key)
+            if ks is not None:
+                ks.last_alarms = seen_outside(proc)
+                step.changed_keys.add(proc.key)
         for ev in proc.raised.values():
             if not ev.hold:
                 step.events.append(AlarmEvent("clear", ev.quantity, None, ev.limit, proc.last_rev, proc.last_seq,
@@ -326,8 +336,25 @@ class ProcessMonitor:
             return "learning"
         return "good"
 
+    def _new_key(self, step: MonitorStep, key: str) -> KeyState | None:
+        """A new key's state, None at MAX_KEYS (refused, said)."""
+        if len(self.keys) >= MAX_KEYS:
+            self.refused_keys += 1
+            self._say_full(step)
+            return None
+        ks = self.keys[key] = KeyState()
+        return ks
+
+    def _say_full(self, step: MonitorStep) -> None:
+        if self.refused_keys + self.refused_tools == 1:   # a note is said once a run
+            step.notes.append(("learning.full", {
+                "keys": len(self.keys), "max_keys": MAX_KEYS, "tools": len(self.tools), "max_tools": MAX_TOOLS,
+                "refused_keys": self.refused_keys, "refused_tools": self.refused_tools,
+                "detail": "new process keys or tools are not learned: is a CNC adapter putting a new program, tool "
+                          "or operation number every cycle? The keys learned so far keep their limits"}))
+
     def _teach(self, step: MonitorStep, proc: ProcessRun, ks: KeyState) -> None:
-        if proc.entry_rev is None or proc.too_damaged or not proc.torque_nm:
+        if not proc.teaches:
             return  # nothing cut, or too little seen: it would teach a wrong footprint
         torque, force = proc.arrays()
         ks.taught.append(Taught(torque, force, proc.entry_progress, proc.energy_j))
@@ -343,6 +370,10 @@ class ProcessMonitor:
         if proc.entry_rev is None:
             return wear   # it never cut: no life used
         if wear is None:
+            if len(self.tools) >= MAX_TOOLS:
+                self.refused_tools += 1
+                self._say_full(step)
+                return None
             wear = self.tools[tool] = ToolWear()
         wear.count_process()
         step.tools_changed.add(tool)
@@ -364,6 +395,13 @@ class ProcessMonitor:
             if wear.warned:
                 out[f"wear_T{tool}"] = "wear"
         return out
+
+    def state_counts(self) -> dict[str, int]:
+        """How many keys are learning, pending, active (for status, every second: no summaries built)."""
+        counts = {"learning": 0, "pending": 0, "active": 0}
+        for ks in self.keys.values():
+            counts[ks.state] = counts.get(ks.state, 0) + 1
+        return counts
 
     def limits_summary(self) -> dict[str, Any]:
         """The `limits` queryable's body without machine."""

@@ -79,6 +79,11 @@ class ProcessRun:
         return 2.0 * math.pi * self.torque_sum_nm
 
     @property
+    def teaches(self) -> bool:
+        """Could this process teach its key (it cut, and enough of it was seen)? Else it would teach a wrong footprint."""
+        return self.entry_rev is not None and not self.too_damaged and bool(self.torque_nm)
+
+    @property
     def too_damaged(self) -> bool:
         return self.invalid > MAX_INVALID_FRACTION * max(self.revolutions, 1)
 

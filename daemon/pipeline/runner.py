@@ -1132,12 +1132,7 @@ def _learning_status(monitor: Any) -> dict[str, Any] | None:
     """For `status`: how many process keys are learning, pending, active (None: learning off)."""
     if monitor is None:
         return None
-    counts = {"learning": 0, "pending": 0, "active": 0}
-    for entry in monitor.limits_summary().get("limits", []):
-        state = entry.get("state")
-        if state in counts:
-            counts[state] += 1
-    return counts
+    return monitor.state_counts()
 
 
 class _RefusalLog:

@@ -529,3 +529,39 @@ def test_changed_keys_and_tools_are_reported_for_persistence():
     assert s.monitor.command({"action": "relearn", "key": KEY})["changed_keys"] == [KEY]
     step = s.monitor.on_revolution(s.estimate(0.03), replace(ctx(), cycle=False))
     assert step.changed_keys == set()      # handed out once, with the reply
+
+
+# -- bounded state (a probe of stop 26: a context put every revolution grew the keys without end) ---------------
+
+def test_a_new_context_every_revolution_creates_no_key():
+    """Each key's process is a revolution or two, never seen cutting from its start: nothing to teach, no key.
+    Before, every such process made a key: 10 a second at 600 rpm, 8,000 in ten minutes."""
+    s = shop()
+    for k in range(300):
+        c = ctx(program=10_000 + k, tool=k % 50, operation=k)
+        s.feed(s.estimate(LEVELS_NM[0] if k % 2 else 5.0), c)
+    assert s.monitor.keys == {}
+    assert s.monitor.state_counts() == {"learning": 0, "pending": 0, "active": 0}
+
+
+def test_keys_and_tools_stop_at_their_cap_and_those_learned_keep_theirs(monkeypatch):
+    import millsense.daemon.learning.monitor as monitor_module
+
+    monkeypatch.setattr(monitor_module, "MAX_KEYS", 3)
+    monkeypatch.setattr(monitor_module, "MAX_TOOLS", 2)
+    s = shop()
+    s.learn(5)                                    # KEY learned, active
+    for tool in (20, 21, 22):                     # three new keys (tools 20, 21: the cap; 22 refused)
+        s.learn(1, context=ctx(tool=tool))
+    m = s.monitor
+    assert sorted(m.keys) == [KEY, "1001/20/1", "1001/21/1"] and m.refused_keys == 1
+    assert sorted(m.tools) == [12, 20] and m.refused_tools == 2
+    assert m.keys[KEY].state == "active"
+    notes = [n for st in s.steps for n in st.notes if n[0] == "learning.full"]
+    assert len(notes) == 1 and notes[0][1]["max_keys"] == 3
+    n = len(s.estimates)
+    s.process(Shape(), ctx(tool=22))              # a refused key is neither learned nor checked
+    assert s.processes()[-1]["verdict"] == "learning" and s.processes()[-1]["learned"] == 0
+    assert all(e["envelope_high_nm"] is None for e in s.estimates[n:])
+    s.process(Shape())                            # the learned key still checks
+    assert s.processes()[-1]["verdict"] == "good"
