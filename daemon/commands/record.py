@@ -16,7 +16,6 @@ written directly.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import signal
 import stat
@@ -46,20 +45,14 @@ def _fail(message: str, code: int) -> int:
     return code
 
 
-def _positive(value: float | None, option: str) -> str | None:
-    if value is not None and not (value > 0 and math.isfinite(value)):
-        return f"{option} must be positive, got {value:g}"
-    return None
-
-
 def run(args: argparse.Namespace) -> int:
-    from millsense.daemon.commands.run import driver_options
+    from millsense.daemon.commands.run import driver_options, positive_option
     from millsense.daemon.config import load_config
     from millsense.drivers import DriverError, create_driver
     from millsense.drivers.base import LinkEvent, SampleBlock
     from millsense.drivers.protocol import INDEX_MOD, Descriptor, encode_descriptor, encode_samples
 
-    problem = _positive(args.seconds, "--seconds") or _positive(args.connect_timeout, "--connect-timeout")
+    problem = positive_option(args.seconds, "--seconds") or positive_option(args.connect_timeout, "--connect-timeout")
     if problem:
         return _fail(problem, 2)
     if Path(args.out).is_dir():

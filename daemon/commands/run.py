@@ -62,6 +62,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def positive_option(value: float | None, option: str) -> str | None:
+    """The error of a seconds option that is not a positive finite number (nan, inf, 0, negative), else None."""
+    if value is not None and not 0 < value < float("inf"):   # nan fails both
+        return f"{option} must be positive, got {value:g}"
+    return None
+
+
 def _fail(message: str, code: int) -> int:
     print(f"{PROG}: error: {message}", file=sys.stderr)
     return code
@@ -113,8 +120,9 @@ def run(args: argparse.Namespace) -> int:
     bound_native_memory()
     from millsense.daemon.config import ConfigError, check_against_descriptor, demo_config, load_config
 
-    if args.seconds is not None and not 0 < args.seconds < float("inf"):  # nan and inf too
-        return _fail("--seconds must be positive", 2)
+    problem = positive_option(args.seconds, "--seconds") or positive_option(args.connect_timeout, "--connect-timeout")
+    if problem:
+        return _fail(problem, 2)
     demo = args.config is None
     settings = demo_config() if demo else load_config(args.config)
 

@@ -172,11 +172,13 @@ def test_a_refused_daq_connection_is_a_warning(tmp_path):
 
 
 @pytest.mark.parametrize("seconds", ["nan", "inf", "0", "-1"])
+@pytest.mark.parametrize("option", ["--seconds", "--connect-timeout"])
 @pytest.mark.parametrize("command", [["run"], ["record", "-c", "{tmp}/d.toml", "--out", "{tmp}/x.cap"]])
-def test_run_and_record_refuse_the_same_bad_seconds(tmp_path, command, seconds):
+def test_run_and_record_refuse_the_same_bad_seconds(tmp_path, command, option, seconds):
+    """`run --connect-timeout nan` waited "within nan s" (a probe of stop 26): refused as `record` refuses it."""
     write_config(tmp_path / "d.toml", machine="secs", daq='transport = "sim"\nscenario = "step"')
     argv = [a.format(tmp=tmp_path) for a in command]
-    res = subprocess.run([*CMD, *argv, "--seconds", seconds], capture_output=True, text=True, timeout=60)
+    res = subprocess.run([*CMD, *argv, option, seconds], capture_output=True, text=True, timeout=60)
     assert res.returncode == 2, res.stdout + res.stderr
-    assert res.stderr.startswith(f"millsense {argv[0]}: error: --seconds must be positive"), res.stderr
+    assert res.stderr.startswith(f"millsense {argv[0]}: error: {option} must be positive"), res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.toml"]
