@@ -60,6 +60,16 @@ def test_nonces_are_single_use_expire_and_are_bounded():
     assert not store.take(kept[0]) and store.take(kept[-1])
 
 
+def test_an_operators_nonce_outlives_a_second_of_challenges_from_a_flood():
+    """A probe of stop 26: two peers asking for challenges as fast as the daemon answers (about 1000 a second)
+    evicted a genuine operator's server nonce between its challenge and its proof (64 were kept)."""
+    store = NonceStore()
+    mine = store.issue()
+    for _ in range(1000):
+        store.issue()
+    assert store.take(mine)
+
+
 def test_failure_limiter_pauses_after_n_failures_in_the_window():
     clock = Clock()
     lim = FailureLimiter(max_failures=3, window_s=10.0, cooldown_s=30.0, mono=clock)
@@ -221,5 +231,27 @@ def test_command_args_are_refused_when_the_command_takes_none(linked):
         with pytest.raises(CommandError, match="reset takes no args"):
             send_command(b, "m1", "reset", TOKEN, args={"force": True})
         assert controls.latched
+    finally:
+        sink.close()
+
+
+def test_a_proof_with_a_spent_or_unknown_nonce_is_not_counted_against_the_operator(linked):
+    """No token was tried in it (a replay, or a nonce a challenge flood evicted): refused, but not a failed proof.
+    Before, five of them in 10 s paused every command over the network for 30 s."""
+    import secrets
+
+    a, b = linked
+    controls = FakeInterlock(token=TOKEN)
+    sink = _sink(a, controls, limiter=FailureLimiter(max_failures=1, window_s=60.0, cooldown_s=60.0))
+    try:
+        q = b.declare_querier("millsense/m1/cmd/reset")
+        wait_for(lambda: q.matching_status.matching, 5.0, "queryable known")
+        q.undeclare()
+        stale = json.dumps({"step": "prove", "server_nonce": secrets.token_hex(32), "client_nonce": secrets.token_hex(16),
+                            "args": {}, "mac": "0" * 64}).encode()
+        replies = list(b.get("millsense/m1/cmd/reset", payload=stale, timeout=3.0))
+        body = json.loads((replies[0].ok or replies[0].err).payload.to_bytes())
+        assert "unknown, used or expired server_nonce" in json.loads(body["result"])["error"]
+        assert send_command(b, "m1", "reset", TOKEN) == {"ok": True, "interlock": "clear"}
     finally:
         sink.close()
