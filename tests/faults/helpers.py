@@ -127,3 +127,33 @@ def runner_on_the_sim(settings) -> Iterator[tuple[Any, Any, Any]]:
         if runner is not None:
             runner.stop(1.0)
         drv.close()
+
+
+INTERLOCK_OPEN = 'enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 1000\nreset = "open"'
+
+
+@contextmanager
+def live_daemon(tmp_path, machine: str, sim_args: list[str], *, interlock: str = INTERLOCK_OPEN,
+                edit_config=None, watchdog_ms: int = 1000) -> Iterator[tuple[Any, Any, Subscriber, Any]]:
+    """The emulator (`millsense sim --scenario step --tcp …`, its status log on, `sim_args` added) and the real
+    daemon on it (`millsense run`, Zenoh on loopback); `edit_config(text) -> text` may change the config file
+    first. Yields (procs, the daemon's process, a subscriber, the emulator's status log path)."""
+    from tests.conftest import free_tcp_port
+    from tests.e2e.helpers import Procs, tcp, write_config
+
+    daq_port, z_port = free_tcp_port(), free_tcp_port()
+    sim_log = tmp_path / "sim.jsonl"
+    cfg = write_config(tmp_path / "d.toml", machine=machine, daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}',
+                       zenoh_listen=[tcp(z_port)], interlock=interlock)
+    if edit_config is not None:
+        cfg.write_text(edit_config(cfg.read_text()))
+    with Procs(tmp_path) as procs:
+        procs.start("sim", ["sim", "--scenario", "step", "--loop", "--tcp", f"127.0.0.1:{daq_port}", "--realtime",
+                            "--watchdog-ms", str(watchdog_ms), "--status-log", str(sim_log), *sim_args])
+        wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
+        daemon = procs.start("daemon", ["run", "--config", str(cfg)])
+        sub = Subscriber([tcp(z_port)], machine)
+        try:
+            yield procs, daemon, sub, sim_log
+        finally:
+            sub.close()

@@ -13,43 +13,29 @@ import json
 import random
 import time
 
-from tests.conftest import free_tcp_port
-from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
+from tests.e2e.helpers import read_jsonl, wait_for
 from tests.faults.flood import holds
-from tests.faults.helpers import status
+from tests.faults.helpers import live_daemon, status
 
 MACHINE = "ctxflood-01"
 
 
 def test_a_new_context_every_few_milliseconds_makes_no_learned_key_and_no_hold(tmp_path):
-    daq_port, z_port = free_tcp_port(), free_tcp_port()
-    cfg = write_config(tmp_path / "d.toml", machine=MACHINE,
-                       daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}', zenoh_listen=[tcp(z_port)],
-                       interlock='enabled = true\nheartbeat_ms = 100\nwatchdog_ms = 500\nreset = "open"')
-    status_log = tmp_path / "sim-status.jsonl"
-    with Procs(tmp_path) as procs:
-        procs.start("sim", ["sim", "--scenario", "step", "--loop", "--tcp", f"127.0.0.1:{daq_port}", "--realtime",
-                            "--protocol", "1", "--status-log", str(status_log), "--watchdog-ms", "500"])
-        wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
-        daemon = procs.start("daemon", ["run", "--config", str(cfg)])
-        sub = Subscriber([tcp(z_port)], MACHINE)
-        try:
-            wait_for(lambda: status(sub, MACHINE)["revolutions"] >= 5, 60.0, "estimates before the flood")
-            pub = sub.session.declare_publisher(f"millsense/{MACHINE}/context")
-            rng = random.Random(7)
-            end, puts = time.monotonic() + 12.0, 0
-            while time.monotonic() < end:   # ~200 a second: what the daemon takes of a flood (20 per 0.1 s)
-                pub.put(json.dumps({"program": rng.randrange(2**31), "tool": rng.randrange(1, 10_000),
-                                    "operation": rng.randrange(65536), "cycle": True, "monitor": True}).encode())
-                puts += 1
-                time.sleep(0.005)
-            pub.undeclare()
-            st = status(sub, MACHINE)
-            assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
-            assert st["sink"]["context_taken"] >= 500, st["sink"]      # the flood reached the monitor
-            assert st["processes"] >= 50, st["processes"]              # and cut it into processes
-            assert st["learning"] == {"learning": 0, "pending": 0, "active": 0}, st["learning"]
-            assert st["interlock"] == "armed", st["interlock_detail"]
-        finally:
-            sub.close()
-    assert [e for e in holds(read_jsonl(status_log)) if e.get("cause") == "watchdog"] == []
+    il = 'enabled = true\nheartbeat_ms = 100\nwatchdog_ms = 500\nreset = "open"'
+    with live_daemon(tmp_path, MACHINE, ["--protocol", "1"], interlock=il, watchdog_ms=500) as (procs, daemon, sub, log):
+        wait_for(lambda: status(sub, MACHINE)["revolutions"] >= 5, 60.0, "estimates before the flood")
+        pub = sub.session.declare_publisher(f"millsense/{MACHINE}/context")
+        rng = random.Random(7)
+        end = time.monotonic() + 12.0
+        while time.monotonic() < end:   # ~200 a second: what the daemon takes of a flood (20 per 0.1 s)
+            pub.put(json.dumps({"program": rng.randrange(2**31), "tool": rng.randrange(1, 10_000),
+                                "operation": rng.randrange(65536), "cycle": True, "monitor": True}).encode())
+            time.sleep(0.005)
+        pub.undeclare()
+        st = status(sub, MACHINE)
+        assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
+        assert st["sink"]["context_taken"] >= 500, st["sink"]      # the flood reached the monitor
+        assert st["processes"] >= 50, st["processes"]              # and cut it into processes
+        assert st["learning"] == {"learning": 0, "pending": 0, "active": 0}, st["learning"]
+        assert st["interlock"] == "armed", st["interlock_detail"]
+    assert [e for e in holds(read_jsonl(log)) if e.get("cause") == "watchdog"] == []

@@ -14,36 +14,19 @@ from __future__ import annotations
 import pytest
 
 from millsense.daemon.pipeline.loss_check import CLEAR_SHARE, LINK_GAP_S, RAISE_SHARE, LossCheck
-from tests.conftest import free_tcp_port
-from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
-from tests.faults.helpers import outputs, status, wait_status
+from tests.e2e.helpers import read_jsonl, wait_for
+from tests.faults.helpers import live_daemon, outputs, status, wait_status
+
+MACHINE = "lossy-01"
 
 
-def _daemon_on_a_lossy_stream(tmp_path, corrupt_fraction: float):
-    daq_port, z_port = free_tcp_port(), free_tcp_port()
-    machine = "lossy-01"
-    sim_log = tmp_path / "sim.jsonl"
-    cfg = write_config(
-        tmp_path / "d.toml",
-        machine=machine,
-        daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}',
-        zenoh_listen=[tcp(z_port)],
-        interlock='enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 1000\nreset = "open"',
-    )
-    procs = Procs(tmp_path)
-    procs.__enter__()
-    procs.start("sim", ["sim", "--scenario", "step", "--loop", "--tcp", f"127.0.0.1:{daq_port}", "--realtime",
-                        "--watchdog-ms", "1000", "--status-log", str(sim_log), "--seed", "7",
-                        "--corrupt-fraction", str(corrupt_fraction)])
-    wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
-    daemon = procs.start("daemon", ["run", "--config", str(cfg)])
-    return procs, daemon, Subscriber([tcp(z_port)], machine), machine, sim_log
+def _lossy(tmp_path, corrupt_fraction: float):
+    return live_daemon(tmp_path, MACHINE, ["--seed", "7", "--corrupt-fraction", str(corrupt_fraction)])
 
 
 def test_a_stream_losing_a_third_of_its_frames_is_blind_and_holds_the_feed(tmp_path):
-    procs, daemon, sub, machine, sim_log = _daemon_on_a_lossy_stream(tmp_path, 0.35)
-    try:
-        st = wait_status(sub, machine, lambda s: "signals" in s.get("faults", {}) or s["samples_received"] > 20000,
+    with _lossy(tmp_path, 0.35) as (procs, daemon, sub, sim_log):
+        st = wait_status(sub, MACHINE, lambda s: "signals" in s.get("faults", {}) or s["samples_received"] > 20000,
                          90.0, "fault signals")
         assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
         reason = st["faults"].get("signals", "")
@@ -51,26 +34,19 @@ def test_a_stream_losing_a_third_of_its_frames_is_blind_and_holds_the_feed(tmp_p
         held = wait_for(lambda: outputs(read_jsonl(sim_log), feed_hold=True, cause="command"), 10.0,
                         "the daemon holds the feed (on_blind = hold)")
         assert held
-        st = status(sub, machine)
+        st = status(sub, MACHINE)
         assert st["state"] == "degraded" and st["interlock"] == "feed_hold"
         assert not [e for e in sub.get("estimate") if e.get("valid") and e.get("lost_samples")]
-    finally:
-        sub.close()
-        procs.__exit__(None, None, None)
 
 
 def test_a_few_corrupt_frames_are_not_blindness(tmp_path):
     """1 % of the frames corrupt: revolutions here and there invalid, no fault, the feed free."""
-    procs, daemon, sub, machine, sim_log = _daemon_on_a_lossy_stream(tmp_path, 0.01)
-    try:
-        st = wait_status(sub, machine, lambda s: s["samples_received"] > 6000 and s.get("bad_frames", 0) > 0,
+    with _lossy(tmp_path, 0.01) as (procs, daemon, sub, sim_log):
+        st = wait_status(sub, MACHINE, lambda s: s["samples_received"] > 6000 and s.get("bad_frames", 0) > 0,
                          90.0, "6 s of samples, some frames corrupt")
         assert "signals" not in st.get("faults", {}), st["faults"]
         assert st["interlock"] != "feed_hold"
         assert not outputs(read_jsonl(sim_log), feed_hold=True, cause="command")
-    finally:
-        sub.close()
-        procs.__exit__(None, None, None)
 
 
 def _feed(check: LossCheck, pattern, seconds: float, rate: int = 1000, frame: int = 10, seq: int = 0):

@@ -18,38 +18,24 @@ from millsense.daemon.config import load_config
 from millsense.daemon.pipeline.phase_check import WINDOWS, PhaseCheck
 from millsense.drivers.base import SampleBlock
 from millsense.drivers.emulator.source import make_source
-from tests.conftest import free_tcp_port
-from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
-from tests.faults.helpers import outputs, runner_on_the_sim, wait_status
-
-IL = 'enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 1000\nreset = "open"'
+from tests.e2e.helpers import read_jsonl, wait_for, write_config
+from tests.faults.helpers import INTERLOCK_OPEN, live_daemon, outputs, runner_on_the_sim, wait_status
 
 
 def test_a_current_sensor_turned_round_live_is_blind_and_holds_the_feed(tmp_path):
     """The real daemon on the emulator, `[channels.i_u] scale` negative: fault `signals`, the feed held."""
-    daq_port, z_port = free_tcp_port(), free_tcp_port()
+    def reverse_i_u(text: str) -> str:
+        assert "[channels.i_u]\nscale = 0.002" in text
+        return text.replace("[channels.i_u]\nscale = 0.002", "[channels.i_u]\nscale = -0.002")
+
     machine = "phase-01"
-    sim_log = tmp_path / "sim.jsonl"
-    cfg = write_config(tmp_path / "d.toml", machine=machine, daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}',
-                       zenoh_listen=[tcp(z_port)], interlock=IL)
-    text = cfg.read_text()
-    assert "[channels.i_u]\nscale = 0.002" in text
-    cfg.write_text(text.replace("[channels.i_u]\nscale = 0.002", "[channels.i_u]\nscale = -0.002"))
-    with Procs(tmp_path) as procs:
-        procs.start("sim", ["sim", "--scenario", "step", "--loop", "--tcp", f"127.0.0.1:{daq_port}", "--realtime",
-                            "--watchdog-ms", "1000", "--status-log", str(sim_log)])
-        wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
-        daemon = procs.start("daemon", ["run", "--config", str(cfg)])
-        sub = Subscriber([tcp(z_port)], machine)
-        try:
-            st = wait_status(sub, machine, lambda s: "signals" in s.get("faults", {}) or s["samples_received"] > 15000,
-                             90.0, "fault signals")
-            assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
-            assert "the line currents do not sum to zero" in st["faults"].get("signals", ""), st["faults"]
-            assert wait_for(lambda: outputs(read_jsonl(sim_log), feed_hold=True, cause="command"), 10.0,
-                            "the daemon holds the feed (on_blind = hold)")
-        finally:
-            sub.close()
+    with live_daemon(tmp_path, machine, [], edit_config=reverse_i_u) as (procs, daemon, sub, sim_log):
+        st = wait_status(sub, machine, lambda s: "signals" in s.get("faults", {}) or s["samples_received"] > 15000,
+                         90.0, "fault signals")
+        assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
+        assert "the line currents do not sum to zero" in st["faults"].get("signals", ""), st["faults"]
+        assert wait_for(lambda: outputs(read_jsonl(sim_log), feed_hold=True, cause="command"), 10.0,
+                        "the daemon holds the feed (on_blind = hold)")
 
 
 def _plant(seconds: float, scenario: str = "step") -> np.ndarray:
@@ -58,7 +44,7 @@ def _plant(seconds: float, scenario: str = "step") -> np.ndarray:
 
 def test_two_current_channels_swapped_are_blind_and_hold_the_feed(tmp_path):
     """The real runner on the simulated DAQ, the plant's own samples with i_u and i_v swapped."""
-    cfg = write_config(tmp_path / "swap.toml", machine="swap-01", daq='transport = "sim"\nscenario = "step"', interlock=IL)
+    cfg = write_config(tmp_path / "swap.toml", machine="swap-01", daq='transport = "sim"\nscenario = "step"', interlock=INTERLOCK_OPEN)
     with runner_on_the_sim(load_config(cfg)) as (runner, drv, sink):
         names = list(drv.descriptor.names)
         counts = _plant(4.0)
