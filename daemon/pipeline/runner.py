@@ -737,7 +737,7 @@ class Runner:
             self._signal_source("signals", "data_loss", None)
 
     def _signal_source(self, kind: str, source: str, reason: str | None) -> None:
-        """One fault kind fed by several checks (`signals`: plausibility, the wiring check, the data loss):
+        """One fault kind fed by several checks (`signals`: plausibility, wiring, data_loss, phase):
         raised while any of them holds it, recovered only when none does."""
         sources = self._fault_sources.setdefault(kind, {})
         if reason is None:
