@@ -18,7 +18,7 @@ the power check (`power_check.py`, a negative input power) misses both:
 
 Judged on each `WINDOW_S` of samples while the drive runs (the voltage vector turning
 at `MIN_FE_HZ` or faster, a current swinging `LIVE_COUNTS` or more, none at its sensor's
-`raw_min` / `raw_max`: the signal check names that): `WINDOWS` bad
+`raw_min` / `raw_max` and none flat: the signal check names those): `WINDOWS` bad
 windows in a row raise fault `signals` (source `phase`, blind: `on_blind`), as many
 good ones clear it. Windows with lost samples or a discontinuity are not judged.
 """
@@ -33,7 +33,7 @@ import numpy as np
 from millsense.daemon.physics.power import clarke_alpha_beta_v
 from millsense.daemon.pipeline.safety_check import _three
 from millsense.daemon.pipeline.scaling import Scaler
-from millsense.daemon.pipeline.signal_check import KIRCHHOFF_SHARE, LIVE_COUNTS
+from millsense.daemon.pipeline.signal_check import FLAT_REL, KIRCHHOFF_SHARE, LIVE_COUNTS
 
 WINDOW_S = 1.0
 WINDOWS = 2          # bad (good) windows in a row that raise (clear) the fault
@@ -115,6 +115,8 @@ class PhaseCheck:
             return None   # the drive not running, or a current clipped: not judged here
         i = (i_raw - off) * scale
         v = (raw[:, self._v[0]] - self._v[1]) * self._v[2]
+        if _one_flat(i) or _one_flat(v):
+            return None   # a stuck, dead or unplugged sensor breaks both rules: the signal check names it
         v_alpha, v_beta = clarke_alpha_beta_v(*_three(dict(zip(self.v_keys, v.T)), ("uv", "vw", "wu")))
         i_u, i_v, i_w = _three(dict(zip(self.i_keys, i.T)), ("u", "v", "w"))
         i_alpha, i_beta = (2.0 * i_u - i_v - i_w) / 3.0, (i_v - i_w) / math.sqrt(3.0)   # Clarke, as the voltages'
@@ -136,6 +138,12 @@ class PhaseCheck:
                 f"({', '.join(self.v_names)}): two current channels, or two voltage channels, swapped (not in the "
                 f"same phase order); the input power averages to about zero")
         return "; ".join(problems) + ("; torque and force are wrong until this is fixed" if problems else "")
+
+
+def _one_flat(x: np.ndarray) -> bool:
+    """Does one channel of a kind swing less than FLAT_REL of the largest (the signal check's flat rule)?"""
+    swing = np.ptp(x, axis=0)
+    return bool(swing.min() < FLAT_REL * swing.max())
 
 
 def _turning(alpha: np.ndarray, beta: np.ndarray) -> float:

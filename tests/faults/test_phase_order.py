@@ -110,3 +110,15 @@ def test_replay_says_where_the_wiring_is_wrong(tmp_path, millsense_cmd):
     sound = subprocess.run(millsense_cmd + ["replay", "--config", str(DEMO_TOML), str(cap)], capture_output=True,
                            text=True, timeout=120)
     assert sound.returncode == 0 and "warning" not in sound.stderr, sound.stderr
+
+
+def test_a_stuck_sensor_is_left_to_the_signal_check():
+    """A current sensor stuck at a count breaks Kirchhoff too; it is named `flat` by the signal check, and a second
+    reason ("turned round") would mislead (the CI of stop 26: replay warned twice for one stuck i_u)."""
+    from tests.config.helpers import DEMO_TOML
+
+    source = make_source("step", seed=3)
+    check = PhaseCheck(load_config(DEMO_TOML), source.descriptor)
+    counts = np.array(source.step(6000), dtype=np.int16, copy=True)[2000:]
+    counts[:, list(source.descriptor.names).index("i_u")] = 1234
+    assert [check.problem(counts[k : k + 1000]) for k in range(0, 4000, 1000)] == [None] * 4
