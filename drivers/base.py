@@ -55,6 +55,7 @@ class SampleBlock:
     discontinuity: bool  # device restart / index went backwards / descriptor changed
     checked: bool = False  # the sample_hook looked at it on the reader thread (the crash check ran)
     received_mono: float = 0.0  # time.monotonic() when the reader decoded it (0: not stamped)
+    after_link_up: bool = False  # the first block since the link came (back) up: the gap before it is the outage's
 
 
 @dataclass(frozen=True)
@@ -183,6 +184,7 @@ class Driver:
         self._heartbeat_counter = 0
         self._pending_lost = 0
         self._link_state: bool | None = None
+        self._after_link_up = False  # the next block queued is the first since the link came up
         self._stats = collections.Counter()
         # set by a batching consumer: (seq, counts, lost_before, discontinuity) -> (checked, wake now)
         self.sample_hook = None
@@ -372,6 +374,7 @@ class Driver:
         if self._link_state is up:
             return
         was, self._link_state = self._link_state, up
+        self._after_link_up = up
         self._stats["link_changes"] += 1
         # a lost or refused link is something to act on: warning, like the daemon's own "unreachable";
         # a link ended because the driver is closing (the daemon stopping) was asked for: info
@@ -398,9 +401,11 @@ class Driver:
             self._stats["samples"] += n
             self._stats["lost_samples"] += lost
             checked, wake = self._hook(seq, item.counts, lost, disc)  # before the queue: a full one drops it
-            block = SampleBlock(seq, item.first_index, item.counts, lost + self._pending_lost, disc, checked, received)
+            block = SampleBlock(seq, item.first_index, item.counts, lost + self._pending_lost, disc, checked, received,
+                                self._after_link_up)
             if self._queue.offer(block, is_sample=True):
                 self._pending_lost = 0
+                self._after_link_up = False   # a dropped block's mark is carried, as its losses are
                 self._stats["blocks"] += 1
             else:
                 self._pending_lost += lost + n  # lost_before of the dropped block is carried too

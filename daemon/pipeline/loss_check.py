@@ -15,8 +15,8 @@ blocks carried and the gaps before them (`lost_before`). A single gap longer tha
 `LINK_GAP_S` is an interruption, not a lossy stream: the link's own faults
 (`daq_link`, `daq_stalled`) and the revolutions' `lost_samples` report it, and the
 window starts again after it. So does the gap before the first block after the link
-came back (`link_restarted`: a link cut for 0.3 s is fault `daq_link`, each time), and
-a discontinuity (the DAQ restarted).
+came back (the driver marks that block `after_link_up`: a link cut for 0.3 s is fault
+`daq_link`, each time), and a discontinuity (the DAQ restarted).
 """
 
 from __future__ import annotations
@@ -41,19 +41,16 @@ class LossCheck:
         self._received = 0
         self._lost = 0
         self._gaps = 0
-        self._link_restarted = False
 
-    def link_restarted(self) -> None:
-        """The link came back: the gap before the next block is the outage's (fault `daq_link`), not loss."""
-        self._link_restarted = True
-
-    def update(self, seq0: int, n: int, lost_before: int = 0, discontinuity: bool = False) -> str | None:
-        """One block of `n` samples from sample `seq0`, after `lost_before` lost ones. Returns the fault's
-        reason when it is raised, "" when it clears, else None."""
+    def update(self, seq0: int, n: int, lost_before: int = 0, discontinuity: bool = False,
+               after_link_up: bool = False) -> str | None:
+        """One block of `n` samples from sample `seq0`, after `lost_before` lost ones. Returns the verdict
+        (verdict.py): the reason when raised, "" when cleared, else None. `after_link_up`: the first block
+        since the link came back (`SampleBlock.after_link_up`): the gap before it is the outage's."""
         if n <= 0:
             return None
         lost = int(lost_before)
-        if discontinuity or lost >= self.link_gap or self._link_restarted:
+        if discontinuity or lost >= self.link_gap or after_link_up:
             self._restart()
             lost = 0
         last = seq0 + n - 1
@@ -83,6 +80,5 @@ class LossCheck:
         return None
 
     def _restart(self) -> None:
-        self._link_restarted = False
         self._blocks.clear()
         self._received = self._lost = self._gaps = 0

@@ -32,8 +32,9 @@ import numpy as np
 
 from millsense.daemon.physics.power import clarke_alpha_beta_v
 from millsense.daemon.pipeline.safety_check import _three
-from millsense.daemon.pipeline.scaling import Scaler
+from millsense.daemon.pipeline.scaling import line_channels
 from millsense.daemon.pipeline.signal_check import FLAT_REL, KIRCHHOFF_SHARE, LIVE_COUNTS
+from millsense.daemon.pipeline.verdict import InARow
 
 WINDOW_S = 1.0
 WINDOWS = 2          # bad (good) windows in a row that raise (clear) the fault
@@ -44,37 +45,28 @@ class PhaseCheck:
     """Collects a window of raw samples; says when to raise and to clear the fault."""
 
     def __init__(self, settings: Any, descriptor: Any):
-        roles = Scaler(settings, descriptor).roles
-        channels = dict(settings.channels)
-        column = {ch.name: k for k, ch in enumerate(descriptor.channels)}
-
-        def coefficients(names: list[str]) -> tuple[list[int], np.ndarray, np.ndarray]:
-            return ([column[n] for n in names], np.array([float(channels[n].offset) for n in names]),
-                    np.array([float(channels[n].scale) for n in names]))
-
-        self.v_keys = tuple(k for k in ("uv", "vw", "wu") if k in roles.voltages)
-        self.i_keys = tuple(k for k in ("u", "v", "w") if k in roles.currents)
-        self.v_names = [roles.voltages[k] for k in self.v_keys]
-        self.i_names = [roles.currents[k] for k in self.i_keys]
+        lc = line_channels(settings, descriptor)
+        self.v_keys, self.i_keys, self.v_names, self.i_names = lc.v_keys, lc.i_keys, lc.v_names, lc.i_names
         self.usable = len(self.v_keys) >= 2 and len(self.i_keys) >= 2
         # a current at its sensor's limit (a crash, a range too small: the signal check names it) breaks Kirchhoff
-        self._i_lo = np.array([int(channels[n].raw_min) for n in self.i_names])
-        self._i_hi = np.array([int(channels[n].raw_max) for n in self.i_names])
-        self._v = coefficients(self.v_names)
-        self._i = coefficients(self.i_names)
+        self._i_lo, self._i_hi = np.array(lc.i_raw_min), np.array(lc.i_raw_max)
+        self._v = (list(lc.v_cols), np.array(lc.v_offsets), np.array(lc.v_scales))
+        self._i = (list(lc.i_cols), np.array(lc.i_offsets), np.array(lc.i_scales))
         self.rate = float(descriptor.sample_rate_hz)
         self.window = max(8, int(round(WINDOW_S * self.rate)))
         self._min_turn = math.sin(2.0 * math.pi * MIN_FE_HZ / self.rate)   # mean sin of the angle a sample turns
         self._parts: list[np.ndarray] = []
         self._n = 0
-        self._run = 0        # windows in a row on the other side of the current verdict
-        self.faulted = False
-        self.last_problem: str | None = None
+        self._verdict = InARow(WINDOWS)
         self.decided_at = 0  # the last verdict's sample: its index in the block handed to `update`
 
+    @property
+    def faulted(self) -> bool:
+        return self._verdict.faulted
+
     def update(self, counts: np.ndarray, lost_before: int = 0, discontinuity: bool = False) -> str | None:
-        """One block of raw counts (n, C). Returns the fault's reason when it is raised, "" when it clears,
-        else None. A gap starts the window again: a window is contiguous samples."""
+        """One block of raw counts (n, C). Returns the verdict (verdict.py): the reason when raised, "" when
+        cleared, else None. A gap starts the window again: a window is contiguous samples."""
         if not self.usable or len(counts) == 0:
             return None
         if lost_before or discontinuity:
@@ -95,15 +87,7 @@ class PhaseCheck:
         problem = self.problem(raw)
         if problem is None:   # the drive not running: says nothing either way
             return None
-        wrong = bool(problem)
-        self._run = self._run + 1 if wrong != self.faulted else 0
-        if wrong:
-            self.last_problem = problem
-        if self._run < WINDOWS:
-            return None
-        self._run = 0
-        self.faulted = wrong
-        return problem if wrong else ""
+        return problem if self._verdict.observe(bool(problem)) else None
 
     def problem(self, raw: np.ndarray) -> str | None:
         """One window's verdict: the problem in words, "" when the wiring fits, None when the drive is not

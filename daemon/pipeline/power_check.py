@@ -20,6 +20,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from millsense.daemon.pipeline.verdict import InARow
+
 REVOLUTIONS = 20          # in a row: 2 s at 600 rpm; no braking lasts that long at a steady speed
 MARGIN_W = 50.0           # below −MARGIN_W is negative; sensor noise averages far below this per revolution
 SLOWING_PCT = 0.5         # a revolution this much slower than the one before may be braking
@@ -30,12 +32,15 @@ class PowerSignCheck:
 
     def __init__(self, revolutions: int = REVOLUTIONS):
         self.revolutions = revolutions
-        self.faulted = False
-        self._run = 0          # qualifying revolutions in a row on the other side of the current verdict
+        self._verdict = InARow(revolutions)   # qualifying revolutions in a row flip it
         self._prev_rpm: float | None = None
 
+    @property
+    def faulted(self) -> bool:
+        return self._verdict.faulted
+
     def update(self, est: Mapping[str, Any]) -> str | None:
-        """One estimate. Returns the fault's reason when it is raised, "" when it clears, else None."""
+        """One estimate. Returns the verdict (verdict.py): the reason when raised, "" when cleared, else None."""
         rpm, p_in = est.get("spindle_rpm"), est.get("p_in_w")
         prev, self._prev_rpm = self._prev_rpm, rpm
         if not est.get("valid", True) or est.get("accelerating") or rpm is None or p_in is None:
@@ -43,11 +48,8 @@ class PowerSignCheck:
         if prev is not None and rpm < prev * (1.0 - SLOWING_PCT / 100.0):
             return None
         wrong = p_in < -MARGIN_W
-        self._run = self._run + 1 if wrong != self.faulted else 0
-        if self._run < self.revolutions:
+        if not self._verdict.observe(wrong):
             return None
-        self._run = 0
-        self.faulted = wrong
         if not wrong:
             return ""
         return (

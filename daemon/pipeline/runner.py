@@ -437,7 +437,8 @@ class Runner:
             self._signal_source(kind, "plausibility", reason)
         for kind in step.clear_faults:
             self._signal_source(kind, "plausibility", None)
-        self._check_loss(block, n)
+        self._verdict("data_loss", self.loss_check.update(block.seq, n, block.lost_before, block.discontinuity,
+                                                          block.after_link_up))
         self._check_blind()
         with self._check_lock:  # evidence for a reset: only what is newer than the hold counts
             self._check.on_block(block.seq, step.peaks, step.stalled, self._spindle_stopped)
@@ -449,7 +450,7 @@ class Runner:
         try:
             for kind, item in step.items:
                 if kind == "estimate":
-                    self._check_power(item)
+                    self._verdict("wiring", self.power_check.update(item))
                     try:
                         self._afc_revolution(item, now, suspect)
                     except Exception as exc:  # noqa: BLE001 - the controller's error must not stop the estimates
@@ -704,13 +705,6 @@ class Runner:
             self._after_step(step)
         return result
 
-    def _check_power(self, est: dict) -> None:
-        verdict = self.power_check.update(est)
-        if verdict:
-            self._signal_source("signals", "wiring", verdict)
-        elif verdict == "":
-            self._signal_source("signals", "wiring", None)
-
     def _check_phase(self, block: Any) -> None:
         """The currents against each other and the voltages (phase_check.py): fault `signals`, source `phase`.
         Once a second, after the block's estimates are published: a wiring mistake is judged over seconds."""
@@ -721,33 +715,35 @@ class Runner:
                 self.phase_check = PhaseCheck(self.settings, desc)   # the estimator accepted it: so does this
         if self.phase_check is None:
             return
-        verdict = self.phase_check.update(block.counts, block.lost_before, block.discontinuity)
-        if verdict:
-            self._signal_source("signals", "phase", verdict)
-            self._check_blind()
-        elif verdict == "":
-            self._signal_source("signals", "phase", None)
+        self._verdict("phase", self.phase_check.update(block.counts, block.lost_before, block.discontinuity))
 
-    def _check_loss(self, block: Any, n: int) -> None:
-        """Most of the stream lost (loss_check.py): blind, fault `signals` from source `data_loss`."""
-        verdict = self.loss_check.update(block.seq, n, block.lost_before, block.discontinuity)
-        if verdict:
-            self._signal_source("signals", "data_loss", verdict)
-        elif verdict == "":
-            self._signal_source("signals", "data_loss", None)
+    def _verdict(self, source: str, verdict: str | None) -> None:
+        """A wiring or stream check's verdict (verdict.py) on fault `signals`, from `source`."""
+        if verdict is not None:
+            self._signal_source("signals", source, verdict or None)
 
     def _signal_source(self, kind: str, source: str, reason: str | None) -> None:
         """One fault kind fed by several checks (`signals`: plausibility, wiring, data_loss, phase):
-        raised while any of them holds it, recovered only when none does."""
+        raised while any of them holds it, recovered only when none does. When the check that raised it
+        clears while another still holds it, the fault's reason becomes the other's."""
         sources = self._fault_sources.setdefault(kind, {})
-        if reason is None:
-            if sources.pop(source, None) is not None and not sources:
-                self.recover(kind)
-            elif kind in self.faults and not sources:
-                self.recover(kind)
+        if reason is not None:
+            sources[source] = reason
+            self.fault(kind, reason)
             return
-        sources[source] = reason
-        self.fault(kind, reason)
+        if sources.pop(source, None) is None and sources:
+            return
+        if not sources:
+            self.recover(kind)
+            return
+        still = next(iter(sources.values()))
+        with self._fault_lock:
+            if self.faults.get(kind) in (None, still):
+                return
+            self.faults[kind] = still
+        self._safe(lambda: log.warning("fault.reason_changed", kind=kind, reason=still, cleared=source,
+                                       detail="one cause cleared; the fault stays for the other"))
+        self._safe(lambda: self._notify(status=f"degraded: {kind}: {still}"))
 
     def _caught_up(self) -> bool:
         """Is the driver's queue empty, i.e. did this block just arrive?"""
@@ -816,7 +812,6 @@ class Runner:
 
     def _on_link(self, ev: Any) -> None:
         if ev.up:  # the driver logged it (`daq.link_up`, with transport and address)
-            self.loss_check.link_restarted()
             # A DAQ that restarted forgot its watchdog and maybe the latched output; its override is 100 %, or
             # (a link that only dropped) still what it was: set again at its first STATUS.
             self.feed_out.device_restarted()
@@ -1174,7 +1169,7 @@ def _merged(events: list[Any]) -> list[tuple[Any, list[tuple[int, int, float]] |
         first = run[0]
         block = first if len(run) == 1 else SampleBlock(
             first.seq, first.index, np.concatenate([b.counts for b in run]), first.lost_before,
-            first.discontinuity, first.checked, run[-1].received_mono)
+            first.discontinuity, first.checked, run[-1].received_mono, first.after_link_up)
         out.append((block, parts))
         run.clear()
 
@@ -1182,7 +1177,8 @@ def _merged(events: list[Any]) -> list[tuple[Any, list[tuple[int, int, float]] |
         if isinstance(ev, SampleBlock):
             prev = run[-1] if run else None
             if prev is not None and not (ev.seq == prev.seq + len(prev.counts) and not ev.lost_before
-                                         and not ev.discontinuity and ev.checked == prev.checked
+                                         and not ev.discontinuity and not ev.after_link_up
+                                         and ev.checked == prev.checked
                                          and ev.counts.shape[1:] == prev.counts.shape[1:]):
                 flush()
             run.append(ev)

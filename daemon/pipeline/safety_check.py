@@ -179,19 +179,16 @@ class FrameCheck:
     """
 
     def __init__(self, settings: Any, descriptor: Any):
-        from millsense.daemon.pipeline.scaling import Scaler
+        from millsense.daemon.pipeline.scaling import line_channels
 
-        roles = Scaler(settings, descriptor).roles
-        channels = dict(settings.channels)
-        column = {ch.name: k for k, ch in enumerate(descriptor.channels)}
+        lc = line_channels(settings, descriptor)
         c = len(descriptor.channels)
-        v_keys = tuple(k for k in ("uv", "vw", "wu") if k in roles.voltages)
-        i_keys = tuple(k for k in ("u", "v", "w") if k in roles.currents)
-        names = [roles.voltages[k] for k in v_keys] + [roles.currents[k] for k in i_keys]
-        cols = np.array([column[n] for n in names], dtype=np.intp)
-        scales = np.array([float(channels[n].scale) for n in names])
+        v_keys, i_keys = lc.v_keys, lc.i_keys
+        cols = np.array(lc.v_cols + lc.i_cols, dtype=np.intp)
+        scales = np.array(lc.v_scales + lc.i_scales)
+        offsets = list(lc.v_offsets + lc.i_offsets)
         self._offsets = np.zeros(c)
-        self._offsets[cols] = [float(channels[n].offset) for n in names]
+        self._offsets[cols] = offsets
         nv = len(v_keys)
         winding = str(settings.motor.winding)
         r_s = float(settings.motor.stator_resistance_ohm)
@@ -203,7 +200,7 @@ class FrameCheck:
             p_in = input_power_symmetric_w(*v, *i) if symmetric else input_power_two_wattmeter_w(v[0], v[1], i[0], i[1])
             return float(p_in - copper_loss_w(*i, winding, r_s))
 
-        q = _quadratic_form(p_meas_w, len(names)) * np.outer(scales, scales)  # in counts
+        q = _quadratic_form(p_meas_w, len(cols)) * np.outer(scales, scales)  # in counts
         # each line current from the measured ones (a missing third: minus the other two), A per count
         lines = [[(nv + k, (1.0 if key == other else -1.0) * scales[nv + k]) for k, key in enumerate(i_keys)
                   if key == other or other not in i_keys] for other in ("u", "v", "w")]
@@ -212,13 +209,11 @@ class FrameCheck:
             for k, coef in line:
                 self._amps_per_count[cols[k]] = max(self._amps_per_count[cols[k]], abs(coef))
         self._frame_values, self.program_source = _frame_program(
-            cols.tolist(), [float(channels[n].offset) for n in names], q, lines)
+            cols.tolist(), offsets, q, lines)
         # raw limits per column; columns that are not currents get limits no int16 reaches
         self._lo = np.full(c, -40000)
         self._hi = np.full(c, 40000)
-        for k in i_keys:
-            name = roles.currents[k]
-            self._lo[column[name]], self._hi[column[name]] = int(channels[name].raw_min), int(channels[name].raw_max)
+        self._lo[list(lc.i_cols)], self._hi[list(lc.i_cols)] = lc.i_raw_min, lc.i_raw_max
         self._i_cols = cols[nv:]
         self._high_swing = HIGH_FRAC * (self._hi[self._i_cols] - self._lo[self._i_cols])
         self._high_window = max(2, int(round(HIGH_WINDOW_S * float(descriptor.sample_rate_hz))))

@@ -51,6 +51,46 @@ class Roles:
     forces: dict[str, str]          # "x"/"y"/"z" -> dynamometer channel name (N)
 
 
+@dataclass(frozen=True)
+class LineChannels:
+    """The line voltages and currents one descriptor carries, as the sample-level checks read the raw counts
+    (the crash check, `safety_check.FrameCheck`; the phase checks, `phase_check.py`): voltages in the order
+    uv, vw, wu and currents u, v, w, those present; each with its column and `(raw - offset) * scale`."""
+
+    v_keys: tuple[str, ...]        # of "uv", "vw", "wu"
+    i_keys: tuple[str, ...]        # of "u", "v", "w"
+    v_names: tuple[str, ...]
+    i_names: tuple[str, ...]
+    v_cols: tuple[int, ...]
+    i_cols: tuple[int, ...]
+    v_offsets: tuple[float, ...]
+    i_offsets: tuple[float, ...]
+    v_scales: tuple[float, ...]
+    i_scales: tuple[float, ...]
+    i_raw_min: tuple[int, ...]     # the current sensors' limits in counts ([channels.X] raw_min / raw_max)
+    i_raw_max: tuple[int, ...]
+
+
+def line_channels(settings, descriptor: Descriptor) -> LineChannels:
+    """The descriptor's line channels. Raises `ConfigError` when the configuration does not fit it."""
+    roles = Scaler(settings, descriptor).roles
+    channels = dict(settings.channels)
+    column = {ch.name: k for k, ch in enumerate(descriptor.channels)}
+    v_keys = tuple(k for k in _LINES if k in roles.voltages)
+    i_keys = tuple(k for k in _PHASES if k in roles.currents)
+    v_names = tuple(roles.voltages[k] for k in v_keys)
+    i_names = tuple(roles.currents[k] for k in i_keys)
+
+    def each(names: tuple[str, ...], field: str, kind: type) -> tuple:
+        return tuple(kind(getattr(channels[n], field)) for n in names)
+
+    return LineChannels(
+        v_keys, i_keys, v_names, i_names, tuple(column[n] for n in v_names), tuple(column[n] for n in i_names),
+        each(v_names, "offset", float), each(i_names, "offset", float),
+        each(v_names, "scale", float), each(i_names, "scale", float),
+        each(i_names, "raw_min", int), each(i_names, "raw_max", int))
+
+
 def _assign(names: list[str], keys: tuple[str, ...], suffix_of) -> dict[str, str]:
     """Map role keys to names by name suffix first, then by descriptor order."""
     out: dict[str, str] = {}

@@ -122,3 +122,35 @@ def test_a_stuck_sensor_is_left_to_the_signal_check():
     counts = np.array(source.step(6000), dtype=np.int16, copy=True)[2000:]
     counts[:, list(source.descriptor.names).index("i_u")] = 1234
     assert [check.problem(counts[k : k + 1000]) for k in range(0, 4000, 1000)] == [None] * 4
+
+
+def test_a_fault_two_checks_hold_names_the_one_still_holding_it(tmp_path):
+    """Fault `signals` raised by the loss check, then held by the phase check too: when the stream heals, the
+    fault stays (the wiring is still wrong) and says why. Before, it kept the loss check's reason ("… of the DAQ's
+    samples lost"), sending the electrician to the cable instead of the current sensor."""
+    cfg = write_config(tmp_path / "two.toml", machine="two-01", daq='transport = "sim"\nscenario = "step"',
+                       interlock=INTERLOCK_OPEN)
+    with runner_on_the_sim(load_config(cfg)) as (runner, drv, sink):
+        counts = _plant(9.0)
+        u = list(drv.descriptor.names).index("i_u")
+        counts[:, u] = -counts[:, u]   # a current sensor turned round, all along
+
+        def feed(first: int, last: int, run: int = 0) -> int:
+            """Blocks of 100 from sample `first`; with `run`, 300 samples lost after each run of that many.
+            Returns the sample after the last block."""
+            k, since_gap = first, 0
+            while k < last:
+                lost = 300 if run and since_gap == run else 0
+                k, since_gap = k + lost, (0 if lost else since_gap) + 100
+                runner._on_block(SampleBlock(k, k, counts[k : k + 100], lost, False), time.monotonic())
+                k += 100
+            return k
+
+        healed = feed(0, 3900, run=1000)   # 23 % lost: the loss check raises first; whole seconds: the phase check too
+        assert "samples over the last 2 s lost" in runner.faults.get("signals", ""), runner.faults
+        assert runner.phase_check is not None and runner.phase_check.faulted
+        feed(healed, healed + 4000)      # the stream heals; the sensor is still turned round
+        assert not runner.loss_check.faulted
+        reason = runner.faults.get("signals", "")
+        assert "the line currents do not sum to zero" in reason and "lost" not in reason, runner.faults
+        assert runner.interlock.latched
