@@ -156,10 +156,13 @@ class Replay:
                     self.rate = float(frame.sample_rate_hz)
                     from millsense.daemon.pipeline.loss_check import LossCheck
 
+                    last_loss, last_phase = self.loss_check, self.phase_check   # the new ones go on from them
                     self.loss_check = LossCheck(self.rate)
+                    self.loss_check.faulted = last_loss is not None and last_loss.faulted
                     from millsense.daemon.pipeline.phase_check import PhaseCheck
 
-                    self.phase_check = PhaseCheck(self.settings, frame)
+                    self.phase_check = PhaseCheck(self.settings, frame,
+                                                  faulted=last_phase is not None and last_phase.faulted)
                 continue
             if isinstance(frame, Context):  # protocol 2: what the CNC does from frame.index on
                 if frame != self._context:

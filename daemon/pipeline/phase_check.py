@@ -44,7 +44,9 @@ MIN_FE_HZ = 2.0      # slower than this, the vectors' turning is not told from t
 class PhaseCheck:
     """Collects a window of raw samples; says when to raise and to clear the fault."""
 
-    def __init__(self, settings: Any, descriptor: Any):
+    def __init__(self, settings: Any, descriptor: Any, faulted: bool = False):
+        """`faulted`: the verdict of the check this one replaces (the DAQ announced another descriptor): a
+        fault it raised is cleared only by good windows of this one, or at once if this one cannot judge."""
         lc = line_channels(settings, descriptor)
         self.v_keys, self.i_keys, self.v_names, self.i_names = lc.v_keys, lc.i_keys, lc.v_names, lc.i_names
         self.usable = len(self.v_keys) >= 2 and len(self.i_keys) >= 2
@@ -58,6 +60,7 @@ class PhaseCheck:
         self._parts: list[np.ndarray] = []
         self._n = 0
         self._verdict = InARow(WINDOWS)
+        self._verdict.faulted = bool(faulted)
         self.decided_at = 0  # the last verdict's sample: its index in the block handed to `update`
 
     @property
@@ -67,7 +70,12 @@ class PhaseCheck:
     def update(self, counts: np.ndarray, lost_before: int = 0, discontinuity: bool = False) -> str | None:
         """One block of raw counts (n, C). Returns the verdict (verdict.py): the reason when raised, "" when
         cleared, else None. A gap starts the window again: a window is contiguous samples."""
-        if not self.usable or len(counts) == 0:
+        if not self.usable:
+            if self._verdict.faulted:   # the last descriptor's fault, which these channels cannot judge
+                self._verdict.faulted = False
+                return ""
+            return None
+        if len(counts) == 0:
             return None
         if lost_before or discontinuity:
             self._parts, self._n = [], 0

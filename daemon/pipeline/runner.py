@@ -710,9 +710,10 @@ class Runner:
         Once a second, after the block's estimates are published: a wiring mistake is judged over seconds."""
         desc = self.core.descriptor
         if desc is not self._phase_desc:
+            last = self.phase_check
             self._phase_desc, self.phase_check = desc, None
-            if desc is not None:
-                self.phase_check = PhaseCheck(self.settings, desc)   # the estimator accepted it: so does this
+            if desc is not None:   # the estimator accepted it: so does this; it goes on from the last verdict
+                self.phase_check = PhaseCheck(self.settings, desc, faulted=last is not None and last.faulted)
         if self.phase_check is None:
             return
         self._verdict("phase", self.phase_check.update(block.counts, block.lost_before, block.discontinuity))

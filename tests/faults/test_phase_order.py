@@ -154,3 +154,26 @@ def test_a_fault_two_checks_hold_names_the_one_still_holding_it(tmp_path):
         reason = runner.faults.get("signals", "")
         assert "the line currents do not sum to zero" in reason and "lost" not in reason, runner.faults
         assert runner.interlock.latched
+
+
+def test_a_new_descriptor_goes_on_judging_the_fault_it_inherits(tmp_path):
+    """The DAQ restarts announcing another descriptor (here: protocol 2) while the phase fault stands. The check is
+    made again for the new columns; it must go on from the fault, or nothing is left to clear it: blind for good,
+    the feed held and no reset possible until the daemon restarts."""
+    import dataclasses
+
+    cfg = write_config(tmp_path / "desc.toml", machine="desc-01", daq='transport = "sim"\nscenario = "step"',
+                       interlock=INTERLOCK_OPEN)
+    with runner_on_the_sim(load_config(cfg)) as (runner, drv, sink):
+        counts = _plant(6.0)
+        u = list(drv.descriptor.names).index("i_u")
+        wrong = counts.copy()
+        wrong[:, u] = -wrong[:, u]
+        for k in range(0, 3000, 100):
+            runner._on_block(SampleBlock(k, k, wrong[k : k + 100], 0, False), time.monotonic())
+        assert "do not sum to zero" in runner.faults.get("signals", ""), runner.faults
+        restarted = dataclasses.replace(drv.descriptor, protocol_version=2)
+        assert runner.core.on_descriptor(restarted)
+        for k in range(3000, 6000, 100):   # rewired right while the DAQ was off
+            runner._on_block(SampleBlock(k, k, counts[k : k + 100], 0, k == 3000), time.monotonic())
+        assert "signals" not in runner.faults, runner.faults
