@@ -137,6 +137,7 @@ class PipelineCore:
         self.lost_samples_before = 0  # lost samples counted by estimators replaced since, and while none fitted
         self._rev_base = 0  # revolutions numbered by estimators replaced since: `rev` never restarts
         self.safety: SafetyCheck | None = None
+        self._signals_faulted = False  # the signal check's fault, carried to the estimator of the next descriptor
 
     def on_descriptor(self, descriptor: Any) -> bool:
         """A (new) descriptor: check the config against it, make the estimator. True if re-made.
@@ -154,6 +155,11 @@ class PipelineCore:
             from millsense.daemon.pipeline.estimator import Estimator as factory
         self._retire()
         self.estimator = factory(self.settings, descriptor, descriptor.sample_rate_hz)
+        signals = getattr(self.estimator, "signals", None)
+        if signals is not None:
+            # the new estimator's signal check goes on from the fault the last one raised: only sound samples
+            # clear it (made fresh, nothing would, and the daemon would stay blind until restarted)
+            signals.faulted = self._signals_faulted
         self.context.on_descriptor(int(getattr(descriptor, "capabilities", 0) or 0))
         if hasattr(self.estimator, "override"):
             self.estimator.override = self.override  # the feed the cut runs at: configured x applied override
@@ -181,6 +187,7 @@ class PipelineCore:
     def _retire(self) -> None:
         est = self.estimator
         if est is not None:
+            self._signals_faulted = bool(getattr(getattr(est, "signals", None), "faulted", False))
             self.lost_samples_before += int(getattr(est, "lost_samples_total", 0) or 0)
             self._rev_base = int(getattr(est, "rev", self._rev_base) or 0)
 

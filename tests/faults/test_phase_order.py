@@ -177,3 +177,31 @@ def test_a_new_descriptor_goes_on_judging_the_fault_it_inherits(tmp_path):
         for k in range(3000, 6000, 100):   # rewired right while the DAQ was off
             runner._on_block(SampleBlock(k, k, counts[k : k + 100], 0, k == 3000), time.monotonic())
         assert "signals" not in runner.faults, runner.faults
+
+
+@pytest.mark.parametrize("refused_first", [False, True])
+def test_a_new_descriptor_goes_on_judging_a_stuck_sensor(tmp_path, refused_first):
+    """The same for the signal check (a stuck current sensor, fault `signals` from the plausibility source): the
+    estimator made for the new descriptor must clear it when the samples are sound again, also when a descriptor
+    the configuration does not fit came in between (no estimator for a while)."""
+    import dataclasses
+
+    cfg = write_config(tmp_path / "stuck.toml", machine="stuck-01", daq='transport = "sim"\nscenario = "step"',
+                       interlock=INTERLOCK_OPEN)
+    with runner_on_the_sim(load_config(cfg)) as (runner, drv, sink):
+        counts = _plant(8.0)
+        stuck = counts.copy()
+        stuck[:, list(drv.descriptor.names).index("i_u")] = 1234
+        for k in range(0, 3000, 100):
+            runner._on_block(SampleBlock(k, k, stuck[k : k + 100], 0, False), time.monotonic())
+        assert "i_u" in runner.faults.get("signals", ""), runner.faults
+        if refused_first:   # the DAQ came back without i_u: fault `descriptor`, no estimator
+            without = dataclasses.replace(drv.descriptor, channels=tuple(c for c in drv.descriptor.channels
+                                                                         if c.name != "i_u"))
+            runner._on_descriptor(without)
+            assert runner.core.estimator is None and "descriptor" in runner.faults
+        runner._on_descriptor(dataclasses.replace(drv.descriptor, protocol_version=2))
+        assert runner.core.estimator is not None and "descriptor" not in runner.faults
+        for k in range(3000, 8000, 100):   # a sound sensor in its place
+            runner._on_block(SampleBlock(k, k, counts[k : k + 100], 0, k == 3000), time.monotonic())
+        assert "signals" not in runner.faults, runner.faults
