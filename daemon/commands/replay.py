@@ -192,9 +192,10 @@ class Replay:
         step = self.core.process(SampleBlock(seq, index, counts, lost, disc))
         self._write_items(step.items, lines)
         self._note_faults(step)
-        if self.phase_check is not None:
-            verdict = self.phase_check.update(counts, lost, disc)
-            self._note_fault_change("signals", seq + self.phase_check.decided_at, verdict)
+        if self.phase_check is not None:   # every change: a large block may raise and clear it
+            self.phase_check.update(counts, lost, disc)
+            for at, verdict in self.phase_check.changes:
+                self._note_fault_change("signals", seq + at, verdict)
 
     def _note_faults(self, step) -> None:
         """The faults the live daemon would raise or clear, at the sample where each was decided."""

@@ -62,6 +62,7 @@ class PhaseCheck:
         self._verdict = InARow(WINDOWS)
         self._verdict.faulted = bool(faulted)
         self.decided_at = 0  # the last verdict's sample: its index in the block handed to `update`
+        self.changes: list[tuple[int, str]] = []   # every verdict of the last `update`: (that index, verdict)
 
     @property
     def faulted(self) -> bool:
@@ -69,33 +70,37 @@ class PhaseCheck:
 
     def update(self, counts: np.ndarray, lost_before: int = 0, discontinuity: bool = False) -> str | None:
         """One block of raw counts (n, C). Returns the verdict (verdict.py): the reason when raised, "" when
-        cleared, else None. A gap starts the window again: a window is contiguous samples."""
+        cleared, else None; the last one, if the block completed several windows (`changes` has each, with the
+        index of its window's last sample in `counts`; `decided_at` the last's). A gap starts the window again:
+        a window is contiguous samples."""
+        self.changes: list[tuple[int, str]] = []
         if not self.usable:
             if self._verdict.faulted:   # the last descriptor's fault, which these channels cannot judge
                 self._verdict.faulted = False
+                self.changes.append((len(counts) - 1, ""))
                 return ""
             return None
         if len(counts) == 0:
             return None
         if lost_before or discontinuity:
             self._parts, self._n = [], 0
+        before = self._n   # samples of the window begun in earlier blocks
         self._parts.append(counts)
         self._n += len(counts)
-        verdict = None
-        while self._n >= self.window:
-            block = np.concatenate(self._parts) if len(self._parts) > 1 else self._parts[0]
-            window, rest = block[: self.window], block[self.window :]
-            self._parts, self._n = ([rest], len(rest)) if len(rest) else ([], 0)
-            v = self._judge(window)
-            if v is not None:
-                verdict, self.decided_at = v, len(counts) - len(rest) - 1
-        return verdict
-
-    def _judge(self, raw: np.ndarray) -> str | None:
-        problem = self.problem(raw)
-        if problem is None:   # the drive not running: says nothing either way
+        m = self._n // self.window
+        if m == 0:
             return None
-        return problem if self._verdict.observe(bool(problem)) else None
+        block = np.concatenate(self._parts) if len(self._parts) > 1 else self._parts[0]
+        rest = block[m * self.window :]
+        self._parts, self._n = ([rest], len(rest)) if len(rest) else ([], 0)
+        for k in range(m):
+            problem = self.problem(block[k * self.window : (k + 1) * self.window])
+            if problem is not None and self._verdict.observe(bool(problem)):   # None: the drive not running
+                self.changes.append(((k + 1) * self.window - 1 - before, problem))
+        if not self.changes:
+            return None
+        self.decided_at, verdict = self.changes[-1]
+        return verdict
 
     def problem(self, raw: np.ndarray) -> str | None:
         """One window's verdict: the problem in words, "" when the wiring fits, None when the drive is not
@@ -103,7 +108,7 @@ class PhaseCheck:
         cols, off, scale = self._i
         i_raw = raw[:, cols]
         lo, hi = i_raw.min(axis=0), i_raw.max(axis=0)
-        if int((hi - lo).max()) < LIVE_COUNTS or (lo <= self._i_lo).any() or (hi >= self._i_hi).any():
+        if int((hi.astype(np.int32) - lo).max()) < LIVE_COUNTS or (lo <= self._i_lo).any() or (hi >= self._i_hi).any():
             return None   # the drive not running, or a current clipped: not judged here
         i = (i_raw - off) * scale
         v = (raw[:, self._v[0]] - self._v[1]) * self._v[2]

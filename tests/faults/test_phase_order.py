@@ -205,3 +205,54 @@ def test_a_new_descriptor_goes_on_judging_a_stuck_sensor(tmp_path, refused_first
         for k in range(3000, 8000, 100):   # a sound sensor in its place
             runner._on_block(SampleBlock(k, k, counts[k : k + 100], 0, k == 3000), time.monotonic())
         assert "signals" not in runner.faults, runner.faults
+
+
+def test_large_currents_are_judged_too():
+    """Currents swinging more than half the int16 range (a heavy cut: over 33 A at 0.002 A a count), not clipped:
+    their peak-to-peak in counts overflowed int16, read as a drive not running, and the window was not judged."""
+    from tests.config.helpers import DEMO_TOML
+
+    source = make_source("step", seed=3)
+    check = PhaseCheck(load_config(DEMO_TOML), source.descriptor)
+    names = list(source.descriptor.names)
+    cols = [names.index(n) for n in ("i_u", "i_v", "i_w")]
+    counts = np.array(source.step(6000), dtype=np.int16, copy=True)[4000:5000]
+    big = counts.astype(np.float64)
+    big[:, cols] *= 25000.0 / np.abs(big[:, cols]).max()    # ±25000 counts: 50 A, under the sensors' limits
+    big = big.astype(np.int16)
+    assert check.problem(big) == ""
+    big[:, cols[0]] = -big[:, cols[0]]
+    assert "the line currents do not sum to zero" in (check.problem(big) or ""), check.problem(big)
+
+
+def test_a_large_block_reports_every_change_where_it_was_decided():
+    """Replay hands the check blocks of many windows, the live daemon a window's worth in ten blocks: the same
+    changes (sound, one sensor turned round, two swapped, stopped, sound), each reported where it was decided; a
+    block that raised and cleared the fault reports both (before, replay heard only the last)."""
+    from tests.config.helpers import DEMO_TOML
+
+    source = make_source("step", seed=3)
+    names = list(source.descriptor.names)
+    u, v = names.index("i_u"), names.index("i_v")
+    good = np.array(source.step(9000), dtype=np.int16, copy=True)[1000:]
+    turned, swapped = good.copy(), good.copy()
+    turned[:, u] = -turned[:, u]
+    swapped[:, [u, v]] = swapped[:, [v, u]]
+    stopped = np.zeros_like(good)
+    w = 1000
+    parts = [good[:2 * w], turned[2 * w : 5 * w], swapped[5 * w : 6 * w], stopped[:w], good[6 * w : 8 * w]]
+    counts = np.concatenate(parts)
+    one = PhaseCheck(load_config(DEMO_TOML), source.descriptor)
+    singly = [one.problem(counts[k : k + w]) for k in range(0, len(counts), w)]
+    assert singly.count(None) == 1 and any("sum to zero" in (p or "") for p in singly)
+    assert any("turns against" in (p or "") for p in singly)
+    live, replay = PhaseCheck(load_config(DEMO_TOML), source.descriptor), PhaseCheck(load_config(DEMO_TOML),
+                                                                                      source.descriptor)
+    changes_live = []
+    for k in range(0, len(counts), 100):
+        if live.update(counts[k : k + 100]) is not None:
+            changes_live.append((k + live.decided_at, live.changes[-1][1]))
+    replay.update(counts)
+    assert [verdict for _, verdict in changes_live] == [verdict for _, verdict in replay.changes]
+    assert [at for at, _ in changes_live] == [at for at, _ in replay.changes]
+    assert len(changes_live) == 2 and changes_live[1][1] == ""   # raised, cleared: both within the one large block
