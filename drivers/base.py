@@ -88,6 +88,7 @@ class IndexTracker:
         self.next_index: int | None = None  # device index expected next
         self.next_seq = 0
         self._force_discontinuity = False
+        self.went_back = False  # the last `update`'s index went backwards: the device restarted
 
     def mark_discontinuity(self) -> None:
         self._force_discontinuity = True
@@ -97,6 +98,7 @@ class IndexTracker:
         index %= INDEX_MOD
         discontinuity = self._force_discontinuity
         self._force_discontinuity = False
+        self.went_back = False
         if self.next_index is None:
             seq, lost = index, 0
         else:
@@ -105,6 +107,7 @@ class IndexTracker:
                 seq, lost = self.next_seq + gap, gap
             else:
                 seq, lost, discontinuity = self.next_seq, 0, True
+                self.went_back = True
         self.next_index = (index + n) % INDEX_MOD
         self.next_seq = seq + n
         return seq, lost, discontinuity
@@ -185,6 +188,11 @@ class Driver:
         self._pending_lost = 0
         self._link_state: bool | None = None
         self._after_link_up = False  # the next block queued is the first since the link came up
+        # A device that restarted under the stream may come back with other channels of the same width; until a
+        # DESCRIPTOR confirms them its samples are held back (counted lost) and it is asked for one (`_unconfirmed`)
+        self._descriptor_fresh = False   # a DESCRIPTOR came after the last SAMPLES
+        self._awaiting_descriptor: float | None = None   # monotonic time of the last request while unconfirmed
+        self._pending_disc = False
         self._stats = collections.Counter()
         # set by a batching consumer: (seq, counts, lost_before, discontinuity) -> (checked, wake now)
         self.sample_hook = None
@@ -400,12 +408,15 @@ class Driver:
             seq, lost, disc = self._tracker.update(item.first_index, n)
             self._stats["samples"] += n
             self._stats["lost_samples"] += lost
+            if self._unconfirmed(received, n, lost):
+                return
+            disc = disc or self._pending_disc
             checked, wake = self._hook(seq, item.counts, lost, disc)  # before the queue: a full one drops it
             block = SampleBlock(seq, item.first_index, item.counts, lost + self._pending_lost, disc, checked, received,
                                 self._after_link_up)
             if self._queue.offer(block, is_sample=True):
                 self._pending_lost = 0
-                self._after_link_up = False   # a dropped block's mark is carried, as its losses are
+                self._after_link_up = self._pending_disc = False   # a dropped block's marks are carried, as its losses are
                 self._stats["blocks"] += 1
             else:
                 self._pending_lost += lost + n  # lost_before of the dropped block is carried too
@@ -414,6 +425,11 @@ class Driver:
                 self.wake.set()
             return
         if isinstance(item, Descriptor):
+            self._descriptor_fresh = True
+            if self._awaiting_descriptor is not None:
+                self._awaiting_descriptor = None
+                log.info("daq.channels_confirmed", transport=self.transport, channels=list(item.names),
+                         held_back=self._stats["samples_unconfirmed"])
             if item == self.descriptor:
                 return
             if self.descriptor is not None:
@@ -437,6 +453,27 @@ class Driver:
             return
         self._queue.offer(item, is_sample=False)
         self.wake.set()
+
+    def _unconfirmed(self, now: float, n: int, lost: int) -> bool:
+        """Are these samples of a device that restarted under the stream, its channels not yet confirmed?
+        Then they are held back: counted lost (`samples_unconfirmed`), the next block handed on after a
+        discontinuity; the device is asked for its DESCRIPTOR now and once a second until it comes."""
+        fresh, self._descriptor_fresh = self._descriptor_fresh, False
+        if self._tracker.went_back and not fresh and self.descriptor is not None:
+            if self._awaiting_descriptor is None:
+                log.warning("daq.restarted_unconfirmed", transport=self.transport, address=self.address,
+                            detail="the sample index went back without a DESCRIPTOR: the DAQ restarted under the "
+                                   "stream; its samples are held back until its DESCRIPTOR confirms the channels")
+            self._awaiting_descriptor = now - 2.0
+        if self._awaiting_descriptor is None:
+            return False
+        if now - self._awaiting_descriptor >= 1.0:
+            self._awaiting_descriptor = now
+            self.request_descriptor()
+        self._stats["samples_unconfirmed"] += n
+        self._pending_lost += lost + n
+        self._pending_disc = True
+        return True
 
     def _hook(self, seq: int, counts, lost: int, disc: bool) -> tuple[bool, bool]:
         """The consumer's per-frame look (see the module doc); without one every block wakes it."""
