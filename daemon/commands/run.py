@@ -146,6 +146,13 @@ def run(args: argparse.Namespace) -> int:
         driver = create_driver(settings.daq.transport, **driver_options(settings.daq))
     except DriverError as exc:
         raise ConfigError([f"daq.transport: {exc}"]) from None
+    lock = None   # held for the process's life: one daemon a state directory (the demo keeps none)
+    if not demo:
+        from millsense.daemon.pipeline.latch_store import claim_state_dir, state_dir
+
+        lock, busy = claim_state_dir(state_dir(settings.machine))
+        if busy is not None:
+            raise ConfigError([f"machine: {busy}"])
     # Everything slow (Zenoh, imports, declarations) happens before the driver
     # starts: from then on samples queue up, and a queued block's hand-over time
     # is no longer its arrival time (which live `t` is built from).
@@ -153,6 +160,12 @@ def run(args: argparse.Namespace) -> int:
     if session is None:
         return EXIT_UNAVAILABLE if not stop.is_set() else 0
     try:
+        from millsense.daemon.publish.sink import key_prefix, machine_alive
+
+        if machine_alive(session, settings.machine):
+            raise ConfigError([f"machine: a daemon is already alive as {settings.machine!r} on this Zenoh network "
+                               f"({key_prefix(settings.machine)}/alive): each machine needs its own name (a copied "
+                               f"configuration?), and one daemon a machine"])
         daemon = _Daemon(settings, driver, session, demo)
         try:
             release_free_heap()
@@ -180,6 +193,8 @@ def run(args: argparse.Namespace) -> int:
             session.close()
         except Exception:  # noqa: BLE001 - closing at exit; nothing left to save
             pass
+        if lock is not None:
+            lock.close()
 
 
 def _open_zenoh(settings: Any, stop: threading.Event) -> Any:

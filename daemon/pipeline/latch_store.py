@@ -77,6 +77,39 @@ def ensure_dir(directory: Path) -> None:
     directory.mkdir(parents=True, exist_ok=True, mode=0o750)
 
 
+LOCK_FILE = "daemon.lock"
+
+
+def claim_state_dir(directory: Path) -> tuple[Any, str | None]:
+    """One daemon per state directory: (the held lock file, None), or (None, why not). A second daemon for the
+    same machine would take over the control socket, write the same latch and history, and answer for the
+    first. The lock (`flock` on `daemon.lock`, holding the pid) goes with the process, however it ends. A
+    directory that cannot be made or written is (None, None): the daemon runs on and its fault says why."""
+    import fcntl
+
+    try:
+        ensure_dir(directory)
+        handle = open(directory / LOCK_FILE, "a+")   # noqa: SIM115 - held for the daemon's life
+    except OSError:
+        return None, None
+    try:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        handle.seek(0)
+        pid = handle.read().strip() or "?"
+        handle.close()
+        return None, (f"another millsense daemon (pid {pid}) runs with the state directory {directory}: one daemon a "
+                      f"machine (stop that one first, or give this configuration its own `machine`)")
+    try:
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"{os.getpid()}\n")
+        handle.flush()
+    except OSError:
+        pass   # the lock holds all the same; only the pid for the message is missing
+    return handle, None
+
+
 class LatchStore:
     """The latch file of one machine, written by its own thread. Thread-safe."""
 

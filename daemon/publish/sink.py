@@ -137,6 +137,21 @@ def key_prefix(machine: str) -> str:
     return f"millsense/{machine}"
 
 
+def machine_alive(session: Any, machine: str, window_s: float = 0.3) -> bool:
+    """Is a daemon already alive as `machine` on this Zenoh network (its `alive` token)? Asked before this
+    daemon declares its own: two daemons under one name (a copied configuration) interleave their estimates on
+    one key, answer each other's challenges (a network reset fails) and merge their status. A session that has
+    just opened may still be learning its peers' tokens: asked again for `window_s`."""
+    deadline = time.monotonic() + window_s
+    while True:
+        for reply in session.liveliness().get(f"{key_prefix(machine)}/alive", timeout=0.1):
+            if reply.ok is not None:
+                return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.05)
+
+
 def _context_source(sample: Any) -> str:
     """Who put a context, as far as Zenoh says: the publisher's Zenoh id when it sent one (unverified)."""
     info = getattr(sample, "source_info", None)
