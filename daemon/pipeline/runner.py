@@ -392,6 +392,10 @@ class Runner:
         n = len(block.counts)
         self.samples_received += n
         self._last_block_mono = now
+        if self.faults:   # samples flow: the link works, also from a DAQ whose descriptor does not fit
+            for kind in DAQ_FAULTS:
+                if kind in self.faults:
+                    self.recover(kind)
         if self.core.estimator is None:
             if self.driver.descriptor is not None:
                 self._on_descriptor(self.driver.descriptor)
@@ -413,10 +417,6 @@ class Runner:
             # A block that waited in the queue behind others arrived earlier than we see it:
             # its get() time would make `t` late, so only fresh blocks set the clock.
             self.clock.note_block(block.seq, n, time.time(), restart=restart, mono_s=now)
-        if self.faults:
-            for kind in ("daq_link", "daq_stalled"):
-                if kind in self.faults:
-                    self.recover(kind)
         frame_events = self._take_frame_events(block.seq + n - 1)
         with self._alarm_lock:
             step = self.core.process(block, frame_events)
@@ -813,6 +813,7 @@ class Runner:
 
     def _on_link(self, ev: Any) -> None:
         if ev.up:  # the driver logged it (`daq.link_up`, with transport and address)
+            self._stall_since = time.monotonic()
             # A DAQ that restarted forgot its watchdog and maybe the latched output; its override is 100 %, or
             # (a link that only dropped) still what it was: set again at its first STATUS.
             self.feed_out.device_restarted()
@@ -840,7 +841,8 @@ class Runner:
         self.recover("descriptor")
 
     def _check_stall(self, now: float) -> None:
-        last = self._last_block_mono if self._last_block_mono is not None else self._stall_since
+        # since the last samples, or since the link came (back) up: the time it was down is `daq_link`'s
+        last = max(self._last_block_mono or self._stall_since, self._stall_since)
         if self.driver.link_up and now - last > DAQ_STALL_S and "daq_stalled" not in self.faults:
             self.fault("daq_stalled", f"no samples for {now - last:.1f} s with the link up")
 

@@ -222,3 +222,40 @@ def test_pty_closed_under_the_reader_then_the_device_restarts_at_index_0(tmp_pat
     downs = [e for e in events if e["event"] == "daq.link_down" and e["reason"] != "closed"]  # "closed": the stop
     assert len(downs) == 1 and str(link) in downs[0]["reason"], downs
     assert_clean_exit(procs, "daemon")
+
+
+def test_samples_flowing_again_clear_the_link_faults_even_from_a_daq_that_does_not_fit(tmp_path):
+    """The probe of stop 27: after the DAQ came back with a descriptor the configuration does not fit, status kept
+    `daq_link: lost communication …` and `daq_stalled` beside the true `descriptor` fault, with the link up and
+    samples counting: they were cleared only by a block that reached an estimator. And the first check after an
+    outage said "no samples for 6.4 s with the link up" when the link had been up for a second."""
+    import dataclasses
+
+    import numpy as np
+
+    from millsense.daemon.config import load_config
+    from millsense.daemon.pipeline.runner import DAQ_STALL_S
+    from millsense.drivers.base import LinkEvent, SampleBlock
+    from tests.faults.helpers import runner_on_the_sim
+
+    cfg = write_config(tmp_path / "l.toml", machine="link-01", daq='transport = "sim"\nscenario = "step"')
+    with runner_on_the_sim(load_config(cfg)) as (runner, drv, sink):
+        good = drv.descriptor
+        runner._on_block(SampleBlock(0, 0, np.zeros((10, len(good.channels)), dtype=np.int16), 0, False),
+                         time.monotonic())
+        runner._last_block_mono = time.monotonic() - 10.0   # the last samples came 10 s ago: the link went down
+        runner._on_link(LinkEvent(False, "connection reset"))
+        assert "daq_link" in runner.faults
+        runner._on_link(LinkEvent(True, "connected"))
+        up = time.monotonic()
+        runner._check_stall(up + 0.5 * DAQ_STALL_S)
+        assert "daq_stalled" not in runner.faults, runner.faults   # the link is up only half the allowance
+        runner._check_stall(up + 3.0 * DAQ_STALL_S)
+        assert "no samples for 3.0 s with the link up" in runner.faults.get("daq_stalled", ""), runner.faults
+        without = dataclasses.replace(good, channels=tuple(c for c in good.channels if c.name != "i_u"))
+        drv.descriptor = without   # what the DAQ now announces (the simulated one sends it only when asked)
+        runner._on_descriptor(without)
+        assert "descriptor" in runner.faults and runner.core.estimator is None
+        runner._on_block(SampleBlock(10, 10, np.zeros((10, len(without.channels)), dtype=np.int16), 0, True),
+                         time.monotonic())
+        assert set(runner.faults) == {"descriptor"}, runner.faults
