@@ -79,6 +79,12 @@ log = structlog.get_logger("millsense.runner")
 
 HEALTH_STALL_S = 0.5  # no samples / no estimator loop for this long: stop heartbeats
 DAQ_STALL_S = 1.0  # no samples for this long with the link up: `daq_lost`
+# AFC on, the CNC's applied feed override above both 100 % and the command by OVERRIDE_MARGIN_PCT for
+# OVERRIDE_FOLLOW_S: nothing controls the feed (a DAQ refusing the command, a stuck output, a PLC): hold it.
+# The CNC follows a command within tens of milliseconds, and at its own rate limit (100 %/s or more) from the
+# 150 % bound within half a second.
+OVERRIDE_FOLLOW_S = 1.0
+OVERRIDE_MARGIN_PCT = 2.0
 PROGRESS_S = 3.0  # sd_notify WATCHDOG=1 only if a revolution closed within this
 BLIND_KINDS = ("signals", "descriptor")  # faults that leave the daemon unable to see a crash
 DAQ_FAULTS = ("daq_link", "daq_stalled")
@@ -177,6 +183,7 @@ class Runner:
         self.feed_out = OverrideOutput(driver)
         self._afc_lock = threading.RLock()
         self.applied_override_pct: float | None = None  # the DAQ's last STATUS (what the CNC applies)
+        self._override_above_since: float | None = None  # AFC on: the applied override above the command since
         # The override on the DAQ is set once to what this daemon holds at the first STATUS after each connection:
         # a daemon restarted faster than the watchdog would otherwise leave the last run's override in place.
         self._afc_resync = True
@@ -315,6 +322,7 @@ class Runner:
                 if self._afc_resync:
                     self._afc_resync = False
                     self._safe(self._afc_resync_now)
+                self._safe(self._check_override, now)
             self.core.on_status(ev)  # the applied override, sample by sample, for the revolutions
             if self.interlock.device_hold and not self._check.marked:
                 with self._check_lock:  # a hold we did not set (the watchdog): judged from now on
@@ -578,6 +586,32 @@ class Runner:
             return ("the interlock is disabled ([interlock] enabled = false): without its heartbeat the DAQ's "
                     "watchdog could not return the override to 100 % if the daemon stopped")
         return None
+
+    def _override_runaway(self) -> str | None:
+        """AFC on: the applied override above both 100 % and the command (what it is, in words), else None."""
+        applied, sent = self.applied_override_pct, self.feed_out.sent_pct
+        if applied is None or not self.feed.enabled or applied <= max(sent, 100.0) + OVERRIDE_MARGIN_PCT:
+            return None
+        return (f"the CNC applies a {applied:.1f} % feed override where {sent:.1f} % is commanded: the feed runs "
+                f"faster than programmed and nothing controls it (a DAQ that does not apply the override command, "
+                f"a stuck output or PLC)")
+
+    def _check_override(self, now: float) -> None:
+        """Each STATUS: the feed held once the applied override stayed above the command for OVERRIDE_FOLLOW_S."""
+        runaway = self._override_runaway()
+        if runaway is None:
+            self._override_above_since = None
+            return
+        if self._override_above_since is None:
+            self._override_above_since = now
+        if now - self._override_above_since < OVERRIDE_FOLLOW_S or self.interlock.latched:
+            return
+        held = self._trip(f"afc: {runaway}")
+        log.error("afc.override_not_followed", applied_pct=self.applied_override_pct, sent_pct=self.feed_out.sent_pct,
+                  detail=runaway)
+        ev = AlarmEvent("overload", "feed_override_pct", self.applied_override_pct,
+                        max(self.feed_out.sent_pct, 100.0), None, self._last_seq)
+        self._safe(self._publish_alarm, ev, held)
 
     def _afc_status(self) -> dict[str, Any]:
         with self._afc_lock:
@@ -1040,6 +1074,9 @@ class Runner:
             if daq is None and not self.driver.link_up:
                 daq = "daq_link: the link is down"
             refusal = self._check.refusal(il.reason, blind, daq) if held and il.enabled else None
+            runaway = self._override_runaway() if held and il.enabled else None
+            if refusal is None and runaway is not None:
+                refusal = {"condition": "feed_override", "error": runaway}
         if refusal is not None:
             log.warning("interlock.reset_refused", requester=requester or "unknown", reason=il.reason, **refusal)
             result = {"ok": False, **refusal, **il.state_dict()}

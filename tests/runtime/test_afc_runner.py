@@ -153,3 +153,30 @@ def rig_left_override():
     for runner, drv in made:
         runner.stop(1.0)
         drv.close()
+
+
+def test_a_cnc_that_does_not_follow_the_override_down_holds_the_feed(rig, monkeypatch):
+    """The probe of stop 27: a DAQ that refuses the override command (or a stuck output, a PLC) left the CNC at
+    150 % while the daemon commanded 100 % and said `safe`: the feed ran faster than programmed with nothing in
+    control, and nothing said so. Now, AFC on, an applied override above both 100 % and the command for a second
+    holds the feed, says why, and a reset is refused while it lasts."""
+    from millsense.daemon.pipeline.runner import OVERRIDE_FOLLOW_S
+
+    torque = {"nm": 10.0}
+    runner, drv, sink = rig(lambda rev: torque["nm"])
+    _above_100(runner, drv, sink)
+    wait_for(lambda: (runner.applied_override_pct or 0) > 105.0, 5, "the CNC applying more than 100 %")
+    # from now on the DAQ takes no override command (it answers, but nothing changes): a failure a real emulator
+    # cannot be made to have on cue
+    monkeypatch.setattr(drv.device, "set_feed_override", lambda tenths, now, cause="command": True)
+    runner.fault("history", "test: the disk is full")    # AFC goes safe: 100 % commanded
+    assert runner.feed_out.sent_pct <= 100.0 and not runner.interlock.latched
+    wait_for(lambda: runner.interlock.latched, 5 + OVERRIDE_FOLLOW_S, "the feed held")
+    assert runner.interlock.reason.startswith("afc: the CNC applies a ") and "nothing controls it" in runner.interlock.reason
+    alarm = [a for a, _ in sink.of("alarm") if a.get("quantity") == "feed_override_pct"]
+    assert alarm and alarm[-1]["level"] == "overload" and alarm[-1]["value"] > 105.0
+    runner.recover("history")
+    n = len(sink.of("estimate"))
+    wait_for(lambda: len(sink.of("estimate")) >= n + 3, 5, "revolutions since the hold (evidence for a reset)")
+    r = runner.reset("test")
+    assert r["ok"] is False and r["condition"] == "feed_override", r
