@@ -69,6 +69,9 @@ def positive_option(value: float | None, option: str) -> str | None:
     return None
 
 
+STATE_WATCH_S = 2.0   # the state directory looked at under the running daemon (`_Daemon._watch_state`)
+
+
 def _fail(message: str, code: int) -> int:
     print(f"{PROG}: error: {message}", file=sys.stderr)
     return code
@@ -261,6 +264,8 @@ class _Daemon:
         self.sink = ZenohSink(session, self.runner.machine, self.runner, log=self.log, close_timeout_s=0.5,
                               expects_router=settings.zenoh.mode == "client")
         self._closed = False
+        self._locks: list[Any] = []   # state-directory locks taken again after the directory was deleted
+        self._watched: tuple[bool, bool, bool] | None = None   # directory, lock, socket there at the first look
 
     def serve(self, seconds: float | None, stop: threading.Event) -> None:
         if self.state_dir is not None:
@@ -276,13 +281,62 @@ class _Daemon:
 
             self.local = LocalControl(self.state_dir, self.runner)
             self.local.start()
+            self._watch_state()   # what there is to keep an eye on
         self.log.info("daemon.started", machine=self.runner.machine, transport=self.transport, demo=self.demo)
         deadline = None if seconds is None else time.monotonic() + seconds
+        next_watch = time.monotonic() + STATE_WATCH_S
         while not stop.is_set():
             left = 0.2 if deadline is None else min(0.2, deadline - time.monotonic())
             if left <= 0:
                 break
             stop.wait(left)
+            if time.monotonic() >= next_watch:
+                next_watch = time.monotonic() + STATE_WATCH_S
+                try:
+                    self._watch_state()
+                except Exception as exc:  # noqa: BLE001 - a watch must never stop the daemon
+                    self.log.error("state.watch_failed", error=f"{type(exc).__name__}: {exc}")
+
+    def _watch_state(self) -> None:
+        """The state directory under the running daemon, every STATE_WATCH_S: deleted by hand (a clean-up), it is
+        made again with what this daemon holds, the control socket, its lock and the latch; the history's database
+        gone is the fault `history` (SQLite writes on into the deleted file: nothing would last). Only what was
+        there is looked for: a directory that could not be written at start is its own fault already."""
+        from millsense.daemon.pipeline.latch_store import LOCK_FILE, claim_state_dir, ensure_dir
+
+        d = self.state_dir
+        if d is None:
+            return
+        if self._watched is None:   # the first look: what there is to keep
+            self._watched = (d.is_dir(), (d / LOCK_FILE).exists(), self.local is not None and self.local.listening)
+        had_dir, had_lock, had_socket = self._watched
+        gone = ((had_dir and not d.is_dir()) or (had_lock and not (d / LOCK_FILE).exists())
+                or (had_socket and not self.local.path.is_socket()))
+        if gone:
+            self.log.warning("state.directory_gone", path=str(d),
+                             detail="the state directory, its lock or the control socket was deleted under the running "
+                                    "daemon: made again (lock, control socket, latch)")
+            ensure_dir(d)
+            if had_lock and not (d / LOCK_FILE).exists():   # the old lock is on a deleted file: claim it again
+                handle, busy = claim_state_dir(d)
+                if handle is not None:
+                    self._locks.append(handle)
+                elif busy is not None:
+                    self.log.error("state.claimed_by_another", path=str(d), detail=busy)
+            if had_socket:
+                self.local.close(timeout_s=0.5)
+                self.local.start()
+            if self.runner.latch_store is not None:
+                self.runner.latch_store.save(self.runner.interlock.record())
+        if self.runner.history is not None:
+            self._watch_history()
+
+    def _watch_history(self) -> None:
+        history = self.runner.history
+        if "history" in self.runner.faults or not history.stats().get("open") or history.path.exists():
+            return
+        self.runner.fault("history", f"the history database {history.path} was deleted under the running daemon: "
+                                     f"what is written now is lost (restart the daemon to start a new one)")
 
     def close(self) -> None:
         if self._closed:
@@ -301,6 +355,8 @@ class _Daemon:
             self.sink.close()  # drops the liveliness token
         except Exception as exc:  # noqa: BLE001
             self.log.error("zenoh.close_failed", error=str(exc))
+        for handle in self._locks:
+            handle.close()
         if self.summary is not None:
             self.summary.end()
         self.log.info("daemon.stopped", stop_s=round(time.monotonic() - t0, 3), interlock=self.runner.interlock.state)

@@ -167,10 +167,15 @@ class LocalControl:
             self.runner.fault("local_control", f"cannot open the local control socket {self.path}: {exc}")
             return False
         self._sock = sock
+        self._stop.clear()   # started again after a close (the socket deleted under the daemon)
         self._thread = threading.Thread(target=self._serve, name="millsense-local-control", daemon=True)
         self._thread.start()
         log.info("local_control.listening", path=str(self.path), uids=list(self.allowed_uids))
         return True
+
+    @property
+    def listening(self) -> bool:
+        return self._sock is not None
 
     def close(self, timeout_s: float = 1.0) -> None:
         self._stop.set()
