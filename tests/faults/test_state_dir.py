@@ -13,7 +13,7 @@ import subprocess
 
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for, write_config
-from tests.faults.helpers import status, wait_status
+from tests.faults.helpers import wait_status
 
 
 def test_the_state_directory_deleted_is_made_again_and_the_history_loss_said(tmp_path):
