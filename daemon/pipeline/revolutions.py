@@ -74,15 +74,18 @@ class EncoderAngle:
             restart = False
         c = np.concatenate([self._hist_count, count])
         s = np.concatenate([self._hist_seq, seq.astype(np.float64)])
-        h = len(self._hist_count)
-        j = np.arange(h, len(c))
-        k = np.maximum(j - self.window, 0)
-        dseq = s[j] - s[k]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rpm = (c[j] - c[k]) / dseq * (self.sample_rate_hz * 60.0 / self.counts_per_rev)
-        rpm[dseq == 0] = 0.0  # the very first sample: speed unknown, treated as stopped
-        if restart and len(rpm) > 1:
-            rpm[0] = rpm[1]   # the first sample after a gap: the speed of the step that follows it
+        h, w = len(self._hist_count), self.window
+        if h == w:   # the window's history full (every block but the first after a start or a gap): no special case
+            rpm = (c[w:] - c[:-w]) / (s[w:] - s[:-w]) * (self.sample_rate_hz * 60.0 / self.counts_per_rev)
+        else:
+            j = np.arange(h, len(c))
+            k = np.maximum(j - w, 0)
+            dseq = s[j] - s[k]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                rpm = (c[j] - c[k]) / dseq * (self.sample_rate_hz * 60.0 / self.counts_per_rev)
+            rpm[dseq == 0] = 0.0  # the very first sample: speed unknown, treated as stopped
+            if restart and len(rpm) > 1:
+                rpm[0] = rpm[1]   # the first sample after a gap: the speed of the step that follows it
         self._hist_count = c[-self.window :].copy()
         self._hist_seq = s[-self.window :].copy()
         return angle_rev, rpm
