@@ -157,8 +157,7 @@ class Replay:
                     from millsense.daemon.pipeline.loss_check import LossCheck
 
                     last_loss, last_phase = self.loss_check, self.phase_check   # the new ones go on from them
-                    self.loss_check = LossCheck(self.rate)
-                    self.loss_check.faulted = last_loss is not None and last_loss.faulted
+                    self.loss_check = LossCheck(self.rate, faulted=last_loss is not None and last_loss.faulted)
                     from millsense.daemon.pipeline.phase_check import PhaseCheck
 
                     self.phase_check = PhaseCheck(self.settings, frame,

@@ -32,11 +32,12 @@ LINK_GAP_S = 0.5     # one gap this long is an interruption of the link, not a l
 class LossCheck:
     """The share of samples lost over the last `WINDOW_S`; says when to raise and to clear the fault."""
 
-    def __init__(self, sample_rate_hz: float, window_s: float = WINDOW_S):
+    def __init__(self, sample_rate_hz: float, window_s: float = WINDOW_S, faulted: bool = False):
+        """`faulted`: the verdict of the check this one replaces (replay, at another descriptor's rate)."""
         self.rate = float(sample_rate_hz)
         self.window = max(1, int(round(window_s * self.rate)))
         self.link_gap = max(1, int(round(LINK_GAP_S * self.rate)))
-        self.faulted = False
+        self.faulted = bool(faulted)
         self._blocks: deque[tuple[int, int, int]] = deque()   # (seq of the block's last sample, received, lost)
         self._received = 0
         self._lost = 0

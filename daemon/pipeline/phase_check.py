@@ -61,7 +61,6 @@ class PhaseCheck:
         self._n = 0
         self._verdict = InARow(WINDOWS)
         self._verdict.faulted = bool(faulted)
-        self.decided_at = 0  # the last verdict's sample: its index in the block handed to `update`
         self.changes: list[tuple[int, str]] = []   # every verdict of the last `update`: (that index, verdict)
 
     @property
@@ -71,9 +70,9 @@ class PhaseCheck:
     def update(self, counts: np.ndarray, lost_before: int = 0, discontinuity: bool = False) -> str | None:
         """One block of raw counts (n, C). Returns the verdict (verdict.py): the reason when raised, "" when
         cleared, else None; the last one, if the block completed several windows (`changes` has each, with the
-        index of its window's last sample in `counts`; `decided_at` the last's). A gap starts the window again:
-        a window is contiguous samples."""
-        self.changes: list[tuple[int, str]] = []
+        index of its window's last sample in `counts`). A gap starts the window again: a window is contiguous
+        samples."""
+        self.changes = []
         if not self.usable:
             if self._verdict.faulted:   # the last descriptor's fault, which these channels cannot judge
                 self._verdict.faulted = False
@@ -97,10 +96,7 @@ class PhaseCheck:
             problem = self.problem(block[k * self.window : (k + 1) * self.window])
             if problem is not None and self._verdict.observe(bool(problem)):   # None: the drive not running
                 self.changes.append(((k + 1) * self.window - 1 - before, problem))
-        if not self.changes:
-            return None
-        self.decided_at, verdict = self.changes[-1]
-        return verdict
+        return self.changes[-1][1] if self.changes else None
 
     def problem(self, raw: np.ndarray) -> str | None:
         """One window's verdict: the problem in words, "" when the wiring fits, None when the drive is not

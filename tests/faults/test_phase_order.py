@@ -251,7 +251,7 @@ def test_a_large_block_reports_every_change_where_it_was_decided():
     changes_live = []
     for k in range(0, len(counts), 100):
         if live.update(counts[k : k + 100]) is not None:
-            changes_live.append((k + live.decided_at, live.changes[-1][1]))
+            changes_live.append((k + live.changes[-1][0], live.changes[-1][1]))
     replay.update(counts)
     assert [verdict for _, verdict in changes_live] == [verdict for _, verdict in replay.changes]
     assert [at for at, _ in changes_live] == [at for at, _ in replay.changes]
