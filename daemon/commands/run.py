@@ -70,6 +70,7 @@ def positive_option(value: float | None, option: str) -> str | None:
 
 
 STATE_WATCH_S = 2.0   # the state directory looked at under the running daemon (`_Daemon._watch_state`)
+NAME_WATCH_S = 5.0    # another daemon answering as this machine looked for on Zenoh (`_Daemon._watch_name`)
 
 
 def _fail(message: str, code: int) -> int:
@@ -263,6 +264,7 @@ class _Daemon:
         self.local = None
         self.sink = ZenohSink(session, self.runner.machine, self.runner, log=self.log, close_timeout_s=0.5,
                               expects_router=settings.zenoh.mode == "client")
+        self.session = session
         self._closed = False
         self._locks: list[Any] = []   # state-directory locks taken again after the directory was deleted
         self._watched: tuple[bool, bool, bool] | None = None   # directory, lock, socket there at the first look
@@ -284,18 +286,22 @@ class _Daemon:
             self._watch_state()   # what there is to keep an eye on
         self.log.info("daemon.started", machine=self.runner.machine, transport=self.transport, demo=self.demo)
         deadline = None if seconds is None else time.monotonic() + seconds
-        next_watch = time.monotonic() + STATE_WATCH_S
+        watches = [[self._watch_state, STATE_WATCH_S, time.monotonic() + STATE_WATCH_S, "state.watch_failed"],
+                   [self._watch_name, NAME_WATCH_S, time.monotonic() + NAME_WATCH_S, "zenoh.name_watch_failed"]]
         while not stop.is_set():
             left = 0.2 if deadline is None else min(0.2, deadline - time.monotonic())
             if left <= 0:
                 break
             stop.wait(left)
-            if time.monotonic() >= next_watch:
-                next_watch = time.monotonic() + STATE_WATCH_S
+            for watch in watches:
+                look, every_s, due, event = watch
+                if time.monotonic() < due:
+                    continue
+                watch[2] = time.monotonic() + every_s
                 try:
-                    self._watch_state()
+                    look()
                 except Exception as exc:  # noqa: BLE001 - a watch must never stop the daemon
-                    self.log.error("state.watch_failed", error=f"{type(exc).__name__}: {exc}")
+                    self.log.error(event, error=f"{type(exc).__name__}: {exc}")
 
     def _watch_state(self) -> None:
         """The state directory under the running daemon, every STATE_WATCH_S: deleted by hand (a clean-up), it is
@@ -330,6 +336,23 @@ class _Daemon:
                 self.runner.latch_store.save(self.runner.interlock.record())
         if self.runner.history is not None:
             self._watch_history()
+
+    def _watch_name(self) -> None:
+        """Another daemon answering as this machine, every NAME_WATCH_S: `run` refused to start beside one it could
+        see, but two network segments joined later (a router, a laptop bridging them) bring two daemons of one name
+        together. Both then publish on one key, and commands by name reach both (a network reset fails on the other's
+        nonce): fault `machine` (status `degraded`, the AFC override back to 100 %; the feed is not held, each
+        daemon still watches its own machine), cleared when the other is gone."""
+        from millsense.daemon.publish.sink import key_prefix, other_daemons
+
+        machine = self.runner.machine
+        others = other_daemons(self.session, machine)
+        if others and "machine" not in self.runner.faults:
+            self.runner.fault("machine", f"another daemon is alive as {machine!r} on this Zenoh network (zenoh id "
+                                         f"{', '.join(others)}): both publish on {key_prefix(machine)}/*, and commands "
+                                         f"by name reach both; each machine needs its own name")
+        elif not others and "machine" in self.runner.faults:
+            self.runner.recover("machine")
 
     def _watch_history(self) -> None:
         history = self.runner.history

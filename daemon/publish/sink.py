@@ -179,6 +179,26 @@ def machine_alive(session: Any, machine: str, window_s: float = 0.3) -> bool:
         time.sleep(0.05)
 
 
+def other_daemons(session: Any, machine: str, timeout_s: float = 0.5) -> list[str]:
+    """The Zenoh ids of the other daemons answering as `machine` now, this one left out: asked of every `status`
+    queryable of the name, unconsolidated (two daemons' answers on one key would otherwise be merged into one).
+    `machine_alive` asks once, before this daemon declares itself; this is asked while it runs, for networks joined
+    later (a router connecting two segments, a laptop bridging them). A reply without a replier id (an older
+    Zenoh) is counted as another only beyond this daemon's own one answer."""
+    import zenoh
+
+    own = str(session.info.zid())
+    others, anonymous = set(), 0
+    for reply in session.get(f"{key_prefix(machine)}/status", target=zenoh.QueryTarget.ALL,
+                             consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s):
+        replier = getattr(getattr(reply, "replier_id", None), "zid", None)
+        if replier is None:
+            anonymous += 1
+        elif str(replier) != own:
+            others.add(str(replier))
+    return sorted(others) + ["(unknown)"] * max(0, anonymous - 1)
+
+
 def _context_source(sample: Any) -> str:
     """Who put a context, as far as Zenoh says: the publisher's Zenoh id when it sent one (unverified)."""
     info = getattr(sample, "source_info", None)

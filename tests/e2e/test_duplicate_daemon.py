@@ -9,8 +9,11 @@ answered each other's challenges: a network reset failed every time, pointing at
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
+
+import zenoh
 
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for, write_config
@@ -60,3 +63,61 @@ def test_a_second_daemon_with_the_same_name_on_the_network_is_refused(tmp_path):
             assert daemon.poll() is None and status(sub, machine)["state"] == "running"
         finally:
             sub.close()
+
+
+def test_two_daemons_with_one_name_on_networks_joined_later_say_so(tmp_path):
+    """Two machines with a copied configuration, each on its own network segment: neither saw the other at start.
+    A router, or a laptop with a peer session, joins the segments later: from then on both names' keys carry two
+    daemons (interleaved estimates, commands by name reaching both). Each daemon looks for another answering as its
+    machine while it runs: fault `machine` (status `degraded`), naming the other's Zenoh id; cleared when it is gone."""
+    machine = "dup-03"
+    port_a, port_b = free_tcp_port(), free_tcp_port()
+    first = write_config(tmp_path / "a.toml", machine=machine, daq=SIM, zenoh_listen=[tcp(port_a)])
+    copied = write_config(tmp_path / "b.toml", machine=machine, daq=SIM, zenoh_listen=[tcp(port_b)])
+    with Procs(tmp_path) as procs:
+        procs.start("a", ["run", "--config", str(first)])
+        other = procs.start("b", ["run", "--config", str(copied)],
+                            env_extra={"XDG_STATE_HOME": str(tmp_path / "other-host")})   # another box
+        # clients: a peer session would listen and introduce the two daemons to each other at once
+        sub_a, sub_b = (_client(port, machine) for port in (port_a, port_b))
+        try:
+            for sub in (sub_a, sub_b):
+                wait_for(lambda sub=sub: status(sub, machine)["state"] == "running", 60.0, "both daemons running")
+            assert all("machine" not in status(sub, machine)["faults"] for sub in (sub_a, sub_b))
+            bridge = Subscriber([tcp(port_a), tcp(port_b)], machine, read=False)   # the segments joined
+            try:
+                def statuses() -> list[dict]:   # both daemons' answers: unconsolidated, each its own
+                    return [json.loads(r.ok.payload.to_bytes()) for r in bridge.session.get(
+                        f"millsense/{machine}/status", target=zenoh.QueryTarget.ALL,
+                        consolidation=zenoh.ConsolidationMode.NONE, timeout=2.0) if r.ok is not None]
+
+                wait_for(lambda: [("machine" in r["faults"]) for r in statuses()] == [True, True], 60.0,
+                         "fault `machine` on both daemons")
+                for r in statuses():
+                    assert r["state"] == "degraded", r
+                    assert f"another daemon is alive as '{machine}'" in r["faults"]["machine"], r["faults"]
+            finally:
+                bridge.close()
+            other.terminate()
+            other.wait(30)
+            wait_for(lambda: "machine" not in status(sub_a, machine)["faults"], 60.0, "the fault cleared once it left")
+            assert status(sub_a, machine)["state"] == "running"
+            assert "Traceback" not in procs.text("a", "out") + procs.text("a", "err")
+        finally:
+            sub_a.close()
+            sub_b.close()
+
+
+def _client(port: int, machine: str) -> Subscriber:
+    """A client session of the daemon listening on `port`, once it listens."""
+    opened: list[Subscriber] = []
+
+    def connect() -> bool:
+        try:
+            opened.append(Subscriber([tcp(port)], machine, mode="client"))
+        except zenoh.ZError:
+            return False
+        return True
+
+    wait_for(connect, 60.0, f"the daemon listening on {port}")
+    return opened[0]
