@@ -81,6 +81,7 @@ class Interlock:
         # status newer than the write still says no feed hold
         self.hold_unconfirmed = False
         self._last_write_mono = 0.0
+        self.hold_written_mono: float | None = None   # monotonic time the last new latch's hold was written
 
     # -- start ------------------------------------------------------------
     def start(self) -> None:
@@ -115,6 +116,7 @@ class Interlock:
             self.since = time.time()
             self.trips += 1
             ok = self._write(True)
+            self.hold_written_mono = self._last_write_mono   # the trip's end, for its timing (not the log after it)
             self._changed()
         log.warning("interlock.feed_hold", reason=reason, written=ok)
         return "feed_hold" if ok else None

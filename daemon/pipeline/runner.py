@@ -356,8 +356,7 @@ class Runner:
             return False, True
         last = seq + len(counts) - 1
         if crash is not None:
-            self._trip(_trip_reason(crash), last)
-            self.last_trip_ms = round((time.monotonic() - t0) * 1e3, 3)  # frame decoded → output written
+            self._trip(_trip_reason(crash), last, started=t0)   # frame decoded → output written
             return True, True
         wake_at = self._wake_at_seq
         return judged, current_high or (wake_at is not None and last >= wake_at)
@@ -439,8 +438,7 @@ class Runner:
         self._predict_close(step)
         interlock_by_event: dict[int, str | None] = {}
         for ev in step.trips:  # feed hold first, before anything is published
-            interlock_by_event[id(ev)] = self._trip(_trip_reason(ev))
-            self.last_trip_ms = round((time.monotonic() - now) * 1e3, 3)  # block handed over → output written
+            interlock_by_event[id(ev)] = self._trip(_trip_reason(ev), started=now)  # block handed over → written
         for kind, reason in step.faults.items():  # signal plausibility: blind while it lasts
             self._signal_source(kind, "plausibility", reason)
         for kind in step.clear_faults:
@@ -801,16 +799,20 @@ class Runner:
         fields = {k: v for k, v in payload.items() if k not in ("machine", "level", "run_id", "alarm_seq")}
         log.warning("alarm", alarm_level=payload["level"], **fields)
 
-    def _trip(self, reason: str, last_seq: int | None = None) -> str | None:
+    def _trip(self, reason: str, last_seq: int | None = None, started: float | None = None) -> str | None:
         """Every feed hold goes through here, from any thread: the interlock's trip, then the mark
         for the reset check. `last_seq`: the last sample the tripping thread saw (the reader's frame);
-        default the estimator's."""
+        default the estimator's. `started`: the monotonic time the tripping data were taken; a new latch
+        sets `last_trip_ms` from it to the hold's write (what follows the write is not the trip's)."""
         with self._trip_lock:
             trips = self.interlock.trips
             result = self.interlock.trip(reason)
             if self.interlock.trips != trips:  # a new latch (not one already held)
                 with self._check_lock:
                     self._check.mark(self._last_seq if last_seq is None else max(last_seq, self._last_seq or 0))
+                written = self.interlock.hold_written_mono
+                if started is not None and written is not None:
+                    self.last_trip_ms = round((written - started) * 1e3, 3)
         self._afc_safe(f"feed hold: {reason}")  # after the hold is written: it never waits for this
         return result
 

@@ -375,3 +375,17 @@ def test_a_frame_reaching_the_predicted_close_of_a_revolution_wakes_the_estimato
     loud[:, 3:6] = [12500, 12500, -25000]  # i_w 50 A: over stall_current_a (45), under crash_current_a (55)
     assert runner._on_frame(1130, loud, 0, False) == (True, True)  # a stall is judged at once
     assert not runner.interlock.latched
+
+
+def test_the_trip_time_ends_when_the_hold_is_written(live):
+    """`last_trip_ms` (status) is the daemon's share of the crash trip: frame decoded → feed hold written. What the
+    tripping thread does after the write (the log line, the AFC override to 100 %, which waits for the AFC lock while
+    another thread holds it) is not part of it: it measured up to the end of all of that before stop 28."""
+    runner, source, sink, loop = live
+    with runner._afc_lock:   # another thread in the middle of an override step as the crash lands
+        loop.call_soon_threadsafe(lambda: setattr(source, "armed", True))
+        assert source.held.wait(5), "the emulator never received feed hold"
+        time.sleep(0.3)
+    wait_for(lambda: runner.last_trip_ms is not None, 5, "the reader's trip timed")
+    assert runner.interlock.latched and runner.interlock.trips == 1
+    assert 0.0 <= runner.last_trip_ms < 300.0, runner.last_trip_ms
