@@ -29,8 +29,8 @@ TRANSPORTS = ("serial", "tcp", "modbus-tcp", "modbus-rtu", "sim")
 
 # Zenoh endpoints: <protocol>/<address>[?metadata][#config]
 _IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
-_ENDPOINT_RE = re.compile(r"^(?P<proto>[a-z][a-z0-9-]*)/(?P<addr>[^?#]+)(?P<rest>[?#].*)?$")
-_HOST_PORT_RE = re.compile(r"^(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+):(?P<port>[0-9]{1,5})$")
+_ENDPOINT_RE = re.compile(r"^(?P<proto>[a-z][a-z0-9-]*)/(?P<addr>[^?#]+)(?P<rest>[?#].*)?\Z")
+_HOST_PORT_RE = re.compile(r"^(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9._-]+):(?P<port>[0-9]{1,5})\Z")
 
 
 def problems_error(problems: list[tuple[str, str]]) -> PydanticCustomError:

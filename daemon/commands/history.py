@@ -61,12 +61,18 @@ def parse_time(text: str, option: str) -> float:
     return value
 
 
+_WIDEST = {"--program": 2**32 - 1, "--tool": 2**32 - 1, "--operation": 2**16 - 1}   # the CONTEXT frame's fields
+
+
 def _number(text: str | None, option: str) -> int | None:
     if text is None:
         return None
-    if not text.strip().isdigit():
+    digits = text.strip()
+    if not (digits.isascii() and digits.isdigit()):
         raise _Usage(f"{option} {text!r}: a whole number 0 or more (tool T12 is --tool 12)")
-    return int(text)
+    if int(digits) > _WIDEST[option]:
+        raise _Usage(f"{option} {text!r}: at most {_WIDEST[option]} (the DAQ's and the CNC adapter's field)")
+    return int(digits)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -21,8 +21,8 @@ from typing import Any
 from millsense.daemon.dashboard.book import Book
 
 KINDS = ("estimate", "alarm", "status", "process")
-MACHINE_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
-HEX_RE = re.compile(r"^[0-9a-f]{1,128}$")
+MACHINE_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}\Z")
+HEX_RE = re.compile(r"^[0-9a-f]{1,128}\Z")
 RELAY_TIMEOUT_S = 3.0
 # The fields each step may carry (docs/zenoh.md, "Commands"); `args` of a reset is always {}.
 STEP_FIELDS = {

@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     from millsense.daemon.learning.monitor import ProcessMonitor
 
 ACTIONS = ("list", "show", "accept", "relearn", "widen", "narrow", "false_alarm", "new_tool")
-KEY_RE = re.compile(r"^\d{1,10}/\d{1,10}/\d{1,5}$")
+KEY_RE = re.compile(r"^[0-9]{1,10}/[0-9]{1,10}/[0-9]{1,5}\Z")
 MAX_PCT = 500.0
 
 

@@ -115,11 +115,16 @@ class ContextTrack:
         self._add(seq, ctx_from_daq(ctx))
         return None
 
-    def on_zenoh(self, payload: Any, seq: int | None) -> str | None:
-        """A Zenoh `context` payload (parsed JSON). None: taken; else why it was refused or ignored."""
+    def judge_zenoh(self, payload: Any) -> Ctx | str:
+        """A Zenoh `context` payload (parsed JSON) judged, not taken: its context, or why it is refused or ignored.
+        Read-only: the Zenoh thread asks it too, so that the sink counts a refusal as one (`context_refused`)."""
         if self.source_in_use != "zenoh":
             return self._ignored("the Zenoh context")
-        ctx = ctx_from_payload(payload)
+        return ctx_from_payload(payload)
+
+    def on_zenoh(self, payload: Any, seq: int | None) -> str | None:
+        """A Zenoh `context` payload (parsed JSON). None: taken; else why it was refused or ignored."""
+        ctx = self.judge_zenoh(payload)
         if isinstance(ctx, str):
             return ctx
         self._add(seq, ctx)

@@ -685,7 +685,11 @@ class Runner:
             self.history.save_tools(tools)
 
     def on_context_payload(self, payload: dict, source: str = "") -> None:
-        """A CNC adapter's `context` put (Zenoh's thread): applied by the estimator thread, in order."""
+        """A CNC adapter's `context` put (Zenoh's thread): applied by the estimator thread, in order. One refused
+        for its content, or ignored by `[context] source`, raises ValueError here: the sink counts it refused."""
+        judged = self.core.context.judge_zenoh(payload)
+        if isinstance(judged, str):
+            raise ValueError(judged)
         with self._context_lock:
             if len(self._zenoh_contexts) < 64:  # a flood keeps the newest few, never grows
                 self._zenoh_contexts.append((payload, source))

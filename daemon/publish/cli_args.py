@@ -23,7 +23,7 @@ from typing import Any
 
 from millsense.daemon.publish.session import endpoints_arg
 
-MACHINE_RE = re.compile(r"^[A-Za-z0-9_-]+$")
+MACHINE_RE = re.compile(r"^[A-Za-z0-9_-]+\Z")
 EXIT_USAGE = 2
 EXIT_CONFIG = 78
 

@@ -47,10 +47,10 @@ CMD_LABEL = "millsense-cmd-v1"
 REPLY_LABEL = "millsense-reply-v1"
 POLICIES = ("token", "open", "off")
 NONCE_BYTES = 32  # the daemon's server nonce (and the client's here): 256 bits, 64 hex digits
-CLIENT_NONCE_RE = re.compile(r"^[0-9a-f]{32,128}$")  # at least 128 bits, lowercase hex
-SERVER_NONCE_RE = re.compile(r"^[0-9a-f]{64}$")
-MAC_RE = re.compile(r"^[0-9a-f]{64}$")
-ZID_RE = re.compile(r"^[0-9a-f]{1,32}$")
+CLIENT_NONCE_RE = re.compile(r"^[0-9a-f]{32,128}\Z")  # at least 128 bits, lowercase hex
+SERVER_NONCE_RE = re.compile(r"^[0-9a-f]{64}\Z")
+MAC_RE = re.compile(r"^[0-9a-f]{64}\Z")
+ZID_RE = re.compile(r"^[0-9a-f]{1,32}\Z")
 LOCAL_HINT = "use the local reset at the machine: millsense reset --local"
 
 
@@ -238,8 +238,9 @@ class CommandGate:
     def _prove(self, command: str, request: dict, requester: str, run: Callable[[dict, str], dict]) -> Answer:
         sn, cn, args = request.get("server_nonce"), request.get("client_nonce"), request.get("args", {})
         if not (isinstance(sn, str) and SERVER_NONCE_RE.match(sn) and isinstance(cn, str) and CLIENT_NONCE_RE.match(cn)):
+            # not a failed proof: no token was tried in it (a garbled HMI loop must not pause the operator's commands)
             return self._refuse(command, requester, "payload: server_nonce (64 hex digits) and client_nonce "
-                                "(32 to 128 lowercase hex digits) are required", failed=True)
+                                "(32 to 128 lowercase hex digits) are required")
         with self._lock:
             fresh = self.nonces.take(sn)  # spent whatever follows: one nonce, one try
             paused = self.limiter.paused_for()
@@ -250,14 +251,16 @@ class CommandGate:
             if not fresh:   # not a failed proof: no token was tried (a flood of challenges may have evicted it)
                 return self._signed_refusal(command, requester, sn, cn, "unknown, used or expired server_nonce: "
                                             "ask for a new challenge")
+            # a failed proof (counted by the limiter) is one whose MAC was compared and did not match: only a token
+            # guess; a garbled payload tried none
             if not isinstance(args, dict):
-                return self._signed_refusal(command, requester, sn, cn, "payload: args must be an object", failed=True)
+                return self._signed_refusal(command, requester, sn, cn, "payload: args must be an object")
             if self.policy == "token":
                 given = request.get("mac")
                 try:
                     expected = mac_hex(self._token, command_message(command, self.machine, sn, cn, args))
                 except ValueError as exc:
-                    return self._signed_refusal(command, requester, sn, cn, f"payload: {exc}", failed=True)
+                    return self._signed_refusal(command, requester, sn, cn, f"payload: {exc}")
                 if not (isinstance(given, str) and MAC_RE.match(given) and hmac.compare_digest(given, expected)):
                     return self._signed_refusal(command, requester, sn, cn,
                                                 "the proof does not match (wrong or missing reset token)", failed=True)

@@ -21,7 +21,7 @@ NEEDS_PCT = ("widen", "narrow")
 PCT_RANGE = {"widen": (1, 500), "narrow": (1, 90)}  # narrowing by 100 % would leave no band at all
 UINT32_MAX = 2**32 - 1
 UINT16_MAX = 2**16 - 1
-KEY_RE = re.compile(r"^(\d{1,10})/(\d{1,10})/(\d{1,5})$")
+KEY_RE = re.compile(r"^([0-9]{1,10})/([0-9]{1,10})/([0-9]{1,5})\Z")
 
 
 def parse_key(text: Any) -> str:

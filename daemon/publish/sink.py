@@ -559,6 +559,9 @@ class ZenohSink:
             return
         try:
             handler(obj, _context_source(sample))
+        except ValueError as exc:   # the daemon's refusal of its content (or of Zenoh as the context's source)
+            self._refuse_context(str(exc))
+            return
         except Exception as exc:  # noqa: BLE001 - a context must never kill the sink
             self._refuse_context(f"{type(exc).__name__}: {exc}")
             return

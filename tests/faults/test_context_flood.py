@@ -39,3 +39,27 @@ def test_a_new_context_every_few_milliseconds_makes_no_learned_key_and_no_hold(t
         assert st["learning"] == {"learning": 0, "pending": 0, "active": 0}, st["learning"]
         assert st["interlock"] == "armed", st["interlock_detail"]
     assert [e for e in holds(read_jsonl(log)) if e.get("cause") == "watchdog"] == []
+
+
+def test_contexts_refused_for_their_content_are_counted_refused(tmp_path):
+    """An adapter integrator reads `context_taken` to see the context arrive. Before stop 28 a context the daemon
+    refused for its content (a program as a string, a negative tool, a field missing) was counted taken: the counter
+    rose while the daemon had no context at all (no processes, no learning); only a throttled log line said why."""
+    machine = "ctxcount-01"
+    with live_daemon(tmp_path, machine, ["--protocol", "1"]) as (procs, daemon, sub, log):
+        wait_for(lambda: status(sub, machine)["revolutions"] >= 3, 60.0, "estimates")
+        before = status(sub, machine)["sink"]
+        pub = sub.session.declare_publisher(f"millsense/{machine}/context")
+        wait_for(lambda: pub.matching_status.matching, 10.0, "the daemon's context subscriber")
+        for ctx in ({"program": "12", "tool": 1, "operation": 1}, {"program": 1, "tool": -5, "operation": 1},
+                    {"tool": 1, "operation": 1}, {"program": 1, "tool": 1, "operation": 1}):
+            pub.put(json.dumps(ctx).encode())
+        pub.undeclare()
+
+        def counted() -> tuple[int, int]:
+            st = status(sub, machine)["sink"]
+            return st["context_taken"] - before["context_taken"], st["context_refused"] - before["context_refused"]
+
+        wait_for(lambda: sum(counted()) == 4, 20.0, "the four contexts counted")
+        assert counted() == (1, 3)
+        assert daemon.poll() is None

@@ -78,6 +78,12 @@ def test_errors_are_one_line_with_their_exit_code(millsense_cmd, state, tmp_path
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--from" in r.stderr
     r = _run(millsense_cmd, "--config", str(state), "--tool", "T12")
     assert r.returncode == 2 and r.stderr.count("\n") == 1
+    # beyond the numbers' widths (an internal error after the CSV header before stop 28), or another script's digits
+    for option, value in (("--program", "99999999999999999999"), ("--tool", "4294967296"), ("--operation", "65536"),
+                          ("--program", "١٢")):
+        r = _run(millsense_cmd, "--config", str(state), option, value)
+        assert r.returncode == 2 and r.stderr.count("\n") == 1 and option in r.stderr, (option, value, r.stderr)
+        assert r.stdout == "", r.stdout
     r = _run(millsense_cmd, "--db", str(tmp_path / "none.sqlite3"))
     assert r.returncode == 1 and "no history database" in r.stderr and "Traceback" not in r.stderr
     bad = tmp_path / "bad.toml"

@@ -255,3 +255,40 @@ def test_a_proof_with_a_spent_or_unknown_nonce_is_not_counted_against_the_operat
         assert send_command(b, "m1", "reset", TOKEN) == {"ok": True, "interlock": "clear"}
     finally:
         sink.close()
+
+
+@pytest.mark.parametrize("garbled", [
+    {"step": "prove"},                                                               # no nonces at all
+    {"step": "prove", "server_nonce": "zz", "client_nonce": "00" * 16, "mac": "0" * 64},   # not hex
+    {"step": "prove", "server_nonce": "ab" * 32 + "\n", "client_nonce": "00" * 16, "mac": "0" * 64},  # a newline after
+])
+def test_a_garbled_proof_is_not_counted_against_the_operator(linked, garbled):
+    """No token was tried in a proof without well-formed nonces (a garbled HMI loop, a curious laptop): refused, but
+    not a failed proof. Before stop 28, five of them, with no challenge and no round trip, paused every command
+    over the network for 30 s."""
+    a, b = linked
+    controls = FakeInterlock(token=TOKEN)
+    sink = _sink(a, controls, limiter=FailureLimiter(max_failures=1, window_s=60.0, cooldown_s=60.0))
+    try:
+        q = b.declare_querier("millsense/m1/cmd/reset")
+        wait_for(lambda: q.matching_status.matching, 5.0, "queryable known")
+        q.undeclare()
+        replies = list(b.get("millsense/m1/cmd/reset", payload=json.dumps(garbled).encode(), timeout=3.0))
+        assert replies and replies[0].err is not None
+        assert "server_nonce (64 hex digits) and client_nonce" in replies[0].err.payload.to_bytes().decode()
+        assert send_command(b, "m1", "reset", TOKEN) == {"ok": True, "interlock": "clear"}
+    finally:
+        sink.close()
+
+
+@pytest.mark.parametrize("text", ["1/2/3\n", "١/٢/٣", "1/2/3 "])
+def test_a_process_key_is_ascii_digits_and_nothing_after(text):
+    """`$` matches before a final newline and `\\d` matches any script's digits: both were taken before stop 28."""
+    from millsense.daemon.learning.actions import KEY_RE as ACTION_KEY_RE
+    from millsense.daemon.publish.limits_args import parse_key
+
+    with pytest.raises(ValueError, match="key must be program/tool/operation"):
+        parse_key(text)
+    assert ACTION_KEY_RE.match(text) is None
+    for pattern in (ca.CLIENT_NONCE_RE, ca.SERVER_NONCE_RE, ca.MAC_RE):
+        assert pattern.match("ab" * 32 + "\n") is None
