@@ -5,7 +5,9 @@ a minute at 10 revolutions a second, and `ALARMS_PER_MACHINE` alarms) and in
 the number of machines (`MAX_MACHINES`; a further name is counted and
 ignored, so a flood of invented machine names cannot grow the process). Each
 open page has a queue of `CLIENT_QUEUE` updates; a page that does not keep up
-loses its oldest updates (counted), never blocks a Zenoh callback.
+loses its oldest updates (counted), never blocks a Zenoh callback. Pages are
+bounded in all (`MAX_CLIENTS`) and per peer address (`MAX_CLIENTS_PER_PEER`), so
+one screen that reconnects without closing its old streams cannot shut out the rest.
 
 Estimates are cut down to the fields the page draws before they are kept, so a
 kept revolution is a few hundred bytes whatever the daemon publishes.
@@ -26,6 +28,7 @@ RECENT_ALARMS = 100
 MAX_MACHINES = 256
 CLIENT_QUEUE = 2000
 MAX_CLIENTS = 32
+MAX_CLIENTS_PER_PEER = 8
 
 # The estimate fields the page shows; anything else a daemon adds is not kept.
 ESTIMATE_FIELDS = (
@@ -63,10 +66,15 @@ class Machine:
                 "process": self.process}
 
 
+class TooManyPages(Exception):
+    """A page refused: the reason names the bound reached."""
+
+
 class Client:
     """One open page: a bounded queue of updates and a count of those it lost."""
 
-    def __init__(self) -> None:
+    def __init__(self, peer: str = "") -> None:
+        self.peer = peer
         self.queue: collections.deque[dict] = collections.deque(maxlen=CLIENT_QUEUE)
         self.ready = threading.Condition()
         self.dropped = 0
@@ -173,12 +181,14 @@ class Book:
             return {"machines": [m.snapshot() for m in self.machines.values()],
                     "recent_alarms": list(self.recent_alarms)}
 
-    def subscribe(self) -> Client | None:
-        """A queue for a new page, or None when `MAX_CLIENTS` pages are open."""
+    def subscribe(self, peer: str = "") -> Client:
+        """A queue for a new page from `peer` (its address); TooManyPages past either bound."""
         with self._lock:
             if len(self.clients) >= MAX_CLIENTS:
-                return None
-            client = Client()
+                raise TooManyPages(f"too many pages open ({MAX_CLIENTS} open on this dashboard)")
+            if sum(c.peer == peer for c in self.clients) >= MAX_CLIENTS_PER_PEER:
+                raise TooManyPages(f"too many pages open from {peer} ({MAX_CLIENTS_PER_PEER} per address)")
+            client = Client(peer)
             self.clients.append(client)
             return client
 

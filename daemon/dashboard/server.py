@@ -2,6 +2,11 @@
 
 Standard library only (`http.server.ThreadingHTTPServer`): one thread per
 connection is plenty for the few screens of a shop floor (`book.MAX_CLIENTS`).
+Clients cannot hold threads at will: a request must arrive whole within
+`REQUEST_TIMEOUT_S` (so must the next one on a kept-alive connection), a write
+blocked `SEND_TIMEOUT_S` ends the connection, and past `MAX_CONNECTIONS` a new
+connection is closed at once, without a thread (systemd's TasksMax=128 must
+leave room for Zenoh's threads). A peer hanging up is ordinary: no traceback.
 
 - `GET /` and `/static/<file>`: the page, its script and style, from the package;
 - `GET /events`: Server-Sent Events; the first event is the whole snapshot, then
@@ -17,21 +22,29 @@ the page WebCrypto: over HTTPS, or on a loopback address.
 
 from __future__ import annotations
 
+import io
 import ipaddress
 import json
+import sys
 import threading
-from http import HTTPStatus
+import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from typing import Any
 
-from millsense.daemon.dashboard.book import Book
+import structlog
+
+from millsense.daemon.dashboard.book import Book, TooManyPages
 from millsense.daemon.dashboard.zenoh_side import RelayRefused
+from millsense.daemon.logging_setup import RateLimitedLogger
 
 STATIC = {"app.js": "text/javascript; charset=utf-8", "app.css": "text/css; charset=utf-8",
           "index.html": "text/html; charset=utf-8"}
 MAX_BODY_BYTES = 4096
 KEEPALIVE_S = 10.0
+REQUEST_TIMEOUT_S = 5.0  # request line, headers and body, in all; also the wait for the next request
+SEND_TIMEOUT_S = 30.0  # one write blocked this long: the page stopped reading
+MAX_CONNECTIONS = 64  # every page (32) and as many requests; TasksMax=128 leaves the rest to Zenoh
 # Updates are held this long at most before they go out, so one write carries many.
 BATCH_S = 0.05
 SECURITY_HEADERS = {
@@ -58,9 +71,15 @@ def _static(name: str) -> bytes:
 
 class DashboardServer(ThreadingHTTPServer):
     daemon_threads = True  # an open event stream must not keep the process alive at shutdown
+    request_timeout_s = REQUEST_TIMEOUT_S
+    max_connections = MAX_CONNECTIONS
 
     def __init__(self, address: tuple[str, int], book: Book, relay: Any, https: bool):
         self.book, self.relay, self.https = book, relay, https
+        self.connections = self.refused_connections = 0
+        self._count_lock = threading.Lock()
+        # A flood of refusals or failures is one line per 10 s, with a count.
+        self.log = RateLimitedLogger(structlog.get_logger("millsense.dashboard"))
         self.loopback = is_loopback(address[0])
         self.reset_offered = https or self.loopback
         self.stopping = threading.Event()
@@ -71,10 +90,89 @@ class DashboardServer(ThreadingHTTPServer):
             self.address_family = socket.AF_INET6
         super().__init__(address, Handler)
 
+    def process_request(self, request: Any, client_address: Any) -> None:
+        with self._count_lock:
+            full = self.connections >= self.max_connections
+            self.connections += not full
+        if full:
+            self._refuse(request, client_address, f"{self.max_connections} connections open")
+            return
+        try:
+            super().process_request(request, client_address)
+        except RuntimeError as exc:  # "can't start new thread": TasksMax reached all the same
+            self._ended()
+            self._refuse(request, client_address, str(exc))
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._ended()
+
+    def _ended(self) -> None:
+        with self._count_lock:
+            self.connections -= 1
+
+    def _refuse(self, request: Any, client_address: Any, reason: str) -> None:
+        """Close a connection unanswered (no thread to answer it), counted; said before the close."""
+        with self._count_lock:
+            self.refused_connections += 1
+        self.log.warning("dashboard_connection_refused", key="refused", peer=client_address[0], reason=reason,
+                         refused=self.refused_connections)
+        self.shutdown_request(request)
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        """One line, not socketserver's traceback: the handler failed in a way it did not expect."""
+        exc = sys.exc_info()[1]
+        self.log.warning("dashboard_request_failed", key="failed", peer=client_address[0],
+                         error=f"{type(exc).__name__}: {exc}")
+
+
+class _DeadlineReader(io.RawIOBase):
+    """The connection's reads, each allowed only what is left of the request's time.
+
+    A socket timeout alone bounds one read: a client sending a byte every few
+    seconds would hold its thread for ever."""
+
+    def __init__(self, handler: Handler):
+        self.handler = handler
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buffer: Any) -> int:
+        sock = self.handler.connection
+        left_s = self.handler.read_by - time.monotonic()
+        if left_s <= 0:
+            raise TimeoutError("the request did not arrive in time")
+        sock.settimeout(left_s)
+        try:
+            return sock.recv_into(buffer)
+        finally:
+            sock.settimeout(self.handler.timeout)  # writes (an event stream) have their own bound
+
 
 class Handler(BaseHTTPRequestHandler):
     server: DashboardServer
     protocol_version = "HTTP/1.1"
+    timeout = SEND_TIMEOUT_S  # set on the socket by socketserver; reads have the shorter deadline above
+    read_by = 0.0  # time.monotonic() by which the current request must have been read
+
+    def setup(self) -> None:
+        super().setup()
+        self.rfile.close()
+        self.rfile = io.BufferedReader(_DeadlineReader(self))
+
+    def handle(self) -> None:
+        try:
+            super().handle()
+        except OSError:
+            # The peer hung up, reset, stalled past a deadline or spoke no TLS: ordinary, not worth a line.
+            self.close_connection = True
+
+    def handle_one_request(self) -> None:
+        self.read_by = time.monotonic() + self.server.request_timeout_s
+        super().handle_one_request()
 
     def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - http.server's name
         pass  # a request per page load is not worth a log line; the command's own events say what matters
@@ -158,9 +256,10 @@ class Handler(BaseHTTPRequestHandler):
 
     def _events(self) -> None:
         book = self.server.book
-        client = book.subscribe()
-        if client is None:
-            self._json(503, {"ok": False, "error": "too many pages open"})
+        try:
+            client = book.subscribe(self.client_address[0])
+        except TooManyPages as exc:
+            self._json(503, {"ok": False, "error": str(exc)})
             return
         try:
             self.send_response(200)
