@@ -71,6 +71,10 @@ class Interlock:
         self.reason: str | None = None
         self.since: float | None = None  # Unix time the latch was set (kept across restarts by the latch store)
         self.device_hold = False  # last STATUS from the DAQ said feed hold is on
+        # A hold the DAQ had that this run did not set (its watchdog, a previous run, someone else): kept until an
+        # authorised reset, and written again to a DAQ that lost it (a restart, a power blip), as a latch is.
+        self.device_hold_kept = False
+        self._rewrite_said_mono = -1e9
         self.watchdog_tripped = False
         self.heartbeating = False
         self.heartbeats_sent = 0
@@ -148,8 +152,8 @@ class Interlock:
             log.error("interlock.persist_failed", error=f"{type(exc).__name__}: {exc}")
 
     def reassert(self) -> None:
-        """After a reconnect: the DAQ may have restarted; write the latched hold again."""
-        if self.enabled and self.latched:
+        """After a reconnect: the DAQ may have restarted; write the latched (or kept) hold again."""
+        if self.enabled and (self.latched or self.device_hold_kept):
             with self._lock:
                 self._write(True)
 
@@ -191,6 +195,7 @@ class Interlock:
             ok = self._write(False) if self.enabled else True
             if ok:
                 self.device_hold = False
+                self.device_hold_kept = False
                 self.watchdog_tripped = False
             self._changed()
         log.info("interlock.reset", cleared=was, write_ok=ok)
@@ -238,11 +243,25 @@ class Interlock:
         """A STATUS from the DAQ (outputs, watchdog flag)."""
         self.device_hold = bool(getattr(status, "feed_hold", False))
         self.watchdog_tripped = bool(getattr(status, "watchdog_tripped", False))
+        settled = time.monotonic() - self._last_write_mono > self.CONFIRM_GRACE_S   # not a status older than a write
         if self.latched:
             if self.device_hold:
                 self.hold_unconfirmed = False
-            elif time.monotonic() - self._last_write_mono > self.CONFIRM_GRACE_S:
+            elif settled:
                 self.hold_unconfirmed = True  # the DAQ lost it (a restart?) or never took it
+        elif self.enabled and settled:
+            if self.device_hold and not self.device_hold_kept:
+                self.device_hold_kept = True
+                log.warning("interlock.device_hold_kept", watchdog_tripped=self.watchdog_tripped,
+                            detail="the DAQ holds the feed, not set by this run: kept until `millsense reset`, and "
+                                   "written again if the DAQ loses it")
+            elif self.device_hold_kept and not self.device_hold:
+                with self._lock:   # the DAQ restarted (a power blip) or someone released it: not a reset
+                    ok = self._write(True)
+                if time.monotonic() - self._rewrite_said_mono > 10.0:   # a DAQ refusing it: a line each 10 s
+                    self._rewrite_said_mono = time.monotonic()
+                    log.warning("interlock.device_hold_rewritten", written=ok,
+                                detail="the DAQ no longer held the feed it held, with no reset: written again")
 
     # -- state ------------------------------------------------------------
     @property
@@ -251,7 +270,7 @@ class Interlock:
             return "disabled"
         if self.latched:
             return "feed_hold"
-        if self.device_hold:
+        if self.device_hold or self.device_hold_kept:
             return "held_by_device"
         return "armed"
 
