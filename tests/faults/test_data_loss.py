@@ -104,14 +104,28 @@ def test_replay_says_where_the_stream_went_blind(tmp_path, millsense_cmd):
     assert "Traceback" not in p.stderr
 
 
-def test_the_gap_after_the_link_came_back_is_the_links_fault_not_loss():
-    """A link cut for 0.45 s every 2 s is fault `daq_link` each time (tests/faults/test_link.py), not a lossy stream."""
+@pytest.mark.parametrize("up_s, down_s", [(0.35, 0.25), (1.55, 0.45)])
+def test_a_link_that_keeps_dropping_is_blind(up_s, down_s):
+    """Outages under the watchdog, again and again: the daemon sees little of the stream while the link is up most of
+    the time. Before stop 28 the gap after each link-up was dropped from the share (a probe: 43 % lost over 20 s of
+    a link up 0.35 s, down 0.25 s, no fault `signals`, status `running` most of the time)."""
     check = LossCheck(1000)
     seq, got = 0, []
-    for _ in range(5):
-        out, seq = _feed(check, lambda k: False, 1.7, seq=seq)
+    for _ in range(8):
+        out, seq = _feed(check, lambda k: False, up_s, seq=seq)
         got += out
-        seq += 450   # the outage, under LINK_GAP_S; the driver marks the first block after it
-        assert check.update(seq, 10, 450, after_link_up=True) is None
+        seq += round(down_s * 1000)   # the outage; the driver marks the first block after it
+        v = check.update(seq, 10, round(down_s * 1000), after_link_up=True)
+        got += [v] if v is not None else []
         seq += 10
+    assert got and got[0] and "the link going down and coming back" in got[0] and check.faulted, got
+    got, _ = _feed(check, lambda k: False, 3.0, seq=seq)   # the link steady again: it clears
+    assert got == [""] and not check.faulted
+
+
+def test_one_short_outage_of_the_link_is_not_a_lossy_stream():
+    check = LossCheck(1000)
+    _, seq = _feed(check, lambda k: False, 3.0)
+    assert check.update(seq + 300, 10, 300, after_link_up=True) is None   # 0.3 s: fault `daq_link`, not blind
+    got, _ = _feed(check, lambda k: False, 3.0, seq=seq + 310)
     assert got == [] and not check.faulted
