@@ -307,7 +307,9 @@ class ModbusDriver(Driver):
         sliced_at = time.monotonic() + READ_SLICE_S
         while remaining:
             slot = k % depth
-            n = min(per_chunk, remaining, depth - slot)  # split where the ring wraps
+            # split where the ring wraps, and where the index wraps: sample k is at slot k mod D, so with a depth
+            # that does not divide 2**32 the slot of index 0 does not follow the slot of index 2**32 - 1
+            n = min(per_chunk, remaining, depth - slot, INDEX_MOD - k)
             regs = self._input(RING_BASE + slot * c, n * c)
             parts.append(np.asarray(regs, dtype=np.uint16))
             k = (k + n) % INDEX_MOD
