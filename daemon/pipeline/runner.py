@@ -201,6 +201,9 @@ class Runner:
         now = time.monotonic()
         self.started_mono = now
         self._stall_since = now
+        # the link as the events this thread handled say: the driver's `link_up` turns true before its
+        # LinkEvent is queued, and the stall check must not see an old `_stall_since` with a new link
+        self._link_handled_up = False
         self._last_block_mono: float | None = None
         self._loop_mono = now
         self._last_rev_mono: float | None = None
@@ -223,6 +226,7 @@ class Runner:
             self.core.on_descriptor(self.driver.descriptor)  # ConfigError goes to the caller: exit 78
         # No samples yet is a stall only from now: `run` built the runner before waiting for a late DAQ.
         self._stall_since = time.monotonic()
+        self._link_handled_up = bool(self.driver.link_up)
         self.interlock.start()
         self._restore_latch()
         if hasattr(self.driver, "sample_hook"):
@@ -852,6 +856,7 @@ class Runner:
             self._safe(self._publish_alarm, ev, held if ev.level != "clear" else self._held())
 
     def _on_link(self, ev: Any) -> None:
+        self._link_handled_up = bool(ev.up)
         if ev.up:  # the driver logged it (`daq.link_up`, with transport and address)
             self._stall_since = time.monotonic()
             # A DAQ that restarted forgot its watchdog and maybe the latched output; its override is 100 %, or
@@ -883,7 +888,7 @@ class Runner:
     def _check_stall(self, now: float) -> None:
         # since the last samples, or since the link came (back) up: the time it was down is `daq_link`'s
         last = max(self._last_block_mono or self._stall_since, self._stall_since)
-        if self.driver.link_up and now - last > DAQ_STALL_S and "daq_stalled" not in self.faults:
+        if self._link_handled_up and now - last > DAQ_STALL_S and "daq_stalled" not in self.faults:
             self.fault("daq_stalled", f"no samples for {now - last:.1f} s with the link up")
 
     # ------------------------------------------------------------------ fault path

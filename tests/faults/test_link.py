@@ -267,6 +267,33 @@ def test_samples_flowing_again_clear_the_link_faults_even_from_a_daq_that_does_n
         assert set(runner.faults) == {"descriptor"}, runner.faults
 
 
+def test_a_link_back_up_is_not_a_stall_before_its_event_is_handled(tmp_path):
+    """A stop-28 probe: at every reconnect after an outage over 3 s, fault `daq_stalled` "no samples for 3.2 s with
+    the link up", cleared 12 ms later. The driver marks its link up, then logs, then queues the LinkEvent; the
+    estimator's stall check read the driver's flag in between, with the stall clock still at the outage's start.
+    The check now goes by the link events the estimator thread handled."""
+    import numpy as np
+
+    from millsense.daemon.config import load_config
+    from millsense.daemon.pipeline.runner import DAQ_STALL_S
+    from millsense.drivers.base import LinkEvent, SampleBlock
+    from tests.faults.helpers import runner_on_the_sim
+
+    cfg = write_config(tmp_path / "l.toml", machine="link-02", daq='transport = "sim"\nscenario = "step"')
+    with runner_on_the_sim(load_config(cfg)) as (runner, drv, sink):
+        runner._on_block(SampleBlock(0, 0, np.zeros((10, len(drv.descriptor.channels)), dtype=np.int16), 0, False),
+                         time.monotonic())
+        runner._last_block_mono = time.monotonic() - 10.0   # the link went down 10 s ago
+        runner._stall_since = time.monotonic() - 60.0       # it had come up a minute ago
+        runner._on_link(LinkEvent(False, "connection reset"))
+        drv.link_up = True   # the driver's reader thread has reconnected; its LinkEvent is not queued yet
+        runner._check_stall(time.monotonic())
+        assert "daq_stalled" not in runner.faults, runner.faults
+        runner._on_link(LinkEvent(True, "connected"))
+        runner._check_stall(time.monotonic() + 2 * DAQ_STALL_S)   # and a real stall after it is still one
+        assert "daq_stalled" in runner.faults, runner.faults
+
+
 def test_a_link_that_keeps_dropping_under_the_watchdog_holds_the_feed(tmp_path):
     """A stop-28 probe: a link up a few tenths of a second, then down a few tenths (a loose connector, a converter
     rebooting), for as long as it lasts. Each outage is shorter than the DAQ's watchdog, so the DAQ never holds; before
