@@ -240,6 +240,7 @@ class Estimator:
         self._last_rpm: float | None = None
         self.rev = 0
         self.override = OverrideTrack()   # the runner's track replaces it (STATUS frames go there)
+        self.stream_problem: str | None = None   # set by PipelineCore: every revolution invalid with this reason
 
     # --- accounting ------------------------------------------------------------------
 
@@ -428,7 +429,9 @@ class Estimator:
         if seq_end:
             track.forget_before(seq_end[-1])   # the next revolution starts after this sample
         # damage from lost samples, a gap or a restart: "lost_samples"; only an impossible angle step: "signals"
-        invalid = ["lost_samples" if dmg and (n_lost or not jmp) else "signals" if dmg or prob or s else None
+        # a fault of the whole stream (`stream_problem`, the runner's rate check) before any of these
+        invalid = [self.stream_problem or ("lost_samples" if dmg and (n_lost or not jmp) else
+                                           "signals" if dmg or prob or s else None)
                    for dmg, jmp, n_lost, prob, s in zip(batch.damaged.tolist(), batch.jumped.tolist(), lost,
                                                        problems, sat)]
         c = self._cols

@@ -138,6 +138,9 @@ class PipelineCore:
         self._rev_base = 0  # revolutions numbered by estimators replaced since: `rev` never restarts
         self.safety: SafetyCheck | None = None
         self._signals_faulted = False  # the signal check's fault, carried to the estimator of the next descriptor
+        # a fault of the whole stream the estimator cannot see from its samples (the runner's rate check):
+        # while set, every revolution is published invalid with it as the reason
+        self.stream_problem: str | None = None
 
     def on_descriptor(self, descriptor: Any) -> bool:
         """A (new) descriptor: check the config against it, make the estimator. True if re-made.
@@ -307,6 +310,7 @@ class PipelineCore:
         feed for); with `block.checked` the sample-level power and current are not decided again.
         """
         step = Step()
+        self.estimator.stream_problem = self.stream_problem
         result = self.estimator.process(block)
         crashes: list[AlarmEvent] = []
         if self.safety is None:

@@ -68,6 +68,7 @@ from millsense.daemon.pipeline.interlock import TEST_TRIP, Interlock, ResetCheck
 from millsense.daemon.pipeline.loss_check import LossCheck
 from millsense.daemon.pipeline.phase_check import PhaseCheck
 from millsense.daemon.pipeline.power_check import PowerSignCheck
+from millsense.daemon.pipeline.rate_check import RateCheck
 from millsense.daemon.pipeline.run_core import PipelineCore, estimate_payload, process_payload
 from millsense.daemon.pipeline.safety_check import FrameCheck
 from millsense.daemon.pipeline.status import LatencyStats, SeqClock, bad_frames, status_line
@@ -175,6 +176,7 @@ class Runner:
         self.loss_check = LossCheck(float(getattr(getattr(settings, "daq", None), "sample_rate_hz", 1000)))
         self.phase_check: PhaseCheck | None = None   # for the estimator's descriptor (`_check_phase`)
         self._phase_desc: Any = None
+        self.rate_check: RateCheck | None = None   # at the estimator's descriptor's rate (`_note_arrival`)
         # Adaptive feed control (issue 15, docs/afc.md): off at start unless [afc] enabled. The controller decides per
         # revolution on the estimator thread; any thread that sees a fault or trips sets the override to
         # min(current, 100 %) at once (`_afc_safe`). One lock orders the controller's state and the writes.
@@ -424,10 +426,12 @@ class Runner:
             wall_minus_mono = time.time() - time.monotonic()
             for k, (first, count, mono) in enumerate(parts):
                 self.clock.note_block(first, count, mono + wall_minus_mono, restart=restart and k == 0, mono_s=mono)
+                self._note_arrival(first + count - 1, mono, block.discontinuity and k == 0)
         elif restart or self.clock.empty or self._caught_up():
             # A block that waited in the queue behind others arrived earlier than we see it:
             # its get() time would make `t` late, so only fresh blocks set the clock.
             self.clock.note_block(block.seq, n, time.time(), restart=restart, mono_s=now)
+            self._note_arrival(block.seq + n - 1, now, block.discontinuity)
         frame_events = self._take_frame_events(block.seq + n - 1)
         with self._alarm_lock:
             step = self.core.process(block, frame_events)
@@ -744,6 +748,16 @@ class Runner:
             step.changed_limits, step.tools_changed = set(changed), tools_changed
             self._after_step(step)
         return result
+
+    def _note_arrival(self, seq_last: int, arrival_s: float, restart: bool) -> None:
+        """The samples' arrival rate against the descriptor's (rate_check.py): fault `signals`, source
+        `sample_rate`; while it holds, the estimator publishes every revolution invalid."""
+        rate = float(self.core.descriptor.sample_rate_hz)
+        last = self.rate_check
+        if last is None or last.rate != rate:
+            self.rate_check = RateCheck(rate, faulted=last is not None and last.faulted)
+        self._verdict("sample_rate", self.rate_check.update(seq_last, arrival_s, restart))
+        self.core.stream_problem = "sample_rate" if self.rate_check.faulted else None
 
     def _check_phase(self, block: Any) -> None:
         """The currents against each other and the voltages (phase_check.py): fault `signals`, source `phase`.
