@@ -81,6 +81,9 @@ class DaqSettings(_Section):
     # The rate the DAQ is wired and set for (additive key). A DESCRIPTOR that claims
     # another rate is refused as fault `descriptor`: every speed and torque would scale with it.
     sample_rate_hz: int = Field(1000, ge=1, le=65535)
+    # The samples' arrival on the host's clock against that rate (rate_check.py; additive key). Off only
+    # for a stream sent faster than real time on purpose (a recorded part played at speed on a test bench).
+    check_sample_rate: bool = True
     filter_cutoff_hz: Annotated[float, AfterValidator(_filter_cutoff)] = 200.0  # 0 = no anti-alias filter to divide out
     filter_order: int = Field(2, ge=1, le=8)
 

@@ -177,6 +177,7 @@ class Runner:
         self.phase_check: PhaseCheck | None = None   # for the estimator's descriptor (`_check_phase`)
         self._phase_desc: Any = None
         self.rate_check: RateCheck | None = None   # at the estimator's descriptor's rate (`_note_arrival`)
+        self._check_rate = bool(getattr(getattr(settings, "daq", None), "check_sample_rate", True))
         # Adaptive feed control (issue 15, docs/afc.md): off at start unless [afc] enabled. The controller decides per
         # revolution on the estimator thread; any thread that sees a fault or trips sets the override to
         # min(current, 100 %) at once (`_afc_safe`). One lock orders the controller's state and the writes.
@@ -752,6 +753,8 @@ class Runner:
     def _note_arrival(self, seq_last: int, arrival_s: float, restart: bool) -> None:
         """The samples' arrival rate against the descriptor's (rate_check.py): fault `signals`, source
         `sample_rate`; while it holds, the estimator publishes every revolution invalid."""
+        if not self._check_rate:
+            return
         rate = float(self.core.descriptor.sample_rate_hz)
         last = self.rate_check
         if last is None or last.rate != rate:

@@ -150,7 +150,7 @@ def test_check_config_lists_every_problem_and_exits_78(millsense_cmd, tmp_path):
     lines = p.stderr.splitlines()
     assert lines == [
         'daq.transprot: unknown key, did you mean "transport"? (expected one of: transport, port, baudrate, host, '
-        "tcp_port, unit, scenario, poll_ms, timeout_ms, sample_rate_hz, filter_cutoff_hz, filter_order)",
+        "tcp_port, unit, scenario, poll_ms, timeout_ms, sample_rate_hz, check_sample_rate, filter_cutoff_hz, filter_order)",
         "gears[1].max_spindle_rpm: 800 is not above the previous gear's 900 (strictly increasing: list gears lowest max_spindle_rpm first)",
         "tool.flutes: must be at least 1, not 0 (an integer ≥ 1)",
     ]

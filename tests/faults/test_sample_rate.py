@@ -125,3 +125,17 @@ def test_the_right_rate_stated_is_not_a_fault(tmp_path):
         assert "signals" not in st.get("faults", {}), st["faults"]
         assert any(e["valid"] for e in sub.get("estimate"))
         assert not outputs(read_jsonl(sim_log), feed_hold=True, cause="command")
+
+
+def test_the_check_can_be_turned_off_for_a_stream_played_at_speed(tmp_path):
+    """`[daq] check_sample_rate = false` (a test bench playing parts faster than real time): the same wrong rate
+    is not judged."""
+    machine = "rate-03"
+
+    def edit(text: str) -> str:
+        return _encoder_only_at(2000)(text).replace("[daq]\n", "[daq]\ncheck_sample_rate = false\n", 1)
+
+    with live_daemon(tmp_path, machine, ["--descriptor-rate", "2000"], edit_config=edit) as (procs, daemon, sub, _):
+        st = wait_status(sub, machine, lambda s: s["samples_received"] > 25000, 120.0, "25 s of samples")
+        assert "signals" not in st.get("faults", {}), st["faults"]
+        assert any(e["valid"] for e in sub.get("estimate"))
