@@ -21,6 +21,13 @@ heartbeat still gets out while a request hangs; the config check keeps
 response saying the register map is wrong (illegal function, address or value)
 is not retried: it would only fail again.
 
+The link is up once the DAQ has answered, not once the port opened: `_connect`
+reads the descriptor (a serial port opens with nothing behind it; a gateway
+takes the TCP connection whatever its serial side does). A DAQ that never
+answers (wrong unit id or baud rate, a broken RS-485 pair) is then a connect
+failure, said once with what to check and tried again quietly with the base's
+doubling back-off, not a link that comes and goes every second.
+
 Protocol version 2 (input register 0 = 2): each poll reads registers 0–15 in
 one request where version 1 reads the head (4–5), so the feed override applied
 (6) and the context (8–15) cost no extra request. A context that changed
@@ -33,6 +40,7 @@ from __future__ import annotations
 
 import select
 import socket
+import threading
 import time
 
 import numpy as np
@@ -70,11 +78,24 @@ READ_SLICE_S = 0.1
 OVERRUN_MARGIN_S = 0.5  # a reader more than the ring behind skips this much more than it must
 DEFAULT_TIMEOUT_MS = 200
 PERMANENT_EXCEPTION_CODES = frozenset({1, 2, 3})  # illegal function / data address / data value
+GATEWAY_NO_ANSWER_CODES = frozenset({10, 11})  # gateway path unavailable / target device failed to respond
+
+
+class NoAnswer(LinkDown):
+    """Every try of a request went unanswered by the DAQ: silence, or its gateway saying so.
+    ``how`` says which, for a message: "within 200 ms", "(the gateway answered exception 11)"."""
+
+    def __init__(self, message: str, how: str) -> None:
+        super().__init__(message)
+        self.how = how
 
 
 class ModbusDriver(Driver):
     def __init__(self, *, unit: int = 1, poll_ms: int = 20, timeout_ms: int = DEFAULT_TIMEOUT_MS, **kwargs) -> None:
         super().__init__(**kwargs)
+        # `_connect` (run under the I/O lock) reads the descriptor through `_call`, which takes it too;
+        # no other thread waits for it then: commands are not sent while the link is down
+        self._io_lock = threading.RLock()
         self.unit = int(unit)
         self.poll_s = max(1, int(poll_ms)) / 1000.0
         self.timeout_s = max(1, int(timeout_ms)) / 1000.0
@@ -91,6 +112,7 @@ class ModbusDriver(Driver):
         self._v2 = False
         self._override: int | None = None  # input register 6, from the last poll (version 2)
         self._context_regs: tuple[int, ...] | None = None
+        self._answered: Descriptor | None = None  # read by `_connect`, handed over by the first `_read`
 
     # -- transport-specific -------------------------------------------------
 
@@ -105,12 +127,17 @@ class ModbusDriver(Driver):
 
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 
+    def _silent(self, how: str) -> str:
+        """Why a connect failed when the port opened but the DAQ said nothing (``how``: "within 200 ms (3 tries)")."""
+        raise NotImplementedError
+
     # -- requests -----------------------------------------------------------
 
     def _call(self, fn, *args, **kwargs):
         """One request under the I/O lock, tried up to `ATTEMPTS` times; then the link is down."""
         from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 
+        unanswered, how = 0, ""  # tries the DAQ did not answer: a timeout, or its gateway saying it got no answer
         for attempt in range(1, ATTEMPTS + 1):
             with self._io_lock:
                 client = self._client
@@ -122,6 +149,7 @@ class ModbusDriver(Driver):
                     raise LinkDown(f"lost communication with DAQ at {self.address}: {exc}") from exc
                 except ModbusIOException:  # pymodbus' "no response received": nothing valid in time
                     problem = f"no answer from DAQ at {self.address} within {self.timeout_s * 1e3:.0f} ms"
+                    unanswered, how = unanswered + 1, f"within {self.timeout_s * 1e3:.0f} ms"
                     self._discard_late_answer(client)
                 except (ModbusException, OSError) as exc:  # a garbled answer
                     problem = f"lost communication with DAQ at {self.address}: {exc}"
@@ -131,14 +159,19 @@ class ModbusDriver(Driver):
                         self._stats["modbus_requests"] += 1
                         return rr
                     problem = f"DAQ at {self.address} refused a request: {rr}"
-                    if getattr(rr, "exception_code", None) in PERMANENT_EXCEPTION_CODES:
+                    code = getattr(rr, "exception_code", None)
+                    if code in PERMANENT_EXCEPTION_CODES:
                         raise LinkDown(problem)
+                    if code in GATEWAY_NO_ANSWER_CODES:
+                        unanswered, how = unanswered + 1, f"(the gateway answered exception {code})"
             if attempt < ATTEMPTS:
                 self._stats["modbus_retries"] += 1
                 log.debug("modbus request retried", transport=self.transport, attempt=attempt, problem=problem)
                 # a heartbeat waiting for the lock through this try goes before the next one: a lock
                 # is not handed over on release, and the retry would take it straight back
                 time.sleep(RETRY_PAUSE_S)
+        if unanswered == ATTEMPTS:
+            raise NoAnswer(f"{problem} ({ATTEMPTS} tries)", f"{how} ({ATTEMPTS} tries)")
         raise LinkDown(f"{problem} ({ATTEMPTS} tries)")
 
     @staticmethod
@@ -182,10 +215,18 @@ class ModbusDriver(Driver):
             client.close()
             raise LinkDown(f"cannot connect to DAQ at {self.address}")
         self._client = client
+        try:  # the link is up once the DAQ has answered: its descriptor, handed over by the first `_read`
+            self._answered = self._read_descriptor()
+        except NoAnswer as exc:
+            self._disconnect()
+            raise LinkDown(self._silent(exc.how)) from exc
+        except BaseException:
+            self._disconnect()
+            raise
         # keep _next: if the device kept counting, what is still in its ring is
         # read back after a reconnect instead of being lost
         self._just_connected = True
-        self._want_descriptor = True
+        self._want_descriptor = False
 
     def _disconnect(self) -> None:
         client, self._client = self._client, None
@@ -244,6 +285,9 @@ class ModbusDriver(Driver):
             time.sleep(wait)
         self._next_poll = max(self._next_poll + self.poll_s, time.monotonic())
         out: list = []
+        if self._answered is not None:
+            out.append(self._answered)
+            self._answered = None
         if self._want_descriptor:
             self._want_descriptor = False
             out.append(self._read_descriptor())
@@ -384,6 +428,10 @@ class ModbusTcpDriver(ModbusDriver):
     def address(self) -> str:
         return f"{self.host}:{self.tcp_port}"
 
+    def _silent(self, how: str) -> str:
+        return (f"connected to {self.address} but the DAQ unit {self.unit} did not answer {how}: check unit id; "
+                f"behind a gateway, its serial side: baud rate, wiring")
+
     def _make_client(self):
         from pymodbus.client import ModbusTcpClient
 
@@ -411,6 +459,10 @@ class ModbusRtuDriver(ModbusDriver):
     @property
     def address(self) -> str:
         return self.port
+
+    def _silent(self, how: str) -> str:
+        return (f"the port opened but the DAQ at {self.address} unit {self.unit} did not answer {how}: "
+                f"check unit id, baud rate, wiring")
 
     def _make_client(self):
         from pymodbus import FramerType
