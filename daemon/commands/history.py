@@ -61,17 +61,17 @@ def parse_time(text: str, option: str) -> float:
     return value
 
 
-_WIDEST = {"--program": 2**32 - 1, "--tool": 2**32 - 1, "--operation": 2**16 - 1}   # the CONTEXT frame's fields
-
-
 def _number(text: str | None, option: str) -> int | None:
+    from millsense.daemon.learning.keys import UINT16_MAX, UINT32_MAX   # loads numpy: in `run`, not at --help
+
     if text is None:
         return None
     digits = text.strip()
     if not (digits.isascii() and digits.isdigit()):
         raise _Usage(f"{option} {text!r}: a whole number 0 or more (tool T12 is --tool 12)")
-    if int(digits) > _WIDEST[option]:
-        raise _Usage(f"{option} {text!r}: at most {_WIDEST[option]} (the DAQ's and the CNC adapter's field)")
+    widest = UINT16_MAX if option == "--operation" else UINT32_MAX   # a process key's fields
+    if int(digits) > widest:
+        raise _Usage(f"{option} {text!r}: at most {widest} (the DAQ's and the CNC adapter's field)")
     return int(digits)
 
 

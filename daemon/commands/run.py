@@ -36,6 +36,8 @@ import os
 import sys
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 from millsense.daemon.stop_signals import stop_on_signals
@@ -223,6 +225,29 @@ def _open_zenoh(settings: Any, stop: threading.Event) -> Any:
         return None
 
 
+@dataclass
+class _Watch:
+    """A look `_Daemon.serve` takes every `every_s` seconds, the first one period after it starts."""
+
+    look: Callable[[], None]
+    every_s: float
+    event: str   # logged when a look fails
+    due: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.due = time.monotonic() + self.every_s
+
+    def run_if_due(self, now: float, log: Any) -> None:
+        """Look if `due` has come, the next one `every_s` after `now`; a look that fails is logged, never raised."""
+        if now < self.due:
+            return
+        self.due = now + self.every_s
+        try:
+            self.look()
+        except Exception as exc:  # noqa: BLE001 - a watch must never stop the daemon
+            log.error(self.event, error=f"{type(exc).__name__}: {exc}")
+
+
 class _Daemon:
     """Runner + Zenoh sink, built before the DAQ starts streaming; `close()` is idempotent."""
 
@@ -286,22 +311,15 @@ class _Daemon:
             self._watch_state()   # what there is to keep an eye on
         self.log.info("daemon.started", machine=self.runner.machine, transport=self.transport, demo=self.demo)
         deadline = None if seconds is None else time.monotonic() + seconds
-        watches = [[self._watch_state, STATE_WATCH_S, time.monotonic() + STATE_WATCH_S, "state.watch_failed"],
-                   [self._watch_name, NAME_WATCH_S, time.monotonic() + NAME_WATCH_S, "zenoh.name_watch_failed"]]
+        watches = (_Watch(self._watch_state, STATE_WATCH_S, "state.watch_failed"),
+                   _Watch(self._watch_name, NAME_WATCH_S, "zenoh.name_watch_failed"))
         while not stop.is_set():
             left = 0.2 if deadline is None else min(0.2, deadline - time.monotonic())
             if left <= 0:
                 break
             stop.wait(left)
             for watch in watches:
-                look, every_s, due, event = watch
-                if time.monotonic() < due:
-                    continue
-                watch[2] = time.monotonic() + every_s
-                try:
-                    look()
-                except Exception as exc:  # noqa: BLE001 - a watch must never stop the daemon
-                    self.log.error(event, error=f"{type(exc).__name__}: {exc}")
+                watch.run_if_due(time.monotonic(), self.log)
 
     def _watch_state(self) -> None:
         """The state directory under the running daemon, every STATE_WATCH_S: deleted by hand (a clean-up), it is

@@ -7,10 +7,9 @@ action changes nothing. What it changed is recorded on the monitor
 
 from __future__ import annotations
 
-import re
 from typing import TYPE_CHECKING, Any
 
-from millsense.daemon.learning.keys import KeyState, seen_outside
+from millsense.daemon.learning.keys import KEY_RE, UINT32_MAX, KeyState, seen_outside
 from millsense.daemon.learning.process import finite
 from millsense.daemon.learning.wear import ToolWear
 
@@ -18,7 +17,6 @@ if TYPE_CHECKING:
     from millsense.daemon.learning.monitor import ProcessMonitor
 
 ACTIONS = ("list", "show", "accept", "relearn", "widen", "narrow", "false_alarm", "new_tool")
-KEY_RE = re.compile(r"^[0-9]{1,10}/[0-9]{1,10}/[0-9]{1,5}\Z")
 MAX_PCT = 500.0
 
 
@@ -77,8 +75,8 @@ def _false_alarm(m: "ProcessMonitor", key: str, ks: KeyState) -> dict[str, Any]:
 
 
 def _new_tool(m: "ProcessMonitor", tool: Any) -> dict[str, Any]:
-    if isinstance(tool, bool) or not isinstance(tool, int) or not 0 <= tool <= 0xFFFFFFFF:
-        return _refused(f"new_tool needs tool, a tool number 0 … 4294967295, not {tool!r}")
+    if isinstance(tool, bool) or not isinstance(tool, int) or not 0 <= tool <= UINT32_MAX:
+        return _refused(f"new_tool needs tool, a tool number 0 … {UINT32_MAX}, not {tool!r}")
     m.tools.setdefault(tool, ToolWear()).new_tool()
     m.changed_by_command(tools={tool})
     return {"ok": True, "action": "new_tool", "tool": tool}

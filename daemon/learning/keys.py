@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
 from millsense.daemon.learning.envelope import Envelope, Taught, json_list
 from millsense.daemon.learning.process import ProcessRun
+
+# A key's fields are the CONTEXT frame's (docs/protocol.md): program and tool uint32, operation uint16.
+UINT32_MAX = 2**32 - 1
+UINT16_MAX = 2**16 - 1
+# "program/tool/operation" in ASCII digits and nothing after: `$` would take a final newline, `\d` any script's digits.
+KEY_RE = re.compile(r"^([0-9]{1,10})/([0-9]{1,10})/([0-9]{1,5})\Z")
 
 
 @dataclass

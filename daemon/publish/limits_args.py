@@ -11,17 +11,15 @@ canonical JSON takes no fractional numbers (command_auth.canonical_json).
 
 from __future__ import annotations
 
-import re
 from typing import Any
+
+from millsense.daemon.learning.keys import KEY_RE, UINT16_MAX, UINT32_MAX
 
 ACTIONS = ("list", "show", "accept", "relearn", "widen", "narrow", "false_alarm", "new_tool")
 READS = ("list", "show")  # change nothing: the `limits` queryable answers them without a token
 NEEDS_KEY = ("show", "accept", "relearn", "widen", "narrow", "false_alarm")
 NEEDS_PCT = ("widen", "narrow")
 PCT_RANGE = {"widen": (1, 500), "narrow": (1, 90)}  # narrowing by 100 % would leave no band at all
-UINT32_MAX = 2**32 - 1
-UINT16_MAX = 2**16 - 1
-KEY_RE = re.compile(r"^([0-9]{1,10})/([0-9]{1,10})/([0-9]{1,5})\Z")
 
 
 def parse_key(text: Any) -> str:

@@ -92,6 +92,17 @@ def test_errors_are_one_line_with_their_exit_code(millsense_cmd, state, tmp_path
     assert r.returncode == 78 and r.stderr.startswith("history.max_mb")
 
 
+def test_a_number_may_be_as_wide_as_its_context_field():
+    """program and tool are uint32, operation uint16 (the CONTEXT frame's, a process key's fields)."""
+    from millsense.daemon.commands.history import _number, _Usage
+
+    assert _number("4294967295", "--program") == _number("4294967295", "--tool") == 2**32 - 1
+    assert _number("65535", "--operation") == 2**16 - 1
+    for option, value, top in (("--program", "4294967296", 2**32 - 1), ("--operation", "65536", 2**16 - 1)):
+        with pytest.raises(_Usage, match=f"at most {top} "):
+            _number(value, option)
+
+
 def test_export_while_the_daemon_writes(millsense_cmd, tmp_path):
     """Read-only beside a live writer (WAL): the export sees the last commit, the writer never notices."""
     import threading

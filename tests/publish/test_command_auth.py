@@ -266,11 +266,13 @@ def test_a_proof_that_tried_no_token_is_not_counted_against_the_operator(linked,
 @pytest.mark.parametrize("text", ["1/2/3\n", "١/٢/٣", "1/2/3 "])
 def test_a_process_key_is_ascii_digits_and_nothing_after(text):
     """`$` matches before a final newline and `\\d` matches any script's digits: both were taken before stop 28."""
-    from millsense.daemon.learning.actions import KEY_RE as ACTION_KEY_RE
+    from millsense.daemon.learning import actions
+    from millsense.daemon.learning.keys import KEY_RE
     from millsense.daemon.publish.limits_args import parse_key
 
     with pytest.raises(ValueError, match="key must be program/tool/operation"):
         parse_key(text)
-    assert ACTION_KEY_RE.match(text) is None
+    assert KEY_RE.match(text) is None
+    assert actions.KEY_RE is KEY_RE   # the operator's actions check keys with the same, one pattern
     for pattern in (ca.CLIENT_NONCE_RE, ca.SERVER_NONCE_RE, ca.MAC_RE):
         assert pattern.match("ab" * 32 + "\n") is None
