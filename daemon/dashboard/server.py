@@ -4,9 +4,11 @@ Standard library only (`http.server.ThreadingHTTPServer`): one thread per
 connection is plenty for the few screens of a shop floor (`book.MAX_CLIENTS`).
 Clients cannot hold threads at will: a request must arrive whole within
 `REQUEST_TIMEOUT_S` (so must the next one on a kept-alive connection), a write
-blocked `SEND_TIMEOUT_S` ends the connection, and past `MAX_CONNECTIONS` a new
-connection is closed at once, without a thread (systemd's TasksMax=128 must
-leave room for Zenoh's threads). A peer hanging up is ordinary: no traceback.
+blocked `SEND_TIMEOUT_S` ends the connection, and past `MAX_CONNECTIONS` in all,
+or `MAX_CONNECTIONS_PER_PEER` from one address, a new connection is closed at
+once, without a thread (systemd's TasksMax=128 must leave room for Zenoh's
+threads; one misbehaving client must leave room for the other screens). A peer
+hanging up is ordinary: no traceback.
 
 - `GET /` and `/static/<file>`: the page, its script and style, from the package;
 - `GET /events`: Server-Sent Events; the first event is the whole snapshot, then
@@ -45,6 +47,9 @@ KEEPALIVE_S = 10.0
 REQUEST_TIMEOUT_S = 5.0  # request line, headers and body, in all; also the wait for the next request
 SEND_TIMEOUT_S = 30.0  # one write blocked this long: the page stopped reading
 MAX_CONNECTIONS = 64  # every page (32) and as many requests; TasksMax=128 leaves the rest to Zenoh
+# A peer's pages (book.MAX_CLIENTS_PER_PEER = 8) and as many requests: a client that opens connections
+# and never finishes a request (each held REQUEST_TIMEOUT_S) fills its own share, not the server.
+MAX_CONNECTIONS_PER_PEER = 16
 # Updates are held this long at most before they go out, so one write carries many.
 BATCH_S = 0.05
 SECURITY_HEADERS = {
@@ -73,10 +78,12 @@ class DashboardServer(ThreadingHTTPServer):
     daemon_threads = True  # an open event stream must not keep the process alive at shutdown
     request_timeout_s = REQUEST_TIMEOUT_S
     max_connections = MAX_CONNECTIONS
+    max_connections_per_peer = MAX_CONNECTIONS_PER_PEER
 
     def __init__(self, address: tuple[str, int], book: Book, relay: Any, https: bool):
         self.book, self.relay, self.https = book, relay, https
         self.connections = self.refused_connections = 0
+        self.peer_connections: dict[str, int] = {}  # open connections by peer address; a peer at 0 is removed
         self._count_lock = threading.Lock()
         # A flood of refusals or failures is one line per 10 s, with a count.
         self.log = RateLimitedLogger(structlog.get_logger("millsense.dashboard"))
@@ -91,27 +98,38 @@ class DashboardServer(ThreadingHTTPServer):
         super().__init__(address, Handler)
 
     def process_request(self, request: Any, client_address: Any) -> None:
+        peer = client_address[0]
         with self._count_lock:
-            full = self.connections >= self.max_connections
-            self.connections += not full
+            from_peer = self.peer_connections.get(peer, 0)
+            if from_peer >= self.max_connections_per_peer:
+                full = f"{from_peer} connections open from {peer} ({self.max_connections_per_peer} per address)"
+            elif self.connections >= self.max_connections:
+                full = f"{self.max_connections} connections open"
+            else:
+                full = ""
+                self.connections += 1
+                self.peer_connections[peer] = from_peer + 1
         if full:
-            self._refuse(request, client_address, f"{self.max_connections} connections open")
+            self._refuse(request, client_address, full)
             return
         try:
             super().process_request(request, client_address)
         except RuntimeError as exc:  # "can't start new thread": TasksMax reached all the same
-            self._ended()
+            self._ended(peer)
             self._refuse(request, client_address, str(exc))
 
     def process_request_thread(self, request: Any, client_address: Any) -> None:
         try:
             super().process_request_thread(request, client_address)
         finally:
-            self._ended()
+            self._ended(client_address[0])
 
-    def _ended(self) -> None:
+    def _ended(self, peer: str) -> None:
         with self._count_lock:
             self.connections -= 1
+            left = self.peer_connections.pop(peer) - 1
+            if left:
+                self.peer_connections[peer] = left
 
     def _refuse(self, request: Any, client_address: Any, reason: str) -> None:
         """Close a connection unanswered (no thread to answer it), counted; said before the close."""

@@ -160,6 +160,52 @@ def test_connections_over_the_cap_are_refused_at_once_without_a_thread(server, c
     _no_traceback(capfd)
 
 
+def test_one_peer_cannot_take_every_connection(server, capfd):
+    """A buggy HMI opening half-requests over and over takes its own share of the connections, not all of them."""
+    server.request_timeout_s = 600.0  # the hog's requests stay until the test closes them, however slow this machine
+    server.log.interval_s = 600.0  # however slow this machine, the flood falls in one log interval
+    hog = []
+    try:
+        for _ in range(server.max_connections):  # as many as the whole server takes
+            s = _connect(server, "127.0.0.2")
+            try:
+                s.sendall(b"GET / HTTP/1.1\r\n")  # unfinished
+            except ConnectionError:
+                pass  # already closed by the server: the surplus
+            hog.append(s)
+        # Connections are accepted in order: by the time this one is, every one of the hog's has been.
+        victim = _connect(server, "127.0.0.1")
+        victim.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+        try:
+            answer = victim.recv(65536)
+        except ConnectionError:
+            answer = b""
+        victim.close()
+        assert answer.startswith(b"HTTP/1.1 200 "), f"another screen was refused while one peer held " \
+                                                    f"{server.max_connections} half-requests: {answer[:60]!r}"
+        share = server.max_connections_per_peer
+        surplus = server.max_connections - share
+        assert server.refused_connections == surplus
+        wait_for(lambda: sum(_closed_by_server(s) for s in hog) == surplus, WAIT_S,
+                 f"the hog's {surplus} surplus connections to be closed")
+        # The victim's thread ends after its answer; the share's stay for the test, and none started for the surplus.
+        wait_for(lambda: len(_handler_threads()) == share, WAIT_S, f"the hog's {share} connections alone served")
+        assert server.peer_connections == {"127.0.0.2": share}
+    finally:
+        for s in hog:
+            s.close()
+    wait_for(lambda: not _handler_threads(), WAIT_S, "the hog's connections to end")
+    assert server.connections == 0 and not server.peer_connections  # a peer gone leaves nothing behind
+    again = _connect(server, "127.0.0.2")  # its share is its own again
+    again.sendall(b"GET /api/info HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+    assert again.recv(65536).startswith(b"HTTP/1.1 200 ")
+    again.close()
+    out, err = capfd.readouterr()
+    assert "Traceback" not in out + err, out + err
+    refusals = [line for line in (out + err).splitlines() if "dashboard_connection_refused" in line]
+    assert len(refusals) == 1 and "127.0.0.2" in refusals[0], out + err
+
+
 def test_a_thread_that_cannot_start_refuses_the_connection_in_one_line(server, capfd, monkeypatch):
     """Under systemd's TasksMax (or out of memory) a thread may not start: no traceback, the client is closed."""
     def no_thread(self, request, client_address):
