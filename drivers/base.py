@@ -182,6 +182,7 @@ class Driver:
         self._tracker = IndexTracker()
         self._closing = threading.Event()
         self._connected = threading.Event()
+        self.last_connect_error: str | None = None   # why the last try to connect failed (for `run`'s message)
         self._thread: threading.Thread | None = None
         self._io_lock = threading.Lock()
         self._heartbeat_counter = 0
@@ -345,7 +346,8 @@ class Driver:
                 with self._io_lock:
                     self._connect()
             except Exception as exc:  # noqa: BLE001 - any failure to connect is "down, retry"
-                self._set_link(False, f"connect failed: {_reason(exc)}")
+                self.last_connect_error = _reason(exc)
+                self._set_link(False, f"connect failed: {self.last_connect_error}")
                 self._stats["connect_failures"] += 1
                 if self._closing.wait(backoff):
                     break

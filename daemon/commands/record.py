@@ -46,7 +46,7 @@ def _fail(message: str, code: int) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from millsense.daemon.commands.run import driver_options, positive_option
+    from millsense.daemon.commands.run import _last_error, driver_options, positive_option
     from millsense.daemon.config import load_config
     from millsense.drivers import DriverError, create_driver
     from millsense.drivers.base import LinkEvent, SampleBlock
@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
                     return _fail(f"stopped before the DAQ connected; nothing written to {args.out}", 1)
                 where = getattr(driver, "address", "?")
                 return _fail(f"DAQ unreachable: no connection to {daq.transport} {where} within "
-                             f"{args.connect_timeout:g} s; nothing written to {args.out}", 69)
+                             f"{args.connect_timeout:g} s{_last_error(driver)}; nothing written to {args.out}", 69)
         deadline = None if args.seconds is None else time.monotonic() + args.seconds
         written_descriptor = None
         while not stop["now"] and (deadline is None or time.monotonic() < deadline):

@@ -181,7 +181,8 @@ def run(args: argparse.Namespace) -> int:
                     return 0
                 where = getattr(driver, "address", "?")
                 return _fail(
-                    f"DAQ unreachable: no connection to {settings.daq.transport} {where} within {args.connect_timeout:g} s",
+                    f"DAQ unreachable: no connection to {settings.daq.transport} {where} within {args.connect_timeout:g} s"
+                    f"{_last_error(driver)}",
                     EXIT_UNAVAILABLE,
                 )
             if not _wait(lambda: driver.descriptor is not None or time.sleep(0.01), DESCRIPTOR_WAIT_S, stop):
@@ -223,6 +224,12 @@ def _open_zenoh(settings: Any, stop: threading.Event) -> Any:
     except ZenohUnavailable as exc:
         _fail(str(exc), EXIT_UNAVAILABLE)
         return None
+
+
+def _last_error(driver: Any) -> str:
+    """The driver's last reason a connect failed, for the message `run` and `record` end with ("" if none)."""
+    why = getattr(driver, "last_connect_error", None)
+    return f" ({why})" if why else ""
 
 
 @dataclass

@@ -133,3 +133,27 @@ def test_tcp_a_unit_the_gateway_cannot_reach_is_no_link_up(tmp_path, port):
     finally:
         driver.close()
         emu.stop()
+
+
+def test_run_with_a_silent_daq_says_what_to_check(tmp_path, port):
+    """`millsense run` gives up after `--connect-timeout` (exit 69) with the driver's last reason in its one line,
+    not only "no connection": here, what to check on a DAQ that does not answer its unit id."""
+    import subprocess
+
+    from tests.e2e.helpers import CMD, write_config
+
+    emu = Emulator(tmp_path, "--modbus-tcp", f"127.0.0.1:{port}", "--unit", "5")
+    cfg = write_config(tmp_path / "m.toml", machine="silent-01",
+                       daq=f'transport = "modbus-tcp"\nhost = "127.0.0.1"\ntcp_port = {port}\nunit = 1')
+    try:
+        emu.start()
+        res = subprocess.run([*CMD, "run", "--config", str(cfg), "--connect-timeout", "3"], capture_output=True,
+                             text=True, timeout=120, env={**__import__("os").environ,
+                                                          "XDG_STATE_HOME": str(tmp_path / "state")})
+    finally:
+        emu.stop()
+    assert res.returncode == 69, res.stdout[-2000:] + res.stderr
+    lines = [line for line in res.stderr.splitlines() if "DAQ unreachable" in line]
+    assert len(lines) == 1 and "within 3 s" in lines[0] and "did not answer" in lines[0] \
+        and "check unit id" in lines[0], res.stderr
+    assert "Traceback" not in res.stdout + res.stderr
