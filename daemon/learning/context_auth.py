@@ -91,7 +91,7 @@ class ContextAuth:
         if run_id != self.run_id:
             return "none", (f"context refused: signed for run {run_id}, this daemon's run is {self.run_id} "
                             "(an old put replayed, or an adapter that has not read status since the daemon restarted)")
-        expected = mac_hex(self._key, message(self.machine, run_id, seq, fields["program"], fields["tool"],
+        expected = mac_hex(self._key, message(self.machine, self.run_id, seq, fields["program"], fields["tool"],
                                               fields["operation"], fields))
         if not hmac.compare_digest(mac, expected):
             return "none", "context refused: its MAC does not verify (another key, another machine, or a field changed)"

@@ -17,7 +17,6 @@ import pytest
 from pydantic import SecretStr
 
 from millsense.daemon.config_models import AfcSettings, AfcTargetSettings
-
 from millsense.daemon.pipeline.runner import Runner
 from millsense.drivers.sim_driver import SimDriver
 from tests.learning.doc_signer import signer
