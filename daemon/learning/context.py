@@ -7,6 +7,11 @@ adapter's Zenoh put, which holds from the next sample the daemon processes
 takes the DAQ's when its descriptor says it reports context (capabilities bit 1),
 else Zenoh. Only one source is ever in use: two sources that disagree would cut
 processes in pieces.
+
+Each context carries who vouches for it (`Ctx.authority`, issue 36): the DAQ's
+frames are trusted; a Zenoh put is trusted only when signed with the adapter key
+or under `[context] trust = "acl"` (`context_auth.py`). Any put may label the
+cut; only a trusted context may let adaptive feed control raise the feed.
 """
 
 from __future__ import annotations
