@@ -229,7 +229,8 @@ def _adapter_key(parts: dict[str, Any], updates: dict[str, Any], base_dir: Path)
     return []
 
 
-def _read_token(path: Path, key: str = "interlock.reset_token_file", secret: str = "the reset secret") -> tuple[str, str | None]:
+def _read_token(path: Path, key: str = "interlock.reset_token_file",
+                secret: str = "the reset secret") -> tuple[str, str | None]:
     what = f"a file holding {secret} on one line, readable by the millsense user only"
     try:
         token = path.read_text(encoding="utf-8").strip()

@@ -39,7 +39,8 @@ def _context_authority_warnings(settings: Any, path: Path | None) -> list[str]:
             f"context.adapter_key_file: not set and trust is \"none\", while afc.enabled is true and the context "
             f"comes from Zenoh (source = \"{context.source}\"): anyone may put {where}, so AFC never follows it "
             "(idle, \"context not authenticated\"); sign the adapter's puts with a key from `millsense token new` "
-            "(docs/zenoh.md, \"Signed context\"), or trust = \"acl\" behind a router whose ACL lets only adapters put it"
+            "(docs/zenoh.md, \"Signed context\"), or trust = \"acl\" behind a router whose ACL lets only "
+            "adapters put it"
         )
     if path is not None and context.key() and not context.adapter_key_file and _others_read(path):
         out.append(f"context.adapter_key: {path} holds the key and other users can read it "

@@ -78,7 +78,8 @@ class ContextAuth:
             return self.trust, None
         if len(given) != len(AUTH_FIELDS):
             missing = [name for name in AUTH_FIELDS if name not in payload]
-            return "none", f"context refused: {', '.join(given)} without {', '.join(missing)} (a signed context carries run_id, seq and mac)"
+            return "none", (f"context refused: {', '.join(given)} without {', '.join(missing)} "
+                            "(a signed context carries run_id, seq and mac)")
         if not self._key:
             return self.trust, None
         run_id, seq, mac = payload["run_id"], payload["seq"], payload["mac"]
