@@ -75,7 +75,7 @@ def load_config(path: str | os.PathLike[str]) -> Settings:
     """Read, parse and validate a configuration file. Raises `ConfigError` listing every problem.
 
     Relative paths inside it (`calibration`, `zenoh.config_file`,
-    `interlock.reset_token_file`) are taken from the file's folder.
+    `interlock.reset_token_file`, `context.adapter_key_file`) are taken from the file's folder.
     """
     p = Path(path)
     data, problems = read_toml(p, str(p), CONFIG_WHAT)
@@ -107,6 +107,7 @@ def effective_config_dict(settings: Settings) -> dict[str, Any]:
     data = settings.model_dump(mode="json")
     token = settings.interlock.reset_token
     data["interlock"]["reset_token"] = SECRET_MASK if token is not None and token.get_secret_value() else None
+    data["context"]["adapter_key"] = SECRET_MASK if settings.context.key() else None
     return data
 
 
@@ -184,6 +185,7 @@ def _settings_from(data: dict[str, Any], base_dir: Path) -> Settings:
             problems.append(problem)
         else:
             updates["interlock"] = interlock.model_copy(update={"reset_token": SecretStr(token)})
+    problems.extend(_adapter_key(parts, updates, base_dir))
     interlock = updates.get("interlock", parts.get("interlock"))
     if interlock is not None and interlock.reset is None and parts.get("zenoh") is not None:
         # Secure by default (docs/security.md): a session other hosts can reach takes commands only from
@@ -206,17 +208,39 @@ def _transport_problems(raw_daq: dict[str, Any]) -> list[str]:
     return []
 
 
-def _read_token(path: Path) -> tuple[str, str | None]:
-    what = "a file holding the reset secret on one line, readable by the millsense user only"
+def _adapter_key(parts: dict[str, Any], updates: dict[str, Any], base_dir: Path) -> list[str]:
+    """`[context] adapter_key_file` read like the reset token's file; the key must not be the reset token
+    (issue 36: an adapter that can sign context must not thereby be able to reset, nor the reverse)."""
+    context = parts.get("context")
+    if context is None:
+        return []
+    if context.adapter_key_file:
+        path = _resolve(base_dir, context.adapter_key_file)
+        key, problem = _read_token(path, "context.adapter_key_file", "the CNC adapter's key")
+        if problem:
+            return [problem]
+        context = updates["context"] = context.model_copy(update={"adapter_key": SecretStr(key),
+                                                                  "adapter_key_file": str(path)})
+    interlock = updates.get("interlock", parts.get("interlock"))
+    if context.key() and interlock is not None and context.key() == interlock.token():
+        where = "adapter_key_file" if context.adapter_key_file else "adapter_key"
+        return [f"context.{where}: holds the reset token; the adapter key must be a secret of its own "
+                "(`millsense token new` makes another)"]
+    return []
+
+
+def _read_token(path: Path, key: str = "interlock.reset_token_file",
+                secret: str = "the reset secret") -> tuple[str, str | None]:
+    what = f"a file holding {secret} on one line, readable by the millsense user only"
     try:
         token = path.read_text(encoding="utf-8").strip()
     except FileNotFoundError:
-        return "", f"interlock.reset_token_file: {path} does not exist ({what})"
+        return "", f"{key}: {path} does not exist ({what})"
     except (OSError, UnicodeDecodeError) as exc:
-        return "", f"interlock.reset_token_file: {path} cannot be read: {getattr(exc, 'strerror', None) or exc} ({what})"
+        return "", f"{key}: {path} cannot be read: {getattr(exc, 'strerror', None) or exc} ({what})"
     if not token:
-        return "", f"interlock.reset_token_file: {path} is empty ({what})"
+        return "", f"{key}: {path} is empty ({what})"
     if len(token) < MIN_TOKEN_CHARS:
-        return "", (f"interlock.reset_token_file: {path} holds {len(token)} characters, too short to resist guessing "
+        return "", (f"{key}: {path} holds {len(token)} characters, too short to resist guessing "
                     f"(at least {MIN_TOKEN_CHARS}: `millsense token new` makes one)")
     return token, None

@@ -481,9 +481,38 @@ class ContextSettings(_Section):
     context (protocol 2, capabilities bit 1), else the Zenoh key
     `millsense/<machine>/context` (a CNC adapter puts it); "daq" or "zenoh":
     only that one; "off": none, so no learned limits, only the fixed ones.
+
+    Authority (issue 36, additive; docs/security.md, "Who may publish context"):
+    any Zenoh put labels the cut, but adaptive feed control follows a Zenoh
+    context only when it is signed with `adapter_key` (or the content of
+    `adapter_key_file`, made by `millsense token new`, never the reset token)
+    or when `trust = "acl"` says the router lets only CNC adapters put it.
+    Default `trust = "none"`: nobody is trusted for it.
     """
 
     source: Literal["auto", "daq", "zenoh", "off"] = "auto"
+    trust: Literal["none", "acl"] = "none"
+    adapter_key: SecretStr | None = None
+    adapter_key_file: str | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ContextSettings:
+        problems = []
+        key = self.adapter_key.get_secret_value() if self.adapter_key is not None else ""
+        if key and self.adapter_key_file:
+            problems.append(("adapter_key", "given together with adapter_key_file (one of the two)"))
+        if key and len(key) < MIN_TOKEN_CHARS:
+            problems.append(("adapter_key", f"{len(key)} characters is too short to resist guessing (at least "
+                                            f"{MIN_TOKEN_CHARS}: `millsense token new` makes one)"))
+        if self.adapter_key is not None and not key:
+            problems.append(("adapter_key", "empty (a secret of at least 32 characters from `millsense token new`)"))
+        if problems:
+            raise problems_error(problems)
+        return self
+
+    def key(self) -> str:
+        """The adapter key as plain text ("" if none); the only way to read it."""
+        return self.adapter_key.get_secret_value() if self.adapter_key is not None else ""
 
 
 class LearningSettings(_Section):

@@ -21,6 +21,39 @@ def config_warnings(settings: Any, path: str | os.PathLike[str] | None = None) -
     out += _security_warnings(settings, Path(path) if path is not None else None)
     out += _learning_warnings(settings)
     out += _afc_warnings(settings)
+    out += _context_authority_warnings(settings, Path(path) if path is not None else None)
+    return out
+
+
+def _context_authority_warnings(settings: Any, path: Path | None) -> list[str]:
+    """AFC on with its context from Zenoh that nobody vouches for (issue 36): it will stay idle there."""
+    out: list[str] = []
+    context = getattr(settings, "context", None)
+    afc = getattr(settings, "afc", None)
+    if context is None:
+        return out
+    if (afc is not None and afc.enabled and context.source in ("zenoh", "auto") and not context.key()
+            and context.trust != "acl"):
+        where = "the Zenoh context" if context.source == "zenoh" else "a Zenoh context (a DAQ that reports none)"
+        out.append(
+            f"context.adapter_key_file: not set and trust is \"none\", while afc.enabled is true and the context "
+            f"comes from Zenoh (source = \"{context.source}\"): anyone may put {where}, so AFC never follows it "
+            "(idle, \"context not authenticated\"); sign the adapter's puts with a key from `millsense token new` "
+            "(docs/zenoh.md, \"Signed context\"), or trust = \"acl\" behind a router whose ACL lets only "
+            "adapters put it"
+        )
+    if path is not None and context.key() and not context.adapter_key_file and _others_read(path):
+        out.append(f"context.adapter_key: {path} holds the key and other users can read it "
+                   f"(chmod 640 {path}, owner root, group millsense; or use adapter_key_file)")
+    if context.adapter_key_file:
+        key_path = Path(context.adapter_key_file)
+        if not key_path.is_absolute() and path is not None:
+            key_path = path.resolve().parent / key_path
+        if _others_read(key_path):
+            out.append(f"context.adapter_key_file: {key_path} can be read by other users (chmod 600, owner millsense)")
+        if _others_write(key_path):
+            out.append(f"context.adapter_key_file: {key_path} can be written by users other than its owner "
+                       "(chmod 600, owner millsense): they could set the key")
     return out
 
 

@@ -6,6 +6,9 @@ base64url without padding, 43 characters. 256 bits make an offline guess from a
 sniffed exchange hopeless, far past the 128-bit floor (`check-config` refuses a
 token under 32 characters).
 
+The same command makes a CNC adapter's key (`[context] adapter_key_file`, docs/zenoh.md "Signed context"):
+a secret of its own, never the reset token's file (a config naming the same secret for both is refused).
+
 Without `--out` the token goes to stdout (for a secret store). With `--out` it
 is written to a new file of mode 0600, never over an existing one (replacing a
 token is a decision: delete the old file first).
@@ -53,5 +56,6 @@ def run(args: argparse.Namespace) -> int:
     finally:
         os.close(fd)
     print(f"{PROG}: wrote a new token to {args.out} (mode 0600); point [interlock] reset_token_file at it "
-          "and give it to the daemon's user only", file=sys.stderr)
+          "(or [context] adapter_key_file, for a CNC adapter's key) and give it to the daemon's user only",
+          file=sys.stderr)
     return 0

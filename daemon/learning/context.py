@@ -7,12 +7,19 @@ adapter's Zenoh put, which holds from the next sample the daemon processes
 takes the DAQ's when its descriptor says it reports context (capabilities bit 1),
 else Zenoh. Only one source is ever in use: two sources that disagree would cut
 processes in pieces.
+
+Each context carries who vouches for it (`Ctx.authority`, issue 36): the DAQ's
+frames are trusted; a Zenoh put is trusted only when signed with the adapter key
+or under `[context] trust = "acl"` (`context_auth.py`). Any put may label the
+cut; only a trusted context may let adaptive feed control raise the feed.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any
+
+from millsense.daemon.learning.context_auth import AUTH_FIELDS, ContextAuth
 
 SOURCES = ("auto", "daq", "zenoh", "off")
 CAP_CONTEXT = 0x02              # descriptor capabilities bit 1: the DAQ reports context
@@ -23,6 +30,7 @@ _UINT16 = 0xFFFF
 # Fields a Zenoh context may carry; `machine` and `t` are what an adapter adds to every payload.
 _FLAG_DEFAULTS = {"cycle": True, "monitor": True, "afc_allowed": False, "feed_held": False}
 _IGNORED_FIELDS = frozenset({"machine", "t"})
+_AUTH_FIELDS = frozenset(AUTH_FIELDS)   # a signed context's run_id, seq and mac (context_auth.py)
 
 
 @dataclass(frozen=True)
@@ -37,6 +45,14 @@ class Ctx:
     afc_allowed: bool
     feed_held: bool
     source: str  # "daq" | "zenoh"
+    # Who vouches for it (issue 36, context_auth.py): "daq" (the DAQ's own frame), "mac" (the adapter key),
+    # "acl" (`[context] trust = "acl"`), "none" (an unauthenticated put: it labels, AFC never follows it)
+    authority: str = "none"
+
+    @property
+    def trusted(self) -> bool:
+        """May adaptive feed control follow it: the DAQ's own context, or a Zenoh one vouched for."""
+        return self.source == "daq" or self.authority in ("mac", "acl")
 
     @property
     def key(self) -> str:
@@ -47,15 +63,17 @@ class Ctx:
 def ctx_from_daq(ctx: Any) -> Ctx:
     """A `drivers.protocol.Context` as a `Ctx`."""
     return Ctx(int(ctx.program), int(ctx.tool), int(ctx.operation), bool(ctx.cycle), bool(ctx.monitor),
-               bool(ctx.afc_allowed), bool(ctx.feed_held), "daq")
+               bool(ctx.afc_allowed), bool(ctx.feed_held), "daq", "daq")
 
 
-def ctx_from_payload(payload: Any) -> Ctx | str:
-    """The Zenoh `context` JSON as a `Ctx`, or a one-line reason it is refused."""
+def ctx_from_payload(payload: Any, auth: ContextAuth | None = None, *, take: bool = False) -> Ctx | str:
+    """The Zenoh `context` JSON as a `Ctx`, or a one-line reason it is refused.
+
+    `auth` says who vouches for it (no `auth`: nobody, "none"); `take` spends a signed put's sequence number."""
     if not isinstance(payload, dict):
         return f"context refused: a JSON object is expected, not {type(payload).__name__}"
     unknown = sorted(str(k) for k in payload if k not in _FLAG_DEFAULTS and k not in _IGNORED_FIELDS
-                     and k not in ("program", "tool", "operation"))
+                     and k not in _AUTH_FIELDS and k not in ("program", "tool", "operation"))
     if unknown:
         # a misspelt flag ("moniter") must not silently take its default
         return f"context refused: unknown field {unknown[0]!r}"
@@ -73,7 +91,13 @@ def ctx_from_payload(payload: Any) -> Ctx | str:
         if not isinstance(value, bool):
             return f"context refused: {name} must be true or false, not {value!r}"
         flags[name] = value
-    return Ctx(numbers["program"], numbers["tool"], numbers["operation"], source="zenoh", **flags)
+    authority = "none"  # without a judge (replay, tests) nobody vouches, signed or not
+    if auth is not None:
+        authority, refusal = (auth.take if take else auth.judge)(payload, {**numbers, **flags})
+        if refusal is not None:
+            return refusal
+    return Ctx(numbers["program"], numbers["tool"], numbers["operation"], source="zenoh", authority=authority,
+               **flags)
 
 
 class ContextTrack:
@@ -87,6 +111,7 @@ class ContextTrack:
         if source not in SOURCES:
             raise ValueError(f"context source {source!r} is not one of {', '.join(SOURCES)}")
         self.source = source
+        self.auth: ContextAuth | None = None  # who vouches for a Zenoh context (the runner sets it; None: nobody)
         self._daq_reports: bool | None = None  # None: no descriptor seen yet
         self._held: list[tuple[int | None, Ctx]] = []  # (from seq or None = the next sample processed, ctx)
 
@@ -120,11 +145,14 @@ class ContextTrack:
         Read-only: the Zenoh thread asks it too, so that the sink counts a refusal as one (`context_refused`)."""
         if self.source_in_use != "zenoh":
             return self._ignored("the Zenoh context")
-        return ctx_from_payload(payload)
+        return ctx_from_payload(payload, self.auth)
 
     def on_zenoh(self, payload: Any, seq: int | None) -> str | None:
-        """A Zenoh `context` payload (parsed JSON). None: taken; else why it was refused or ignored."""
-        ctx = self.judge_zenoh(payload)
+        """A Zenoh `context` payload (parsed JSON). None: taken; else why it was refused or ignored.
+        A signed one's sequence number is spent here: the same put is never taken twice."""
+        if self.source_in_use != "zenoh":
+            return self._ignored("the Zenoh context")
+        ctx = ctx_from_payload(payload, self.auth, take=True)
         if isinstance(ctx, str):
             return ctx
         self._add(seq, ctx)

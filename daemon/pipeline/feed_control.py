@@ -252,9 +252,11 @@ class FeedController:
         return self._commanded + min(max(goal_pct - self._commanded, -step), step)
 
     def on_revolution(self, est: Mapping[str, Any], *, target: float | None, allowed: bool, now_s: float,
-                      suspect: str | None = None) -> Decision:
+                      suspect: str | None = None, untrusted: str | None = None) -> Decision:
         """One revolution's estimate in, the override to command out. `suspect`: why the newest samples may
-        come from a failing sensor (a channel that stopped moving): no feed is raised on this revolution."""
+        come from a failing sensor (a channel that stopped moving): no feed is raised on this revolution.
+        `untrusted`: why the context in force may not steer the feed (a Zenoh put nobody vouches for, issue
+        36): idle, and the override at most 100 % from this revolution on, whatever the context says."""
         rpm = est.get("spindle_rpm") or 0.0
         rev_s = 60.0 / rpm if rpm > 0 else (now_s - self._last_now if self._last_now is not None else 0.1)
         dt_s = min(max(rev_s, MIN_REV_S), MAX_REV_S)
@@ -270,6 +272,8 @@ class FeedController:
             return self._to_safe("invalid revolution")  # this revolution only: the next valid one resumes
         self.target = target
         s = self.settings
+        if untrusted is not None:
+            return self._ceiling(dt_s, untrusted)
         if target is None or not allowed:
             return self._coast("idle", dt_s, "no target" if target is None else "not allowed")
         load = est.get(self.quantity_key)
@@ -305,6 +309,15 @@ class FeedController:
     def _coast(self, state: str, dt_s: float, reason: str | None = None) -> Decision:
         """Not controlling: toward the air override, rate limited; the integrator follows the command."""
         d = self._decide(state, self._toward(self.settings.air_override_pct, dt_s), reason)
+        self._xi = math.log(self._commanded / NEUTRAL_PCT)
+        return d
+
+    def _ceiling(self, dt_s: float, reason: str) -> Decision:
+        """Idle under a context without authority: at most 100 % at once (an unauthenticated put can never
+        keep the feed raised), then toward the air override if it lies lower; the integrator follows."""
+        goal = min(self.settings.air_override_pct, NEUTRAL_PCT)
+        d = self._decide("idle", min(self._toward(goal, dt_s), NEUTRAL_PCT), reason)
+        self._last_load_ln = None
         self._xi = math.log(self._commanded / NEUTRAL_PCT)
         return d
 

@@ -61,6 +61,7 @@ import numpy as np
 import structlog
 
 from millsense.daemon.audit import AuditLog
+from millsense.daemon.learning import context_auth
 from millsense.daemon.pipeline.alarms import AlarmEvent, alarm_payload
 from millsense.daemon.pipeline.feed_control import FeedController
 from millsense.daemon.pipeline.feed_output import OverrideOutput
@@ -197,6 +198,8 @@ class Runner:
         self._fault_lock = threading.Lock()
         self._alarm_lock = threading.Lock()  # the engine is touched by the estimator thread and reset()
         self.active_alarms = ActiveAlarms()  # numbered alarm changes, for subscribers that join late
+        # who vouches for a Zenoh context: signed over this run's run_id (issue 36, learning/context_auth.py)
+        self.core.context.auth = context_auth.from_settings(settings, self.active_alarms.run_id)
         self._stop = threading.Event()
         self.ready = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -554,7 +557,7 @@ class Runner:
                     decision = feed.on_revolution(
                         est, target=feed.target_for(tool, operation, learned),
                         allowed=feed.allowed(tool, operation, None if ctx is None else ctx.afc_allowed), now_s=now,
-                        suspect=suspect)
+                        suspect=suspect, untrusted=context_auth.untrusted_reason(ctx))
                 self._afc_apply(decision, "afc")
         est["afc"] = {"state": feed.state, "override_pct": feed.commanded_pct, "target": feed.target}
 
@@ -1057,7 +1060,9 @@ class Runner:
             **self.active_alarms.snapshot(),
             "faults": dict(self.faults),
             "context": None if ctx is None else {"program": ctx.program, "tool": ctx.tool,
-                                                 "operation": ctx.operation, "source": ctx.source},
+                                                 "operation": ctx.operation, "source": ctx.source,
+                                                 "authority": ctx.authority},
+            "context_auth": self.core.context.auth.status() if self.core.context.auth is not None else None,
             "processes": self.processes,
             "learning": learning,
             "afc": self._afc_status(),

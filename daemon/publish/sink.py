@@ -22,7 +22,7 @@ Keys (interfaces.md), prefix `millsense/<machine>`:
 | `cmd/reset`, `cmd/test-trip` | queryables: the challenge–response of command_auth.py, then `controls.reset(requester=...)` / `controls.test_trip(requester=...)` |
 | `cmd/limits` | queryable, the same challenge–response, args checked (limits_args.py), then `controls.limits_command(args, requester)` |
 | `cmd/afc` | queryable, the same challenge–response, args checked (`check_afc_args`), then `controls.afc_command(args, requester)` |
-| `context` | subscriber (when `[context] source` is auto or zenoh): `controls.on_context_payload(obj, source)` |
+| `context` | subscriber (when `[context] source` is auto or zenoh): `controls.on_context_payload(obj, source)`; the runner judges who vouches for it (learning/context_auth.py: a signed put that fails its MAC, run or sequence is refused and counted here; an unsigned one labels, never lets AFC run) |
 | `alive` | liveliness token |
 
 The queryables take bounded ring channels, each served by its own worker thread
