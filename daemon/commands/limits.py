@@ -142,7 +142,8 @@ def _list_lines(machine: str, reply: dict[str, Any]) -> list[str]:
             learned, target = e.get("learned"), e.get("learn_target")
             progress = f" {learned}/{target} learned" if learned is not None and target is not None else ""
             rest = "  ".join(f"{k} {_value(v)}" for k, v in e.items()
-                             if k not in ("key", "program", "tool", "operation", "state", "envelope", "learned", "learn_target")
+                             if k not in ("key", "program", "tool", "operation", "state", "envelope", "learned", "learn_target",
+                                          "set_aside", "low_check")   # those two: a warning line of their own
                              and not isinstance(v, (list, dict)))
             lines.append(f"  {e.get('key')!s:<18} {state:<9}{progress}  {rest}".rstrip())
             lines += _warnings(e)
