@@ -73,11 +73,6 @@ def payload_json(data: dict[str, Any]) -> str:
     return dumps(data).decode()
 
 
-def loads(text: str) -> dict[str, Any]:
-    value = json.loads(text)
-    return value if isinstance(value, dict) else {"value": value}
-
-
 class UnreadableRow(ValueError):
     """A stored row that is not JSON: given instead of its value, with its text (kept, so nothing is lost)."""
 

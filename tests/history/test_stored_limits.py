@@ -201,3 +201,18 @@ def test_a_bad_tool_row_starts_that_tool_afresh(db):
     notes = m.take_restore_notes()
     assert [n[1]["tool"] for n in notes] == ["12", "x"]
     assert ProcessMonitor(learning(), tools=records.UnreadableRow("not JSON", "{")).tools == {}
+
+
+def test_the_export_of_limits_reads_any_stored_row(db, tmp_path):
+    """`millsense history --what limits` shows a row that is not JSON as what it is, never a traceback."""
+    import subprocess
+    import sys
+
+    _write(db, [(ACTIVE, "{torn"), (LEARNING, json.dumps(GOOD[LEARNING]))])
+    p = subprocess.run([sys.executable, "-m", "millsense.daemon", "history", "--db", str(db), "--what", "limits",
+                        "--format", "jsonl"], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and "Traceback" not in p.stderr, p.stderr
+    rows = {r["key"]: r["payload"] for r in map(json.loads, p.stdout.splitlines())}
+    assert rows[ACTIVE] == {"unreadable": "not JSON: Expecting property name enclosed in double quotes: line 1 column 2 "
+                                          "(char 1)", "text": "{torn"}
+    assert rows[LEARNING] == GOOD[LEARNING]
