@@ -85,7 +85,7 @@ def _last_alarms(alarms: Any) -> list[dict[str, Any]]:
         for k, v in observed.items():
             if not str(k).isdigit() or len(str(k)) > 9:
                 raise ValueError(f"{where}.observed: {k!r} is not a process_rev")
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > 1e9:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or abs(v) > 1e9 or not math.isfinite(v):
                 raise ValueError(f"{where}.observed[{k}]: {v!r} is not a finite number")
             values[int(k)] = float(v)
         out.append(dict(a, observed=values))

@@ -65,7 +65,7 @@ class ToolWear:
         if isinstance(processes, bool) or not isinstance(processes, int) or not 0 <= processes <= 10**12:
             raise ValueError(f"processes: {processes!r} is not a count")
         if not isinstance(ratios, list) or not all(
-                not isinstance(r, bool) and isinstance(r, (int, float)) and math.isfinite(r) and 0 <= r <= 1e6
+                not isinstance(r, bool) and isinstance(r, (int, float)) and 0 <= r <= 1e6 and math.isfinite(r)
                 for r in ratios):
             raise ValueError("ratios: not a list of finite energy ratios")
         if not isinstance(warned, bool):
