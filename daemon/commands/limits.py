@@ -30,14 +30,18 @@ ACTIONS_HELP = """\
     millsense limits show KEY                  one key's envelope
     millsense limits accept KEY                activate a learned envelope waiting for it ([learning] confirm)
     millsense limits relearn KEY               forget it; the next good processes teach it again
-    millsense limits widen KEY --pct N         widen its band by N %
+    millsense limits widen KEY --pct N         widen its band by N % (in all at most 4x the learned width
+                                               since the last relearn, never above the fixed [alarms] limits)
     millsense limits narrow KEY --pct N        narrow it by N % (never below the configured floors)
     millsense limits false-alarm KEY           the last alarm of KEY was false: widen the band where it fired
     millsense limits new-tool TOOL             a new cutter in T<TOOL>: its life count and wear start again
+    millsense limits low-off KEY               stop checking KEY's envelope_low (a broken flute or a missing
+                                               tool then goes unseen by it; audited); low-on KEY: check it again
 """
 # The CLI's words (hyphens, as the other subcommands) -> the action of cmd/limits.
 ACTIONS = {"list": "list", "show": "show", "accept": "accept", "relearn": "relearn", "widen": "widen",
-           "narrow": "narrow", "false-alarm": "false_alarm", "new-tool": "new_tool"}
+           "narrow": "narrow", "false-alarm": "false_alarm", "new-tool": "new_tool", "low-off": "low_off",
+           "low-on": "low_on"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -126,6 +130,7 @@ def _value(value: Any) -> str:
 
 def _list_lines(machine: str, reply: dict[str, Any]) -> list[str]:
     entries = _entries(reply.get("limits"))
+    aside = [a for a in reply.get("set_aside") or [] if isinstance(a, dict)]
     if reply.get("enabled") is False:
         lines = [f"{machine}: learning is off ([learning] enabled = false): fixed limits only"]
     elif not entries:
@@ -137,9 +142,15 @@ def _list_lines(machine: str, reply: dict[str, Any]) -> list[str]:
             learned, target = e.get("learned"), e.get("learn_target")
             progress = f" {learned}/{target} learned" if learned is not None and target is not None else ""
             rest = "  ".join(f"{k} {_value(v)}" for k, v in e.items()
-                             if k not in ("key", "program", "tool", "operation", "state", "envelope", "learned", "learn_target")
+                             if k not in ("key", "program", "tool", "operation", "state", "envelope", "learned", "learn_target",
+                                          "set_aside", "low_check")   # those two: a warning line of their own
                              and not isinstance(v, (list, dict)))
             lines.append(f"  {e.get('key')!s:<18} {state:<9}{progress}  {rest}".rstrip())
+            lines += _warnings(e)
+    listed = {str(e.get("key")) for e in entries}
+    for a in aside:   # a stored row whose key is no process key: only here
+        if str(a.get("key")) not in listed:
+            lines.append(f"  ! {a.get('key')!s}: stored limits set aside: {a.get('reason')}")
     tools = reply.get("tools")
     if isinstance(tools, dict) and tools:
         lines.append("  tools:")
@@ -151,9 +162,19 @@ def _list_lines(machine: str, reply: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _warnings(entry: dict[str, Any]) -> list[str]:
+    """What an operator must not miss about one key: its stored limits set aside, envelope_low off."""
+    out = []
+    if entry.get("set_aside"):
+        out.append(f"    ! stored limits set aside ({entry['set_aside']}): learning afresh, the fixed limits apply")
+    if entry.get("low_check") is False:
+        out.append("    ! envelope_low is off for this key (limits low-on KEY turns it on)")
+    return out
+
+
 def _show_lines(machine: str, key: str, reply: dict[str, Any]) -> list[str]:
     body = reply.get("limits") if isinstance(reply.get("limits"), dict) else reply
-    lines = [f"{machine}: limits of {key}"]
+    lines = [f"{machine}: limits of {key}"] + _warnings(body)
     for name, value in body.items():
         if name not in ("ok", "action", "key", "machine"):
             lines.append(f"  {name}: {_value(value)}")
@@ -166,7 +187,9 @@ def _change_lines(machine: str, request: dict[str, Any], reply: dict[str, Any]) 
     done = {"accept": "accepted: its envelope is active", "relearn": "forgotten: the next good processes teach it",
             "widen": f"widened by {request.get('pct')} %", "narrow": f"narrowed by {request.get('pct')} %",
             "false_alarm": "alarm marked false: the band widens where it fired",
-            "new_tool": "new tool: life and wear start again"}[action]
+            "new_tool": "new tool: life and wear start again",
+            "low_off": "envelope_low is off: not checked until low-on",
+            "low_on": "envelope_low is on again"}[action]
     lines = [f"{machine}: {what} {done}"]
     for name, value in reply.items():
         if name not in ("ok", "action", "key", "pct", "tool", "machine"):

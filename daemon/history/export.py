@@ -14,6 +14,7 @@ import sqlite3
 from pathlib import Path
 from typing import Any, Iterator, TextIO
 
+from millsense.daemon.history.records import UnreadableRow, stored_value
 from millsense.daemon.history.schema import REVOLUTION_COLUMNS, check_version, version_of
 
 TABLES = ("revolutions", "processes", "alarms", "limits")
@@ -92,13 +93,16 @@ def rows(conn: sqlite3.Connection, what: str, *, t_from: float | None = None, t_
 
 def _limits(conn, program, tool, operation) -> Iterator[dict[str, Any]]:
     for key, t, payload in conn.execute("SELECT key, t, payload FROM limits ORDER BY key"):
-        parts = (key.split("/") + [None, None, None])[:3]
+        parts = (str(key).split("/") + [None, None, None])[:3]
         numbers = [int(p) if p is not None and p.isdigit() else None for p in parts]
         wanted = (program, tool, operation)
         if any(w is not None and n != w for w, n in zip(wanted, numbers)):
             continue
+        value = stored_value(payload)   # a row that is not JSON is exported as what it is, never an error
+        if isinstance(value, UnreadableRow):
+            value = {"unreadable": str(value), "text": value.text}
         yield {"key": key, "t": t, "program": numbers[0], "tool": numbers[1], "operation": numbers[2],
-               "payload": json.loads(payload)}
+               "payload": value}
 
 
 def fields_of(what: str) -> tuple[str, ...]:

@@ -73,6 +73,34 @@ def payload_json(data: dict[str, Any]) -> str:
     return dumps(data).decode()
 
 
-def loads(text: str) -> dict[str, Any]:
-    value = json.loads(text)
-    return value if isinstance(value, dict) else {"value": value}
+class UnreadableRow(ValueError):
+    """A stored row that is not JSON: given instead of its value, with its text (kept, so nothing is lost)."""
+
+    def __init__(self, reason: str, text: Any):
+        super().__init__(reason)
+        self.text = text if isinstance(text, str) else repr(text)
+
+
+def stored_value(text: Any) -> Any:
+    """A learned-limits row's payload as it was stored: any JSON value, or UnreadableRow saying why not.
+
+    Strict: NaN, Infinity and numbers too large for a float are not JSON (the learning's own check says
+    so with the field's name). Never raises: a row that fails is set aside by its reader, never the start.
+    """
+    if not isinstance(text, str):
+        return UnreadableRow(f"stored as {type(text).__name__}, not JSON text", text)
+    try:
+        return json.loads(text, parse_constant=_no_constant, parse_float=_finite_float)
+    except (ValueError, RecursionError) as exc:
+        return UnreadableRow(f"not JSON: {str(exc)[:120]}", text)
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):   # 1e999: JSON's grammar, but no number a float holds
+        raise ValueError(f"{text[:40]} is beyond a float")
+    return value

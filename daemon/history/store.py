@@ -222,12 +222,16 @@ class HistoryStore:
             pass  # a full queue ends the batch by its size anyway
 
     # -- reading, at start ----------------------------------------------------------------
-    def load_limits(self) -> dict[str, dict]:
-        return {key: records.loads(text) for key, text in self._read("SELECT key, payload FROM limits ORDER BY key")}
+    def load_limits(self) -> dict[str, Any]:
+        """Every stored key's learned limits as stored: a JSON value, or `records.UnreadableRow` for a row that is
+        not JSON. Never raises for a row: the learning checks each and sets aside what fails (docs/learning.md)."""
+        return {str(key): records.stored_value(text)
+                for key, text in self._read("SELECT key, payload FROM limits ORDER BY key")}
 
-    def load_tools(self) -> dict:
+    def load_tools(self) -> Any:
+        """The stored tool table (a JSON value, or UnreadableRow), {} when there is none."""
         rows = self._read("SELECT payload FROM tools WHERE id = 1")
-        return records.loads(rows[0][0]) if rows else {}
+        return records.stored_value(rows[0][0]) if rows else {}
 
     def last_process_id(self) -> int:
         """The highest process id in the history (0: none), so that ids go on across restarts."""

@@ -9,6 +9,6 @@ replay runs the same code on a capture. See docs/learning.md.
 - `wear.py`: tool life and wear per tool number.
 - `process.py`: one process being watched (its per-revolution arrays, its alarms).
 - `keys.py`: the state of one process key (learning, pending, active) and its summaries.
-- `actions.py`: the operator's actions (accept, relearn, widen, narrow, false_alarm, new_tool).
+- `actions.py`: the operator's actions (accept, relearn, widen, narrow, false_alarm, new_tool, low_off, low_on).
 - `monitor.py`: `ProcessMonitor`, which ties them together.
 """

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from millsense.daemon.learning.envelope import LOW_MAX_FRACTION, MAX_WIDENING, WideningCapped
 from millsense.daemon.learning.keys import KEY_RE, UINT32_MAX, KeyState, seen_outside
 from millsense.daemon.learning.process import finite
 from millsense.daemon.learning.wear import ToolWear
@@ -16,7 +17,9 @@ from millsense.daemon.learning.wear import ToolWear
 if TYPE_CHECKING:
     from millsense.daemon.learning.monitor import ProcessMonitor
 
-ACTIONS = ("list", "show", "accept", "relearn", "widen", "narrow", "false_alarm", "new_tool")
+# The one list of actions: `cmd/limits`, `millsense limits` and the local socket check against it
+# (publish/limits_args.py imports it). `low_off` / `low_on`: envelope_low off or on for one key.
+ACTIONS = ("list", "show", "accept", "relearn", "widen", "narrow", "false_alarm", "new_tool", "low_off", "low_on")
 MAX_PCT = 500.0
 
 
@@ -39,9 +42,11 @@ def run_command(m: "ProcessMonitor", args: Any) -> dict[str, Any]:
         return _refused(f"no learned limits for {key} (known: {', '.join(sorted(m.keys)) or 'none'})")
     if action == "show":
         return {"ok": True, "action": action, **m.show(key)}
-    if action == "relearn":
-        m.keys[key] = KeyState()
+    if action == "relearn":   # the operator's low-off stays (its own command turns it on); a set-aside row is kept
+        m.keys[key] = KeyState(low_check=ks.low_check, set_aside_row=ks.set_aside_row)
         return _done(m, action, key)
+    if action in ("low_off", "low_on"):
+        return _low_check(m, action, key, ks)
     if ks.envelope is None:
         return _refused(f"{key} is still learning ({len(ks.taught)} of {m.target} processes): nothing to {action}")
     if action == "accept":
@@ -54,10 +59,22 @@ def run_command(m: "ProcessMonitor", args: Any) -> dict[str, Any]:
         pct = None if isinstance(pct, (bool, str)) else finite(pct)
         top = 99.0 if action == "narrow" else MAX_PCT
         if pct is None or not 0 < pct <= top:
-            return _refused(f"{action} needs pct, a number above 0 and at most {top:g}, not {args.get('pct')!r}")
-        getattr(ks.envelope, action)(pct)
-        return _done(m, action, key, pct=pct)
+            return _refused(f"{action} needs pct, a finite number above 0 and at most {top:g}, not {args.get('pct')!r}")
+        try:
+            getattr(ks.envelope, action)(pct)
+        except WideningCapped as exc:
+            return _refused(f"{key}: {exc}")
+        return _done(m, action, key, pct=pct, widening=round(ks.envelope.widening(), 3))
     return _false_alarm(m, key, ks)
+
+
+def _low_check(m: "ProcessMonitor", action: str, key: str, ks: KeyState) -> dict[str, Any]:
+    """envelope_low off (or on again) for one key: the one way to stop it (widening never reaches 0)."""
+    on = action == "low_on"
+    if ks.low_check == on:
+        return _refused(f"envelope_low is already {'on' if on else 'off'} for {key}: nothing to change")
+    ks.low_check = on
+    return _done(m, action, key, low_check=on)
 
 
 def _false_alarm(m: "ProcessMonitor", key: str, ks: KeyState) -> dict[str, Any]:
@@ -68,10 +85,17 @@ def _false_alarm(m: "ProcessMonitor", key: str, ks: KeyState) -> dict[str, Any]:
         alarms = seen_outside(proc)
     if not alarms:
         return _refused(f"no envelope alarm of {key} to mark false")
-    for alarm in alarms:
-        ks.envelope.false_alarm(alarm["level"], alarm["quantity"], alarm["observed"])
+    bounded = [a["quantity"] for a in alarms
+               if not ks.envelope.false_alarm(a["level"], a["quantity"], a["observed"])]
     ks.last_alarms = []
-    return _done(m, "false_alarm", key, alarms=[{k: a[k] for k in ("level", "quantity", "process")} for a in alarms])
+    extra: dict[str, Any] = {}
+    if bounded:   # what was seen does not fit within the bounds: say so, the alarm may come again
+        extra["bounded"] = (
+            f"{', '.join(sorted(set(bounded)))}: the band reached its bounds (at most {MAX_WIDENING:g}× the learned "
+            f"width, the high side under the fixed [alarms] limit, the low side at most {LOW_MAX_FRACTION:.0%} below "
+            f"the mean); the same alarm may come again: relearn {key}, or low-off {key} for envelope_low")
+    return _done(m, "false_alarm", key, alarms=[{k: a[k] for k in ("level", "quantity", "process")} for a in alarms],
+                 **extra)
 
 
 def _new_tool(m: "ProcessMonitor", tool: Any) -> dict[str, Any]:

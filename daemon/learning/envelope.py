@@ -23,6 +23,20 @@ Force gets a band where every learned process that reached k knew its force.
 Also learned: the length (median, the lower middle one), the entry offset
 (revolutions from process start to entry: mean, std, max) and the cutting
 energy baseline (mean, std).
+
+The operator's adjustments (`widen`, `narrow`, `false_alarm`) are bounded on
+both sides, after every change and at restore (`Envelope.bound`):
+
+- every half-width at most MAX_WIDENING times the one learned (widening since
+  the last relearn is capped; a `widen` past it is refused, `WideningCapped`);
+- the high side never above the fixed `[alarms]` limit of its quantity
+  (`torque_limit_nm`, `force_limit_n`: that limit trips every cut anyway);
+- the low side, and the energy band's, never more than LOW_MAX_FRACTION below the
+  learned mean (unless it was learned lower): a broken flute (15-25 %) or a missing
+  tool still fall below it; turning `envelope_low` off is its own command.
+A stored envelope is checked value by value when it is read (`from_dict`): a
+number that is missing, of the wrong type, not finite or beyond MAX_MAGNITUDE
+raises ValueError naming the field.
 """
 
 from __future__ import annotations
@@ -37,6 +51,18 @@ import numpy as np
 
 FALSE_ALARM_MARGIN_PCT = 10.0   # a value marked as a false alarm fits with this much room
 MAX_ADJUSTMENTS = 50            # adjustments remembered per key (the newest)
+# Operator adjustments never take a half-width past this multiple of the one learned (docs/learning.md): a band
+# widened 4x is already 100 % above the mean at the default 25 % floor. Before, 400 `widen --pct 500` overflowed
+# every width to inf, stored as null, and the daemon could no longer start.
+MAX_WIDENING = 4.0
+# ... and never take the low side more than this share of the learned mean below it (unless learned lower): a
+# broken flute of a two-flute cutter (about 25 % less torque, [D] eq. 9) and a missing tool (none) stay below it.
+LOW_MAX_FRACTION = 0.20
+MAX_MAGNITUDE = 1e9             # a stored number beyond this (N·m, N, J, revolutions) is not a learned value
+
+
+class WideningCapped(ValueError):
+    """A `widen` that would pass MAX_WIDENING since the last relearn (refused, nothing changed)."""
 
 
 def setting(section: Any, name: str, default: Any) -> Any:
@@ -78,17 +104,17 @@ class Taught:
                 "entry_rev": int(self.entry_rev), "energy_j": float(self.energy_j)}
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "Taught":
-        return cls(_array(d["torque_nm"]), _array(d["force_n"]), int(d["entry_rev"]), float(d["energy_j"]))
+    def from_dict(cls, d: Any, where: str = "taught") -> "Taught":
+        """A stored process, every value checked (ValueError naming the field)."""
+        d = _mapping(d, where)
+        torque = _checked_array(d.get("torque_nm"), f"{where}.torque_nm")
+        return cls(torque, _checked_array(d.get("force_n"), f"{where}.force_n", len(torque)),
+                   _whole(d.get("entry_rev"), f"{where}.entry_rev"), _number(d.get("energy_j"), f"{where}.energy_j"))
 
 
 def json_list(a: np.ndarray) -> list[float | None]:
     """JSON-safe: NaN (no value) as None."""
     return [None if not math.isfinite(x) else float(x) for x in np.asarray(a, dtype=float).tolist()]
-
-
-def _array(values: Any) -> np.ndarray:
-    return np.array([math.nan if v is None else float(v) for v in values], dtype=float)
 
 
 @dataclass
@@ -101,6 +127,8 @@ class Band:
     h_low: np.ndarray
     floor_high: np.ndarray    # the configured floors: `narrow` never goes below them
     floor_low: np.ndarray
+    sigma: float = 4.0        # the sigma it was learned with: the learned half-widths are max(sigma·std, floor)
+    ceiling: float | None = None   # the fixed [alarms] limit of its quantity (not stored: the config's)
     # per k, NaN where there is no band: array('d') is 8 bytes a value (a list of floats 32) and
     # indexes to a Python float (one lookup per revolution, no numpy call)
     high_nan: array = field(init=False)
@@ -127,7 +155,34 @@ class Band:
         floor_high = np.maximum(w.pct / 100.0 * np.abs(mean), w.floor)
         floor_low = np.maximum(w.low_pct / 100.0 * np.abs(mean), w.floor)
         return cls(mean, std, np.maximum(w.sigma * std, floor_high), np.maximum(w.sigma * std, floor_low),
-                   floor_high, floor_low)
+                   floor_high, floor_low, float(w.sigma))
+
+    @property
+    def learned_high(self) -> np.ndarray:
+        """The half-widths as learned (high side): what MAX_WIDENING multiplies."""
+        return np.maximum(self.sigma * self.std, self.floor_high)
+
+    @property
+    def learned_low(self) -> np.ndarray:
+        return np.maximum(self.sigma * self.std, self.floor_low)
+
+    def widening(self) -> float:
+        """The largest half-width over the one learned (1.0 as learned), over both sides."""
+        ratios = [_ratio(h, h0) for h, h0 in ((self.h_high, self.learned_high), (self.h_low, self.learned_low))]
+        return max(ratios)
+
+    def bound(self) -> None:
+        """Hold every half-width within its bounds (module doc), then recompute high/low."""
+        mean = self.mean
+        with np.errstate(invalid="ignore"):
+            cap_high = MAX_WIDENING * self.learned_high
+            if self.ceiling is not None:
+                cap_high = np.minimum(cap_high, np.maximum(self.ceiling - mean, 0.0))
+            h0_low = self.learned_low
+            cap_low = np.minimum(MAX_WIDENING * h0_low, np.maximum(h0_low, LOW_MAX_FRACTION * np.abs(mean)))
+            self.h_high = np.minimum(self.h_high, cap_high)
+            self.h_low = np.minimum(self.h_low, cap_low)
+        self.refresh()
 
     def refresh(self) -> None:
         """high/low from mean and half-widths, each the union over k−1 … k+1 (see the module doc)."""
@@ -144,10 +199,10 @@ class Band:
         self.high_nan, self.low_nan = high, low
 
     def scale(self, factor: float) -> None:
-        """Widen (factor > 1) or narrow (< 1) every half-width, never below the floors."""
+        """Widen (factor > 1) or narrow (< 1) every half-width, never below the floors, within the bounds."""
         self.h_high = np.maximum(self.h_high * factor, self.floor_high)
         self.h_low = np.maximum(self.h_low * factor, self.floor_low)
-        self.refresh()
+        self.bound()
 
     def fit(self, level: str, observed: dict[int, float], margin_pct: float) -> None:
         """Widen at the revolutions observed so that each value fits with `margin_pct` to spare."""
@@ -159,14 +214,81 @@ class Band:
                 self.h_high[k] = max(self.h_high[k], v + m * abs(v) - self.mean[k])
             else:
                 self.h_low[k] = max(self.h_low[k], self.mean[k] - (v - m * abs(v)))
-        self.refresh()
+        self.bound()
+
+    def fits(self, level: str, observed: dict[int, float]) -> bool:
+        """Every value observed inside the band on the side of `level` (after a `fit`, unless bounded)."""
+        for k, v in observed.items():
+            if not 0 <= k < len(self.mean) or math.isnan(self.mean[k]):
+                continue
+            low, high = self.bounds(k)
+            if high is not None and (v > high if level == "envelope_high" else low > 0 and v < low):
+                return False
+        return True
 
     def to_dict(self) -> dict[str, Any]:
-        return {name: json_list(getattr(self, name)) for name in ("mean", "std", "h_high", "h_low", "floor_high", "floor_low")}
+        out: dict[str, Any] = {name: json_list(getattr(self, name)) for name in _BAND_ARRAYS}
+        out["sigma"] = self.sigma
+        return out
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "Band":
-        return cls(*(_array(d[name]) for name in ("mean", "std", "h_high", "h_low", "floor_high", "floor_low")))
+    def from_dict(cls, d: Any, length: int, sigma: float, where: str) -> "Band":
+        """A stored band, every value checked (ValueError naming the field); `sigma`: for a band stored
+        before it was kept (the config's)."""
+        d = _mapping(d, where)
+        arrays = [_checked_array(d.get(name), f"{where}.{name}", length) for name in _BAND_ARRAYS]
+        known = np.isfinite(arrays[0])
+        for name, values in zip(_BAND_ARRAYS[1:], arrays[1:]):
+            if not np.all(np.isfinite(values[known]) & (values[known] >= 0.0)):
+                raise ValueError(f"{where}.{name}: not a finite number >= 0 where the mean is known")
+        sigma = _number(d.get("sigma", sigma), f"{where}.sigma", 0.0, MAX_MAGNITUDE)
+        return cls(*arrays, sigma=sigma)
+
+
+_BAND_ARRAYS = ("mean", "std", "h_high", "h_low", "floor_high", "floor_low")
+
+
+def _ratio(h: np.ndarray, h0: np.ndarray) -> float:
+    """max(h / h0) where both are known and h0 > 0; 1.0 where nothing compares."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ok = np.isfinite(h) & np.isfinite(h0) & (h0 > 0)
+        return float(np.max(h[ok] / h0[ok])) if ok.any() else 1.0
+
+
+def _scalar_ratio(h: float, h0: float) -> float:
+    return h / h0 if h0 > 0 else 1.0
+
+
+def _mapping(d: Any, where: str) -> dict[str, Any]:
+    if not isinstance(d, dict):
+        raise ValueError(f"{where}: not an object ({type(d).__name__})")
+    return d
+
+
+def _number(value: Any, where: str, low: float = -MAX_MAGNITUDE, high: float = MAX_MAGNITUDE) -> float:
+    """A stored number: int or float (not bool), finite, within [low, high]; ValueError naming it otherwise."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{where}: not a number ({'missing' if value is None else type(value).__name__})")
+    number = float(value) if not isinstance(value, int) or abs(value) <= 2 * MAX_MAGNITUDE else math.inf
+    if not math.isfinite(number) or not low <= number <= high:
+        raise ValueError(f"{where}: {value!r} is not a finite number in {low:g} … {high:g}")
+    return number
+
+
+def _whole(value: Any, where: str, low: int = 0, high: int = 10**9) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        raise ValueError(f"{where}: {value!r} is not a whole number in {low} … {high}")
+    return value
+
+
+def _checked_array(values: Any, where: str, length: int | None = None) -> np.ndarray:
+    """A stored per-revolution list: numbers or null (no value), finite; `length` long when given."""
+    if not isinstance(values, list):
+        raise ValueError(f"{where}: not a list ({'missing' if values is None else type(values).__name__})")
+    if length is not None and len(values) != length:
+        raise ValueError(f"{where}: {len(values)} values, not {length}")
+    return np.array([math.nan if v is None else _number(v, f"{where}[{i}]") for i, v in enumerate(values)],
+                    dtype=float)
 
 
 @dataclass
@@ -187,6 +309,14 @@ class Envelope:
     energy_h_j: float         # the energy band's low half-width
     energy_floor_j: float
     adjustments: list[dict[str, Any]] = field(default_factory=list)
+    entry_margin_learned: float = math.nan   # as learned: what MAX_WIDENING multiplies (NaN: the current one)
+    energy_h_learned_j: float = math.nan
+
+    def __post_init__(self) -> None:
+        if math.isnan(self.entry_margin_learned):
+            self.entry_margin_learned = self.entry_margin
+        if math.isnan(self.energy_h_learned_j):
+            self.energy_h_learned_j = self.energy_h_j
 
     # -- checks ------------------------------------------------------------
     @property
@@ -203,9 +333,42 @@ class Envelope:
     def energy_low_j(self) -> float:
         return self.energy_mean_j - self.energy_h_j
 
+    # -- bounds (module doc) -----------------------------------------------
+    def set_ceilings(self, torque_nm: float | None, force_n: float | None) -> None:
+        """The fixed [alarms] limits the high side never passes; the envelope is bounded at once."""
+        self.torque.ceiling = torque_nm
+        if self.force is not None:
+            self.force.ceiling = force_n
+        self.bound()
+
+    def bound(self) -> None:
+        """Every half-width within its bounds: MAX_WIDENING × learned, the fixed limit, the low floor."""
+        for band in (self.torque, self.force):
+            if band is not None:
+                band.bound()
+        self.entry_margin = min(self.entry_margin, MAX_WIDENING * self.entry_margin_learned)
+        h0 = self.energy_h_learned_j
+        self.energy_h_j = min(self.energy_h_j, MAX_WIDENING * h0, max(h0, LOW_MAX_FRACTION * abs(self.energy_mean_j)))
+
+    def widening(self) -> float:
+        """How far the widest half-width is from the one learned (1.0: as learned; at most MAX_WIDENING)."""
+        ratios = [band.widening() for band in (self.torque, self.force) if band is not None]
+        ratios += [_scalar_ratio(self.entry_margin, self.entry_margin_learned),
+                   _scalar_ratio(self.energy_h_j, self.energy_h_learned_j)]
+        return max(ratios)
+
     # -- operator adjustments ---------------------------------------------
     def widen(self, pct: float) -> None:
-        self._scale(1.0 + pct / 100.0)
+        """Every half-width × (1 + pct/100), within the bounds; WideningCapped (nothing changed) past MAX_WIDENING."""
+        factor = 1.0 + pct / 100.0
+        now = self.widening()
+        if not math.isfinite(factor) or factor <= 0 or now * factor > MAX_WIDENING * (1.0 + 1e-9):
+            room = max(math.floor((MAX_WIDENING / now - 1.0) * 100.0 + 1e-6), 0) if now > 0 else 0
+            raise WideningCapped(
+                f"widening is capped at {MAX_WIDENING:g}× the learned width since the last relearn "
+                f"(now {now:.2f}×, {pct:g} % more would make {now * factor:.2f}×): "
+                + (f"at most {room} % more" if room >= 1 else "no more") + ", or relearn it")
+        self._scale(factor)
         self._note({"action": "widen", "pct": float(pct)})
 
     def narrow(self, pct: float) -> None:
@@ -218,28 +381,38 @@ class Envelope:
                 band.scale(factor)
         self.entry_margin = max(self.entry_margin * factor, self.entry_floor)
         self.energy_h_j = max(self.energy_h_j * factor, self.energy_floor_j)
+        self.bound()
 
     def false_alarm(self, level: str, quantity: str, observed: dict[int, float],
-                    margin_pct: float = FALSE_ALARM_MARGIN_PCT) -> None:
+                    margin_pct: float = FALSE_ALARM_MARGIN_PCT) -> bool:
         """The operator says an alarm was false: widen where it was raised so that what was seen fits.
 
         `observed`: process_rev → value for torque/force; for "entry" {0: revolutions
-        without entry}; for "cutting_energy_j" {0: the process's energy}.
+        without entry}; for "cutting_energy_j" {0: the process's energy}. Within the
+        bounds: False when they kept what was seen from fitting (the alarm may come again).
         """
         m = margin_pct / 100.0
+        observed = {k: v for k, v in observed.items() if v is not None and math.isfinite(v)}
+        fits = True
         if quantity == "entry":
             seen = max(observed.values(), default=0.0)
             self.entry_margin = max(self.entry_margin, seen * (1.0 + m) + 1.0 - self.entry_max)
+            self.bound()
+            fits = self.entry_deadline > seen
         elif quantity == "cutting_energy_j":
             seen = min(observed.values(), default=self.energy_mean_j)
             self.energy_h_j = max(self.energy_h_j, self.energy_mean_j - seen * (1.0 - m))
+            self.bound()
+            fits = self.energy_low_j <= seen
         else:
             band = self.force if quantity == "force_n" else self.torque
             if band is not None:
                 band.fit(level, observed, margin_pct)
+                fits = band.fits(level, observed)
         ks = sorted(observed)
         self._note({"action": "false_alarm", "level": level, "quantity": quantity,
                     "revs": [ks[0], ks[-1]] if ks else []})
+        return fits
 
     def _note(self, adjustment: dict[str, Any]) -> None:
         self.adjustments.append(adjustment)
@@ -251,20 +424,48 @@ class Envelope:
             "n": self.n, "length": self.length, "torque": self.torque.to_dict(),
             "force": None if self.force is None else self.force.to_dict(),
             "entry": {"mean": self.entry_mean, "std": self.entry_std, "max": self.entry_max,
-                      "margin": self.entry_margin, "floor": self.entry_floor},
+                      "margin": self.entry_margin, "floor": self.entry_floor,
+                      "margin_learned": self.entry_margin_learned},
             "energy": {"mean_j": self.energy_mean_j, "std_j": self.energy_std_j, "h_j": self.energy_h_j,
-                       "floor_j": self.energy_floor_j},
+                       "floor_j": self.energy_floor_j, "h_learned_j": self.energy_h_learned_j},
             "adjustments": [dict(a) for a in self.adjustments],
         }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "Envelope":
-        entry, energy = d["entry"], d["energy"]
-        return cls(int(d["n"]), int(d["length"]), Band.from_dict(d["torque"]),
-                   None if d.get("force") is None else Band.from_dict(d["force"]),
-                   float(entry["mean"]), float(entry["std"]), int(entry["max"]), float(entry["margin"]),
-                   float(entry["floor"]), float(energy["mean_j"]), float(energy["std_j"]), float(energy["h_j"]),
-                   float(energy["floor_j"]), [dict(a) for a in d.get("adjustments", [])])
+    def from_dict(cls, d: Any, widths: Widths | None = None) -> "Envelope":
+        """A stored envelope, every value checked (ValueError naming the field, never another error).
+
+        `widths` (the `[learning]` settings): the learned widths of an envelope stored before they
+        were kept, as `learn` makes them. The result is bounded (no ceilings yet: `set_ceilings`).
+        """
+        w = widths or Widths()
+        d = _mapping(d, "envelope")
+        entry, energy = _mapping(d.get("entry"), "envelope.entry"), _mapping(d.get("energy"), "envelope.energy")
+        length = _whole(d.get("length"), "envelope.length")
+        torque = Band.from_dict(d.get("torque"), length, w.sigma, "envelope.torque")
+        force = None if d.get("force") is None else Band.from_dict(d["force"], length, w.sigma, "envelope.force")
+        entry_mean = _number(entry.get("mean"), "envelope.entry.mean", 0.0)
+        entry_std = _number(entry.get("std"), "envelope.entry.std", 0.0)
+        energy_mean = _number(energy.get("mean_j"), "envelope.energy.mean_j")
+        energy_std = _number(energy.get("std_j"), "envelope.energy.std_j", 0.0)
+        entry_floor = _number(entry.get("floor"), "envelope.entry.floor", 0.0)
+        energy_floor = _number(energy.get("floor_j"), "envelope.energy.floor_j", 0.0)
+        margin0 = entry.get("margin_learned")
+        margin0 = (max(entry_floor, w.sigma * entry_std, w.pct / 100.0 * entry_mean) if margin0 is None
+                   else _number(margin0, "envelope.entry.margin_learned", 0.0))
+        h0 = energy.get("h_learned_j")
+        h0 = (max(w.sigma * energy_std, energy_floor) if h0 is None
+              else _number(h0, "envelope.energy.h_learned_j", 0.0))
+        adjustments = d.get("adjustments", [])
+        if not isinstance(adjustments, list) or not all(isinstance(a, dict) for a in adjustments):
+            raise ValueError("envelope.adjustments: not a list of objects")
+        env = cls(_whole(d.get("n"), "envelope.n", 1), length, torque, force,
+                  entry_mean, entry_std, _whole(entry.get("max"), "envelope.entry.max"),
+                  _number(entry.get("margin"), "envelope.entry.margin", 0.0), entry_floor,
+                  energy_mean, energy_std, _number(energy.get("h_j"), "envelope.energy.h_j", 0.0), energy_floor,
+                  [dict(a) for a in adjustments[-MAX_ADJUSTMENTS:]], margin0, h0)
+        env.bound()
+        return env
 
 
 def _stats(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -312,6 +513,8 @@ def learn(taught: list[Taught], learning: Any) -> Envelope:
     entry_floor = float(w_torque.low_revolutions)
     entry_margin = max(entry_floor, w_torque.sigma * entry_std, w_torque.pct / 100.0 * entry_mean)
     energy_floor = w_torque.low_pct / 100.0 * abs(energy_mean)
-    return Envelope(len(taught), length, torque_band, force_band, entry_mean, entry_std, int(max(entries)),
-                    entry_margin, entry_floor, energy_mean, energy_std,
-                    max(w_torque.sigma * energy_std, energy_floor), energy_floor)
+    env = Envelope(len(taught), length, torque_band, force_band, entry_mean, entry_std, int(max(entries)),
+                   entry_margin, entry_floor, energy_mean, energy_std,
+                   max(w_torque.sigma * energy_std, energy_floor), energy_floor)
+    env.bound()
+    return env

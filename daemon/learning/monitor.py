@@ -42,8 +42,8 @@ from typing import Any
 
 from millsense.daemon.learning.actions import ACTIONS, run_command
 from millsense.daemon.learning.context import Ctx
-from millsense.daemon.learning.envelope import Envelope, Taught, learn, setting
-from millsense.daemon.learning.keys import KeyState, key_show, key_summary, seen_outside
+from millsense.daemon.learning.envelope import Envelope, Taught, Widths, learn, setting
+from millsense.daemon.learning.keys import KEY_RE, UINT16_MAX, UINT32_MAX, KeyState, key_show, key_summary, seen_outside
 from millsense.daemon.learning.process import ProcessRun, finite
 from millsense.daemon.learning.wear import ToolWear
 from millsense.daemon.pipeline.alarms import AlarmEvent
@@ -76,8 +76,8 @@ class MonitorStep:
 class ProcessMonitor:
     """All learning state of one machine. Not thread-safe: one owner (the estimator thread)."""
 
-    def __init__(self, learning: Any, limits: dict[str, dict] | None = None, tools: dict | None = None,
-                 first_process: int = 1, gain: float = 1.0):
+    def __init__(self, learning: Any, limits: dict[str, Any] | None = None, tools: Any = None,
+                 first_process: int = 1, gain: float = 1.0, alarms: Any = None):
         self.learning = learning
         self.gain = float(gain)   # load ~ feed^gain (override_track.load_gain): the programmed-feed normalisation
         self.enabled = bool(setting(learning, "enabled", True))
@@ -89,8 +89,17 @@ class ProcessMonitor:
         self.hold_low = bool(setting(learning, "hold_low", True))
         self.wear_rise_pct = float(setting(learning, "wear_rise_pct", 15.0))
         self.wear_window = int(setting(learning, "wear_window", 3))
-        self.keys = {str(k): KeyState.from_dict(v) for k, v in (limits or {}).items()}
-        self.tools = {int(t): ToolWear.from_dict(v) for t, v in (tools or {}).items()}
+        self.widths = Widths.of(learning)
+        # the fixed [alarms] limits a band's high side never passes (envelope.py, "bounded")
+        self.ceilings = (setting(alarms, "torque_limit_nm", None), setting(alarms, "force_limit_n", None))
+        self.keys: dict[str, KeyState] = {}
+        self.unusable: dict[str, str] = {}       # stored rows whose key is no process key: left as they are
+        self.restore_notes: list[tuple[str, dict[str, Any]]] = []   # what the restore set aside, to log once
+        self._changed_keys: set[str] = set()     # by commands (and the restore), handed out with the next step
+        self._changed_tools: set[int] = set()
+        for key, data in (limits or {}).items():
+            self._restore_key(key, data)
+        self.tools = self._restore_tools(tools)
         self.proc: ProcessRun | None = None
         self.next_process = int(first_process)   # the runner may seed it from the history (ids go on)
         self._resume_key: str | None = None      # a link loss cut this key's process: the rest is incomplete
@@ -98,12 +107,58 @@ class ProcessMonitor:
         self._run_monitored = False              # that run had its monitored process
         self._latched: list[AlarmEvent] = []
         self._noted_no_context = False
-        self._changed_keys: set[str] = set()     # by commands, handed out with the next step
-        self._changed_tools: set[int] = set()
         self.refused_keys = 0                    # new keys not learned at MAX_KEYS (tools: MAX_TOOLS)
         self.refused_tools = 0
 
-    # -- inputs ---------------------------------------------------------------
+    # -- restore (what the history kept): a stored row that fails its check never stops the daemon --------
+    def _restore_key(self, key: Any, data: Any) -> None:
+        """One stored key: restored, bounded and under today's fixed limits; or set aside (its process learns
+        afresh, the fixed limits apply meanwhile, the row is kept in the key's state so nothing is lost).
+
+        `data` is the stored JSON value, or the exception that says why the row could not be read."""
+        key = str(key)
+        try:
+            if isinstance(data, BaseException):
+                raise ValueError(str(data))
+            ks = KeyState.from_dict(data, self.widths)
+            if ks.envelope is not None:
+                ks.envelope.set_ceilings(*self.ceilings)
+        except Exception as exc:  # noqa: BLE001 - whatever is stored, the daemon starts (ValueError when checked)
+            reason = _one_line(f"{exc}" if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}")
+            self._set_aside(key, reason, getattr(data, "text", data))
+            return
+        if not _is_key(key):
+            self._set_aside(key, "not a process key program/tool/operation", data)
+            return
+        self.keys[key] = ks
+
+    def _set_aside(self, key: str, reason: str, row: Any) -> None:
+        self.restore_notes.append(("learning.set_aside", {"key": key, "reason": reason}))
+        if not _is_key(key):
+            self.unusable[key] = reason   # no process has this key: shown, never learned
+            return
+        self.keys[key] = KeyState(set_aside=reason, set_aside_row=_jsonable(row))
+        self._changed_keys.add(key)       # saved with the next step: the row now says it was set aside
+
+    def _restore_tools(self, tools: Any) -> dict[int, ToolWear]:
+        """The stored tool table; a tool whose entry fails its check starts its life and wear afresh (logged)."""
+        out: dict[int, ToolWear] = {}
+        if tools is None:
+            return out
+        if not isinstance(tools, dict):
+            self.restore_notes.append(("learning.tools_set_aside", {"reason": _one_line(f"not an object: {tools}")}))
+            return out
+        for number, data in tools.items():
+            try:
+                tool = int(str(number))
+                if not 0 <= tool <= UINT32_MAX:
+                    raise ValueError(f"{number!r} is not a tool number")
+                out[tool] = ToolWear.from_dict(data)
+            except Exception as exc:  # noqa: BLE001 - whatever is stored, the daemon starts
+                self.restore_notes.append(("learning.tools_set_aside",
+                                           {"tool": str(number), "reason": _one_line(str(exc))}))
+        return out
+
     def on_revolution(self, est: dict[str, Any], ctx: Ctx | None) -> MonitorStep:
         """One estimate; annotated in place with program, tool, operation, process_rev, envelope_*_nm."""
         step = self._step()
@@ -193,6 +248,11 @@ class ProcessMonitor:
             self.proc = None   # an unmonitored run cut short: nothing to report
         return step
 
+    def take_restore_notes(self) -> list[tuple[str, dict[str, Any]]]:
+        """What the restore set aside (log event, fields), once: the caller logs it at start."""
+        notes, self.restore_notes = self.restore_notes, []
+        return notes
+
     def note_alarm(self, ev: AlarmEvent) -> None:
         """A fixed-limit alarm: the process it happened in does not teach."""
         if self.proc is not None and ev.level in _FIXED_LEVELS:
@@ -211,6 +271,11 @@ class ProcessMonitor:
             return None
         return ks.envelope
 
+    def _low_check(self, proc: ProcessRun) -> bool:
+        """envelope_low is checked for the process's key (`limits low-off` turns it off, audited)."""
+        ks = self.keys.get(proc.key)
+        return ks is None or ks.low_check
+
     def _check(self, step: MonitorStep, proc: ProcessRun, est: dict[str, Any], k: int | None) -> None:
         env = self._active_envelope(proc)
         if env is None:
@@ -218,14 +283,16 @@ class ProcessMonitor:
         if k is None:
             # revolutions before entry counted as progress along the path (the plain count at 100 %); an
             # entry being confirmed began in its first revolution
-            self._check_entry(step, proc, env)
+            if self._low_check(proc):
+                self._check_entry(step, proc, env)
             return
         if k >= env.length:
             return  # longer than learned: nothing to compare with
         # the band is at the programmed feed; published, and alarms, in this revolution's terms
         scale = load_scale(est.get("feed_override_pct"), self.gain)
+        low_check = self._low_check(proc)
         low, high = env.torque.bounds(k)
-        est["envelope_low_nm"] = None if low is None else round(low * scale, 4)
+        est["envelope_low_nm"] = None if low is None or not low_check else round(low * scale, 4)
         est["envelope_high_nm"] = None if high is None else round(high * scale, 4)
         if not est.get("valid", True):
             return  # a damaged revolution neither counts nor breaks a run
@@ -235,9 +302,9 @@ class ProcessMonitor:
             low, high = (None, None) if band is None else band.bounds(k)
             self._judge(step, proc, "envelope_high", quantity, value, norm, high, scale,
                         norm is not None and high is not None and norm > high, k)
-            # low only where the band expects cutting
+            # low only where the band expects cutting, and while envelope_low is on for the key
             self._judge(step, proc, "envelope_low", quantity, value, norm, low, scale,
-                        norm is not None and low is not None and low > 0 and norm < low, k)
+                        low_check and norm is not None and low is not None and low > 0 and norm < low, k)
 
     def _judge(self, step: MonitorStep, proc: ProcessRun, level: str, quantity: str, value: float | None,
                norm: float | None, limit: float | None, scale: float, outside: bool, k: int) -> None:
@@ -275,7 +342,7 @@ class ProcessMonitor:
         incomplete = incomplete or (proc.monitored and proc.resumed)
         ks = self.keys.get(proc.key)
         env = None if incomplete else self._active_envelope(proc)
-        if env is not None and "envelope_low" not in proc.raised and not proc.too_damaged:
+        if env is not None and "envelope_low" not in proc.raised and not proc.too_damaged and self._low_check(proc):
             self._end_checks(step, proc, env)
         verdict = self._verdict(proc, ks, incomplete)
         if verdict == "learning" and ks is None and proc.teaches:   # a key for a process that teaches, no other
@@ -361,8 +428,10 @@ class ProcessMonitor:
         step.changed_keys.add(proc.key)
         if len(ks.taught) >= self.target:
             ks.envelope = learn(ks.taught, self.learning)
+            ks.envelope.set_ceilings(*self.ceilings)
             ks.taught = []   # the envelope holds what matters; the arrays would only cost memory
             ks.state = "pending" if self.confirm else "active"
+            ks.set_aside = None   # taught again: no longer a warning (the row set aside stays in its state)
 
     def _wear(self, step: MonitorStep, proc: ProcessRun, verdict: str, ratio: float | None) -> ToolWear | None:
         tool = proc.ctx.tool
@@ -403,9 +472,16 @@ class ProcessMonitor:
             counts[ks.state] = counts.get(ks.state, 0) + 1
         return counts
 
+    def learned_limits_status(self) -> dict[str, list]:
+        """For `status` (`learned_limits`): keys whose stored state was set aside, keys with envelope_low off."""
+        aside = [{"key": k, "reason": ks.set_aside} for k, ks in sorted(self.keys.items()) if ks.set_aside]
+        aside += [{"key": k, "reason": r} for k, r in sorted(self.unusable.items())]
+        return {"set_aside": aside, "low_off": sorted(k for k, ks in self.keys.items() if not ks.low_check)}
+
     def limits_summary(self) -> dict[str, Any]:
         """The `limits` queryable's body without machine."""
         return {
+            "set_aside": self.learned_limits_status()["set_aside"],
             "limits": [key_summary(k, self.keys[k], self.target) for k in sorted(self.keys)],
             "tools": {str(t): {"processes": w.processes,
                                "wear_pct": None if w.wear_pct is None else round(w.wear_pct, 2),
@@ -469,6 +545,32 @@ class ProcessMonitor:
         keys, tools = self.take_changes()
         reply["changed_keys"], reply["tools_changed"] = sorted(keys), sorted(tools)
         return reply
+
+
+def _is_key(key: str) -> bool:
+    m = KEY_RE.match(key)
+    return (m is not None and str(int(m[1])) == m[1] and str(int(m[2])) == m[2] and str(int(m[3])) == m[3]
+            and int(m[1]) <= UINT32_MAX and int(m[2]) <= UINT32_MAX and int(m[3]) <= UINT16_MAX)
+
+
+def _one_line(text: str, limit: int = 200) -> str:
+    line = " ".join(str(text).split())
+    return line if len(line) <= limit else line[: limit - 1] + "…"
+
+
+def _jsonable(value: Any, depth: int = 0) -> Any:
+    """A stored value kept as it was read, JSON-safe (non-finite numbers as null, bounded depth)."""
+    if depth > 64:
+        return None
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if value is None or isinstance(value, (bool, int, str)):
+        return value
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v, depth + 1) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v, depth + 1) for v in value]
+    return str(value)
 
 
 __all__ = ["ACTIONS", "KeyState", "MonitorStep", "ProcessMonitor"]

@@ -16,6 +16,7 @@ raised once, when wear_pct reaches `wear_rise_pct`, and re-armed by
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -56,5 +57,17 @@ class ToolWear:
         return {"processes": self.processes, "ratios": list(self.ratios), "warned": self.warned}
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "ToolWear":
-        return cls(int(d.get("processes", 0)), [float(r) for r in d.get("ratios", [])], bool(d.get("warned", False)))
+    def from_dict(cls, d: Any) -> "ToolWear":
+        """A stored tool, checked: ValueError naming what is wrong."""
+        if not isinstance(d, dict):
+            raise ValueError(f"not an object ({type(d).__name__})")
+        processes, ratios, warned = d.get("processes", 0), d.get("ratios", []), d.get("warned", False)
+        if isinstance(processes, bool) or not isinstance(processes, int) or not 0 <= processes <= 10**12:
+            raise ValueError(f"processes: {processes!r} is not a count")
+        if not isinstance(ratios, list) or not all(
+                not isinstance(r, bool) and isinstance(r, (int, float)) and 0 <= r <= 1e6 and math.isfinite(r)
+                for r in ratios):
+            raise ValueError("ratios: not a list of finite energy ratios")
+        if not isinstance(warned, bool):
+            raise ValueError(f"warned: {warned!r} is not true or false")
+        return cls(processes, [float(r) for r in ratios], warned)

@@ -124,7 +124,7 @@ class PipelineCore:
         learning = getattr(settings, "learning", None)
         self.monitor: ProcessMonitor | None = (
             ProcessMonitor(learning, limits=limits, tools=tools, first_process=first_process,
-                           gain=load_gain(settings))
+                           gain=load_gain(settings), alarms=getattr(settings, "alarms", None))
             if learning is not None and getattr(learning, "enabled", False) else None)
         self._block_end: tuple[int, int] | None = None  # (seq, device index) one past the last block
         self._context_change: int | None = None  # a context change the process monitor has not settled yet

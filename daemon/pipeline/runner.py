@@ -135,6 +135,9 @@ class Runner:
         self._effective_config = effective_config
         self.core = PipelineCore(settings, estimator_factory, check_descriptor, limits=limits, tools=tools,
                                  first_process=first_process)
+        if self.core.monitor is not None:  # stored learned limits that failed their check: set aside, said once
+            for event, fields in self.core.monitor.take_restore_notes():
+                log.warning(event, **fields)
         # The SQLite history (daemon/history): estimates, alarms, process summaries, learned limits.
         # Its writer thread takes what it is handed; a failing disk is the fault `history`, never a stop.
         self.history = history
@@ -1039,6 +1042,7 @@ class Runner:
             alarm = self.core.summary()
             ctx = self.core.context.at(self._last_seq) if self._last_seq is not None else None
             learning = _learning_status(self.core.monitor)
+            learned = {} if self.core.monitor is None else {"learned_limits": self.core.monitor.learned_limits_status()}
         return {
             "machine": self.machine,
             "t": time.time(),
@@ -1065,6 +1069,7 @@ class Runner:
             "context_auth": self.core.context.auth.status() if self.core.context.auth is not None else None,
             "processes": self.processes,
             "learning": learning,
+            **learned,
             "afc": self._afc_status(),
             "history": self._history_stats(),
             "daq": stats,

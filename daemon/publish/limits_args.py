@@ -11,13 +11,14 @@ canonical JSON takes no fractional numbers (command_auth.canonical_json).
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
+from millsense.daemon.learning.actions import ACTIONS  # the one list (learning/actions.py dispatches them)
 from millsense.daemon.learning.keys import KEY_RE, UINT16_MAX, UINT32_MAX
 
-ACTIONS = ("list", "show", "accept", "relearn", "widen", "narrow", "false_alarm", "new_tool")
 READS = ("list", "show")  # change nothing: the `limits` queryable answers them without a token
-NEEDS_KEY = ("show", "accept", "relearn", "widen", "narrow", "false_alarm")
+NEEDS_KEY = ("show", "accept", "relearn", "widen", "narrow", "false_alarm", "low_off", "low_on")
 NEEDS_PCT = ("widen", "narrow")
 PCT_RANGE = {"widen": (1, 500), "narrow": (1, 90)}  # narrowing by 100 % would leave no band at all
 
@@ -34,6 +35,8 @@ def parse_key(text: Any) -> str:
 
 
 def _whole(value: Any, name: str) -> int:
+    if isinstance(value, float) and not math.isfinite(value):   # JSON's NaN and Infinity parse as floats
+        raise ValueError(f"{name} must be a finite whole number, not {value!r}")
     if isinstance(value, bool) or not isinstance(value, int):
         raise ValueError(f"{name} must be a whole number (got {value!r})")
     return value

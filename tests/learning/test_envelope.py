@@ -121,14 +121,34 @@ def test_false_alarm_widens_where_the_values_were_seen():
     for k, v in seen.items():
         assert env.torque.high[k] >= v * 1.1 - 1e-9
     assert env.torque.high[30] == before_far
-    low_seen = {25: env.torque.low[25] * 0.6}
-    env.false_alarm("envelope_low", "torque_nm", low_seen)
+    low_seen = {25: env.torque.mean[25] * 0.9}      # 10 % under the mean: within the low side's bound
+    assert env.false_alarm("envelope_low", "torque_nm", low_seen)
     assert env.torque.low[25] <= low_seen[25] * 0.9 + 1e-9
     deadline = env.entry_deadline
-    env.false_alarm("envelope_low", "entry", {0: deadline + 10.0})
-    assert env.entry_deadline > deadline + 10
-    env.false_alarm("envelope_low", "cutting_energy_j", {0: env.energy_mean_j * 0.5})
-    assert env.energy_low_j <= env.energy_mean_j * 0.5 * 0.9 + 1e-9
+    assert env.false_alarm("envelope_low", "entry", {0: deadline + 2.0})
+    assert env.entry_deadline > deadline + 2
+    assert env.false_alarm("envelope_low", "cutting_energy_j", {0: env.energy_mean_j * 0.9})
+    assert env.energy_low_j <= env.energy_mean_j * 0.9 * 0.9 + 1e-9
+
+
+def test_a_false_alarm_never_takes_the_band_past_its_bounds():
+    """A value far outside (a broken tool marked false) widens only to the bounds, and says so: the low side
+    stays at least 80 % of the mean, the high side within 4x the learned width, the entry margin and the
+    energy band too. Before, marking a broken tool's alarm false took the low side to 0: envelope_low off."""
+    env = learn(_taught(), SETTINGS)
+    k = 25
+    mean, low_before = env.torque.mean, env.torque.low[k]
+    assert not env.false_alarm("envelope_low", "torque_nm", {k: 0.0})
+    # never more than 20 % under the mean, unless it was learned lower (a noisy process: sigma · std)
+    assert env.torque.low[k] >= min(low_before, 0.8 * min(mean[k - 1: k + 2])) - 1e-9 > 0
+    assert not env.false_alarm("envelope_high", "torque_nm", {k: 1e6})
+    assert env.torque.h_high[k] <= 4.0 * max(SIGMA * env.torque.std[k], env.torque.floor_high[k]) + 1e-9
+    margin = env.entry_margin
+    assert not env.false_alarm("envelope_low", "entry", {0: 1e6})
+    assert env.entry_margin <= 4.0 * margin + 1e-9
+    energy_low = env.energy_low_j
+    assert not env.false_alarm("envelope_low", "cutting_energy_j", {0: 0.0})
+    assert env.energy_low_j >= min(energy_low, 0.8 * env.energy_mean_j) - 1e-9 > 0
 
 
 def test_round_trip_through_json_keeps_every_number():

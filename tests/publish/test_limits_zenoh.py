@@ -381,3 +381,37 @@ def test_peer_tls_example_lets_adapters_put_context_and_operators_run_cmd_limits
         for s in sessions:
             s.close()
         daemon.close()
+
+
+# -- issue 36: no non-finite number gets in (Python's json takes NaN, Infinity and 1e999 as floats) -------------
+
+@pytest.mark.parametrize("policy", ["token", "open"])
+@pytest.mark.parametrize("literal", ["NaN", "Infinity", "-Infinity", "1e999"])
+def test_cmd_limits_refuses_json_nan_and_infinity_with_a_clear_message(pair, tmp_path, policy, literal):
+    from millsense.daemon.publish.command_auth import command_message, mac_hex
+
+    a, b = pair
+    audit_path = tmp_path / "audit.log"
+    controls = LimitsControls(AuditLog(audit_path, "m1"))
+    controls.settings.interlock.reset = policy
+    sink = ZenohSink(a, "m1", controls, log=Log())
+    try:
+        cn = "d" * 32
+        (ok, challenge), = _get(b, "millsense/m1/cmd/limits",
+                                json.dumps({"step": "challenge", "client_nonce": cn}).encode())
+        assert ok and challenge["policy"] == policy
+        sn = challenge["server_nonce"]
+        # the proof as a peer could make it: over the args with a whole number, then the number swapped
+        mac = mac_hex(TOKEN, command_message("limits", "m1", sn, cn, {"action": "widen", "key": KEY, "pct": 10}))
+        text = (f'{{"step": "prove", "client_nonce": "{cn}", "server_nonce": "{sn}", '
+                f'"args": {{"action": "widen", "key": "{KEY}", "pct": {literal}}}, "mac": "{mac}"}}')
+        (ok, body), = _get(b, "millsense/m1/cmd/limits", text.encode())
+        assert not ok, body
+        error = json.loads(body["result"])["error"]
+        # token: the MAC's canonical JSON takes no such number; open: the one args check says what is wrong
+        assert error == ("payload: args may not hold fractional numbers (use an integer in a stated unit)"
+                         if policy == "token" else
+                         f"pct must be a finite whole number, not {float(literal)!r}"), error
+        assert controls.commands == [] and controls.high_nm[KEY] == 5.0
+    finally:
+        sink.close()
