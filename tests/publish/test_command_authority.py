@@ -1,0 +1,232 @@
+"""Issue 36: who may loosen protection over Zenoh, and what the requester believes of the answers.
+
+The daemon's side is a real `ZenohSink`; requesters and impostors are further real Zenoh sessions on
+loopback (scouting off). The requester is `exchange`, the same code the CLI runs, and under "open" it
+is also exactly what an attacker without a token sends (a proof without a MAC).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+
+import pytest
+
+from millsense.daemon.audit import AuditLog
+from millsense.daemon.publish import command_auth as ca
+from millsense.daemon.publish.command_auth import CommandError, CommandGate, exchange
+from millsense.daemon.publish.limits_args import ACTIONS as LIMITS_ACTIONS
+from millsense.daemon.publish.session import open_session
+from millsense.daemon.publish.sink import ZenohSink
+
+from tests.conftest import free_tcp_port
+
+from .helpers import FakeInterlock, open_pair, tcp, wait_for, zsettings
+
+TOKEN = "Hk3vQ9xW2mPz7LcN5tRb8yFd4sGj6aUe1oKi0nVw_-E"
+KEY = "1234/12/3"
+
+
+class OperatorControls(FakeInterlock):
+    """Every command the sink can serve, each call recorded: what ran is what is in `ran`."""
+
+    def __init__(self, token: str | None, audit: AuditLog) -> None:
+        super().__init__(token=token)
+        self.audit = audit
+        self.ran: list[tuple[str, dict]] = []
+
+    def test_trip(self, requester: str = "") -> dict:
+        self.ran.append(("test-trip", {}))
+        return {"ok": True, "daq_confirm_ms": 1.0, "cnc_confirm_ms": None}
+
+    def limits(self) -> dict:
+        return {"machine": "m1", "enabled": True, "limits": [{"key": KEY, "state": "active", "high_nm": 5.0}]}
+
+    def limits_command(self, args: dict, requester: str = "") -> dict:
+        self.ran.append(("limits", dict(args)))
+        return {"ok": True}
+
+    def afc_command(self, args: dict, requester: str = "") -> dict:
+        self.ran.append(("afc", dict(args)))
+        return {"ok": True, "afc": {"enabled": args["action"] == "on"}}
+
+
+@pytest.fixture
+def linked(port):
+    a, b = open_pair(port)
+    yield a, b
+    b.close()
+    a.close()
+
+
+def _loosening() -> list[tuple[str, dict]]:
+    """Every `cmd/limits` action that is not a read, a made-up future one, and both AFC switches."""
+    out = []
+    for action in LIMITS_ACTIONS:
+        if action in ("list", "show"):
+            continue
+        args: dict = {"action": action}
+        if action == "new_tool":
+            args["tool"] = 12
+        else:
+            args["key"] = KEY
+        if action in ("widen", "narrow"):
+            args["pct"] = 10
+        out.append(("limits", args))
+    out.append(("limits", {"action": "low_off", "key": KEY}))   # an action added later is covered by default
+    out += [("afc", {"action": "on"}), ("afc", {"action": "off"})]
+    return out
+
+
+@pytest.mark.parametrize("command, args", _loosening(), ids=lambda v: v if isinstance(v, str) else v["action"])
+def test_open_policy_refuses_every_loosening_command_over_zenoh(linked, tmp_path, command, args):
+    """Finding 3: with no `reset` key a loopback-only daemon is "open", and it took widen, relearn and
+    afc on/off from anyone over Zenoh. Now only a proof of the token may, and "open" has no token."""
+    a, b = linked
+    controls = OperatorControls(None, AuditLog(tmp_path / "audit.log", "m1"))   # policy "open"
+    sink = ZenohSink(a, "m1", controls)
+    try:
+        with pytest.raises(CommandError) as err:
+            exchange(b, "m1", command, None, args)
+        text = str(err.value)
+        assert "needs the reset token over the network" in text and "--local" in text, text
+        assert "root or the daemon's user" in text
+        assert controls.ran == []
+        audit = [json.loads(x) for x in (tmp_path / "audit.log").read_text().splitlines()]
+        assert [(x["command"], x["granted"]) for x in audit] == [(command, False)]
+        assert sink.gate.limiter.paused_for() == 0   # no token was tried: not a failed proof
+    finally:
+        sink.close()
+
+
+def test_open_policy_still_clears_and_tests_a_hold_and_reads(linked, tmp_path):
+    a, b = linked
+    controls = OperatorControls(None, AuditLog(tmp_path / "audit.log", "m1"))
+    sink = ZenohSink(a, "m1", controls)
+    try:
+        out = exchange(b, "m1", "reset", None)
+        assert out.result == {"ok": True, "interlock": "clear"} and out.policy == "open" and not out.verified
+        assert exchange(b, "m1", "test-trip", None).result["ok"] is True
+        assert exchange(b, "m1", "limits", None, {"action": "show", "key": KEY}).result["ok"] is True
+        assert exchange(b, "m1", "afc", None, {"action": "status"}).result["ok"] is True
+        assert [c for c, _ in controls.ran] == ["test-trip", "limits", "afc"] and controls.requesters
+    finally:
+        sink.close()
+
+
+def test_token_policy_takes_loosening_commands_with_the_proof(linked, tmp_path):
+    a, b = linked
+    controls = OperatorControls(TOKEN, AuditLog(tmp_path / "audit.log", "m1"))
+    sink = ZenohSink(a, "m1", controls)
+    try:
+        for command, args in _loosening()[:1] + _loosening()[-2:]:
+            out = exchange(b, "m1", command, TOKEN, args)
+            assert out.verified and out.result["ok"] is True
+        assert [c for c, _ in controls.ran] == ["limits", "afc", "afc"]
+    finally:
+        sink.close()
+
+
+def test_the_daemons_proof_check_is_hmac_compare_digest(tmp_path, monkeypatch):
+    """Planted bug of issue 36 (finding 9): `hmac.compare_digest` replaced by `==` passed the suite. The
+    difference is only in time, which a test on a loaded box cannot measure; so the verdict is pinned to
+    compare_digest's: a spy that answers "different" must make the daemon refuse a right proof."""
+    controls = OperatorControls(TOKEN, AuditLog(tmp_path / "audit.log", "m1"))
+    gate = CommandGate("m1", "token", TOKEN, controls.audit)
+    compared: list[tuple[str, str]] = []
+
+    def proof(client_nonce: str) -> dict:
+        challenge = json.loads(gate.handle("reset", {"step": "challenge", "client_nonce": client_nonce},
+                                           lambda a, r: controls.reset(r)).body)
+        sn = challenge["server_nonce"]
+        mac = ca.mac_hex(TOKEN, ca.command_message("reset", "m1", sn, client_nonce, {}))
+        return {"step": "prove", "client_nonce": client_nonce, "server_nonce": sn, "args": {}, "mac": mac}
+
+    def says_different(a: str, b: str) -> bool:
+        compared.append((a, b))
+        return False
+
+    right = proof("ab" * 16)
+    monkeypatch.setattr(ca.hmac, "compare_digest", says_different)
+    answer = gate.handle("reset", right, lambda a, r: controls.reset(r))
+    assert not answer.ok and not answer.ran and controls.requesters == []
+    assert compared == [(right["mac"], right["mac"])]   # the given MAC against the expected one, in full
+    monkeypatch.undo()
+    answer = gate.handle("reset", proof("cd" * 16), lambda a, r: controls.reset(r))
+    assert answer.ok and answer.ran and len(controls.requesters) == 1
+
+
+# ---------------------------------------------------------------- impostors (finding 6)
+class Impostor:
+    """A second real Zenoh session answering on `millsense/<m>/cmd/*` like a daemon without the token:
+    a well-formed challenge, then a success it cannot sign. It records what it was sent."""
+
+    def __init__(self, port: int, machine: str, *, answer_prove: bool = True) -> None:
+        # it listens too, so that the requester (linked to the daemon only) learns of it by gossip and links to it
+        self.session = open_session(zsettings(connect=[tcp(port)], listen=[tcp(free_tcp_port())]), retry_for_s=0)
+        self.machine, self.answer_prove = machine, answer_prove
+        self.got: list[dict] = []
+        self.lock = threading.Lock()
+        self.q = self.session.declare_queryable(f"millsense/{machine}/cmd/*", self._on)
+
+    def _on(self, query) -> None:
+        request = json.loads(query.payload.to_bytes())
+        command = str(query.key_expr).rsplit("/", 1)[-1]
+        with self.lock:
+            self.got.append(request)
+        if request.get("step") == "challenge":
+            body = {"step": "challenge", "machine": self.machine, "command": command, "policy": "token",
+                    "server_nonce": "c" * 64, "expires_s": 10}
+        elif self.answer_prove:
+            body = {"result": json.dumps({"ok": True, "afc": {"enabled": True}}), "server_mac": "d" * 64}
+        else:
+            return
+        query.reply(str(query.key_expr), json.dumps(body).encode())
+
+    def steps(self) -> list[str]:
+        with self.lock:
+            return [r.get("step") for r in self.got]
+
+    def close(self) -> None:
+        self.q.undeclare()
+        self.session.close()
+
+
+def test_an_impostor_beside_the_daemon_is_said_and_nothing_is_sent(linked, port, tmp_path):
+    """Finding 6: with a second program answering on cmd/*, `afc on` printed "failed the daemon's MAC" but the
+    real daemon ran it: Zenoh's default consolidation let one challenge through, the proof reached the daemon."""
+    a, b = linked
+    controls = OperatorControls(TOKEN, AuditLog(tmp_path / "audit.log", "m1"))
+    sink = ZenohSink(a, "m1", controls)
+    impostor = Impostor(port, "m1")
+    try:
+        q = b.declare_querier("millsense/m1/cmd/afc")
+        wait_for(lambda: q.matching_status.matching, 5.0, "the queryables are known")
+        q.undeclare()
+        wait_for(lambda: len(list(b.info.peers_zid())) >= 2, 5.0, "both peers linked")
+        with pytest.raises(CommandError, match=r"2 programs answer on millsense/m1/cmd/afc .*nothing was sent"):
+            exchange(b, "m1", "afc", TOKEN, {"action": "on"})
+        assert controls.ran == [] and impostor.steps() == ["challenge"]   # no proof went anywhere
+        assert not (tmp_path / "audit.log").exists()
+    finally:
+        impostor.close()
+        sink.close()
+
+
+def test_an_answer_that_fails_the_mac_leaves_the_outcome_unknown(linked, port):
+    """Alone on the key, the impostor's unsigned "ok" is neither believed nor reported as a refusal."""
+    a, b = linked
+    impostor = Impostor(port, "m1")
+    try:
+        q = b.declare_querier("millsense/m1/cmd/afc")
+        wait_for(lambda: q.matching_status.matching, 5.0, "the impostor is known")
+        q.undeclare()
+        with pytest.raises(CommandError) as err:
+            exchange(b, "m1", "afc", TOKEN, {"action": "on"})
+        assert err.value.unknown and err.value.result is None
+        text = str(err.value)
+        assert "fails the daemon's MAC" in text and "the outcome is unknown" in text
+        assert "millsense afc status --machine m1" in text and "audit.log" in text
+        assert impostor.steps() == ["challenge", "prove"] and TOKEN not in json.dumps(impostor.got)
+    finally:
+        impostor.close()
