@@ -93,19 +93,20 @@ def command_words(command: str, args: Any) -> str:
     return f"{command} {action.replace('_', '-')}" if isinstance(action, str) and action else command
 
 
-def policy_statement(policy: str, has_token: bool) -> list[str]:
-    """Who may do what over which transport under `policy`, one line per transport (check-config prints them)."""
-    reads = "reads (status, config, limits list/show, afc status) need nothing"
-    loosening = "limits changes (accept, relearn, widen, narrow, false-alarm, new-tool, any other) and afc on/off"
-    local = "local socket (root or the daemon's user, --local): every command, whatever the policy"
+def policy_summary(policy: str, has_token: bool) -> str:
+    """Who may do what over which transport under `policy`, in one phrase (check-config's summary line).
+
+    Reads (`status`, `config`, `limits`, `afc status`) need nothing; the local socket (root or the daemon's
+    user, `--local`) takes every command whatever the policy: neither is repeated here.
+    """
+    changes = "limits changes and afc on/off"
     if policy == "token" and has_token:
-        zenoh = f'Zenoh (reset = "token"): every command needs the token\'s proof: reset, test-trip, {loosening}'
-    elif policy == "open":
-        zenoh = (f'Zenoh (reset = "open"): anyone who reaches the daemon may reset and test-trip; {loosening} '
-                 "need the token, and there is none: only at the machine")
-    else:
-        zenoh = f'Zenoh (reset = "{policy}"{", no token" if policy == "token" else ""}): no command at all'
-    return [zenoh, f"{reads}", local]
+        return 'commands over Zenoh with the token\'s proof (reset = "token")'
+    if policy == "open":
+        return (f'reset and test-trip open to anyone who reaches it over Zenoh, {changes} only at the machine '
+                '(--local) (reset = "open", no token)')
+    why = 'reset = "token" without a token' if policy == "token" else f'reset = "{policy}"'
+    return f"no command over Zenoh, every command only at the machine (--local) ({why})"
 
 
 # --------------------------------------------------------------------------- encodings
