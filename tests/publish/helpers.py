@@ -92,6 +92,33 @@ class FakeInterlock:
         return {"ok": True, "interlock": "clear"}
 
 
+KEY = "1234/12/3"  # a process key program/tool/operation
+
+
+class OperatorControls(FakeInterlock):
+    """Every command the sink can serve, each call recorded: what ran is what is in `ran`."""
+
+    def __init__(self, token: str | None, audit: Any, machine: str = "m1") -> None:
+        super().__init__(token=token)
+        self.audit, self.machine = audit, machine
+        self.ran: list[tuple[str, dict]] = []
+
+    def test_trip(self, requester: str = "") -> dict:
+        self.ran.append(("test-trip", {}))
+        return {"ok": True, "daq_confirm_ms": 1.0, "cnc_confirm_ms": None}
+
+    def limits(self) -> dict:
+        return {"machine": self.machine, "enabled": True, "limits": [{"key": KEY, "state": "active", "high_nm": 5.0}]}
+
+    def limits_command(self, args: dict, requester: str = "") -> dict:
+        self.ran.append(("limits", dict(args)))
+        return {"ok": True}
+
+    def afc_command(self, args: dict, requester: str = "") -> dict:
+        self.ran.append(("afc", dict(args)))
+        return {"ok": True, "afc": {"enabled": args["action"] == "on"}}
+
+
 class LineReader:
     """Reads a subprocess's stdout lines on a thread, so waits can have deadlines."""
 

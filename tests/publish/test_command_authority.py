@@ -21,34 +21,9 @@ from millsense.daemon.publish.sink import ZenohSink
 
 from tests.conftest import free_tcp_port
 
-from .helpers import FakeInterlock, open_pair, tcp, wait_for, zsettings
+from .helpers import KEY, OperatorControls, open_pair, tcp, wait_for, zsettings
 
 TOKEN = "Hk3vQ9xW2mPz7LcN5tRb8yFd4sGj6aUe1oKi0nVw_-E"
-KEY = "1234/12/3"
-
-
-class OperatorControls(FakeInterlock):
-    """Every command the sink can serve, each call recorded: what ran is what is in `ran`."""
-
-    def __init__(self, token: str | None, audit: AuditLog) -> None:
-        super().__init__(token=token)
-        self.audit = audit
-        self.ran: list[tuple[str, dict]] = []
-
-    def test_trip(self, requester: str = "") -> dict:
-        self.ran.append(("test-trip", {}))
-        return {"ok": True, "daq_confirm_ms": 1.0, "cnc_confirm_ms": None}
-
-    def limits(self) -> dict:
-        return {"machine": "m1", "enabled": True, "limits": [{"key": KEY, "state": "active", "high_nm": 5.0}]}
-
-    def limits_command(self, args: dict, requester: str = "") -> dict:
-        self.ran.append(("limits", dict(args)))
-        return {"ok": True}
-
-    def afc_command(self, args: dict, requester: str = "") -> dict:
-        self.ran.append(("afc", dict(args)))
-        return {"ok": True, "afc": {"enabled": args["action"] == "on"}}
 
 
 @pytest.fixture
