@@ -119,6 +119,51 @@ class OperatorControls(FakeInterlock):
         return {"ok": True, "afc": {"enabled": args["action"] == "on"}}
 
 
+class Impostor:
+    """A second real Zenoh session answering on `millsense/<m>/cmd/*` like a daemon without the token:
+    a well-formed challenge, then a success it cannot sign. It records what it was sent."""
+
+    def __init__(self, port: int, machine: str, *, answer_prove: bool = True) -> None:
+        from tests.conftest import free_tcp_port
+
+        # it listens too, so that the requester (linked to the daemon only) learns of it by gossip and links to it
+        self.session = open_session(zsettings(connect=[tcp(port)], listen=[tcp(free_tcp_port())]), retry_for_s=0)
+        self.machine, self.answer_prove = machine, answer_prove
+        self.got: list[dict] = []
+        self.lock = threading.Lock()
+        self.q = self.session.declare_queryable(f"millsense/{machine}/cmd/*", self._on)
+        self.others: list[Any] = []
+
+    def alive_as(self, machine: str) -> None:
+        """Look like a second daemon too: `machine`'s alive token and a `status` that answers."""
+        self.others.append(self.session.liveliness().declare_token(f"millsense/{machine}/alive"))
+        self.others.append(self.session.declare_queryable(
+            f"millsense/{machine}/status", lambda q: q.reply(str(q.key_expr), json.dumps({"state": "running"}))))
+
+    def _on(self, query) -> None:
+        request = json.loads(query.payload.to_bytes())
+        command = str(query.key_expr).rsplit("/", 1)[-1]
+        with self.lock:
+            self.got.append(request)
+        if request.get("step") == "challenge":
+            body = {"step": "challenge", "machine": self.machine, "command": command, "policy": "token",
+                    "server_nonce": "c" * 64, "expires_s": 10}
+        elif self.answer_prove:
+            body = {"result": json.dumps({"ok": True, "afc": {"enabled": True}}), "server_mac": "d" * 64}
+        else:
+            return
+        query.reply(str(query.key_expr), json.dumps(body).encode())
+
+    def steps(self) -> list[str]:
+        with self.lock:
+            return [r.get("step") for r in self.got]
+
+    def close(self) -> None:
+        for entity in [*self.others, self.q]:
+            entity.undeclare()
+        self.session.close()
+
+
 class LineReader:
     """Reads a subprocess's stdout lines on a thread, so waits can have deadlines."""
 

@@ -8,7 +8,6 @@ is also exactly what an attacker without a token sends (a proof without a MAC).
 from __future__ import annotations
 
 import json
-import threading
 
 import pytest
 
@@ -16,12 +15,9 @@ from millsense.daemon.audit import AuditLog
 from millsense.daemon.publish import command_auth as ca
 from millsense.daemon.publish.command_auth import CommandError, CommandGate, exchange
 from millsense.daemon.publish.limits_args import ACTIONS as LIMITS_ACTIONS
-from millsense.daemon.publish.session import open_session
 from millsense.daemon.publish.sink import ZenohSink
 
-from tests.conftest import free_tcp_port
-
-from .helpers import KEY, OperatorControls, open_pair, tcp, wait_for, zsettings
+from .helpers import KEY, Impostor, OperatorControls, open_pair, wait_for
 
 TOKEN = "Hk3vQ9xW2mPz7LcN5tRb8yFd4sGj6aUe1oKi0nVw_-E"
 
@@ -132,41 +128,6 @@ def test_the_daemons_proof_check_is_hmac_compare_digest(tmp_path, monkeypatch):
 
 
 # ---------------------------------------------------------------- impostors (finding 6)
-class Impostor:
-    """A second real Zenoh session answering on `millsense/<m>/cmd/*` like a daemon without the token:
-    a well-formed challenge, then a success it cannot sign. It records what it was sent."""
-
-    def __init__(self, port: int, machine: str, *, answer_prove: bool = True) -> None:
-        # it listens too, so that the requester (linked to the daemon only) learns of it by gossip and links to it
-        self.session = open_session(zsettings(connect=[tcp(port)], listen=[tcp(free_tcp_port())]), retry_for_s=0)
-        self.machine, self.answer_prove = machine, answer_prove
-        self.got: list[dict] = []
-        self.lock = threading.Lock()
-        self.q = self.session.declare_queryable(f"millsense/{machine}/cmd/*", self._on)
-
-    def _on(self, query) -> None:
-        request = json.loads(query.payload.to_bytes())
-        command = str(query.key_expr).rsplit("/", 1)[-1]
-        with self.lock:
-            self.got.append(request)
-        if request.get("step") == "challenge":
-            body = {"step": "challenge", "machine": self.machine, "command": command, "policy": "token",
-                    "server_nonce": "c" * 64, "expires_s": 10}
-        elif self.answer_prove:
-            body = {"result": json.dumps({"ok": True, "afc": {"enabled": True}}), "server_mac": "d" * 64}
-        else:
-            return
-        query.reply(str(query.key_expr), json.dumps(body).encode())
-
-    def steps(self) -> list[str]:
-        with self.lock:
-            return [r.get("step") for r in self.got]
-
-    def close(self) -> None:
-        self.q.undeclare()
-        self.session.close()
-
-
 def test_an_impostor_beside_the_daemon_is_said_and_nothing_is_sent(linked, port, tmp_path):
     """Finding 6: with a second program answering on cmd/*, `afc on` printed "failed the daemon's MAC" but the
     real daemon ran it: Zenoh's default consolidation let one challenge through, the proof reached the daemon."""
