@@ -8,6 +8,7 @@ is also exactly what an attacker without a token sends (a proof without a MAC).
 from __future__ import annotations
 
 import json
+import subprocess
 
 import pytest
 
@@ -16,6 +17,7 @@ from millsense.daemon.publish import command_auth as ca
 from millsense.daemon.publish.command_auth import CommandError, CommandGate, exchange
 from millsense.daemon.publish.limits_args import ACTIONS as LIMITS_ACTIONS
 from millsense.daemon.publish.sink import ZenohSink
+from tests.config.helpers import base, dumps
 
 from .helpers import KEY, Impostor, OperatorControls, open_pair, wait_for
 
@@ -166,3 +168,26 @@ def test_an_answer_that_fails_the_mac_leaves_the_outcome_unknown(linked, port):
         assert impostor.steps() == ["challenge", "prove"] and TOKEN not in json.dumps(impostor.got)
     finally:
         impostor.close()
+
+
+def test_check_config_states_the_policy_in_effect(millsense_cmd, tmp_path):
+    """Finding 3: `check-config` said nothing of what "open" allows. Its summary now ends with the policy."""
+    cases = {
+        "open": ({"listen": ["tcp/127.0.0.1:7447"]}, {},
+                 'reset and test-trip open to anyone who reaches it over Zenoh, limits changes and afc on/off only '
+                 'at the machine (--local) (reset = "open", no token)'),
+        "token": ({"listen": ["tcp/0.0.0.0:7447"]}, {"reset": "token", "reset_token": TOKEN},
+                  'commands over Zenoh with the token\'s proof (reset = "token")'),
+        "off": ({"listen": ["tcp/0.0.0.0:7447"]}, {"reset": "off"},
+                'no command over Zenoh, every command only at the machine (--local) (reset = "off")'),
+    }
+    for name, (zenoh, interlock, said) in cases.items():
+        doc = base()
+        doc["zenoh"] = {"multicast_scouting": False, **zenoh}
+        doc["interlock"] = {"enabled": True, **interlock}
+        path = tmp_path / f"{name}.toml"
+        path.write_text(dumps(doc))
+        path.chmod(0o600)
+        p = subprocess.run([*millsense_cmd, "check-config", str(path)], capture_output=True, text=True, timeout=60)
+        assert p.returncode == 0, p.stderr
+        assert p.stdout.splitlines()[-1].endswith(f", {said})"), (name, p.stdout)
