@@ -10,6 +10,7 @@ Zenoh session answering on `millsense/<m>/cmd/*` (tests/publish/helpers.py).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -17,7 +18,8 @@ import subprocess
 
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for, write_config
-from tests.publish.helpers import Impostor
+from millsense.daemon.publish.session import open_session
+from tests.publish.helpers import Impostor, zsettings
 
 TOKEN = "authority-token-of-at-least-32-characters-01234"
 SLOW_S = 60.0  # detects a hang; no budget
@@ -110,25 +112,29 @@ def test_the_cli_never_guesses_the_machine_nor_the_outcome_beside_an_impostor(tm
     no proof is sent; with a second daemon alive nothing is chosen; an unsigned answer is an unknown outcome."""
     machine = "auth-real"
     z_port = free_tcp_port()
+    # Every node a client of one router, as on the shop network (security.md): a node that connects is told
+    # every queryable at once, so the CLI meets the impostor's with the daemon's, not later by gossip.
+    router = open_session(zsettings("router", listen=[tcp(z_port)]), retry_for_s=0)
     cfg = write_config(
         tmp_path / "d.toml", machine=machine, daq='transport = "sim"\nscenario = "step"',
-        zenoh_listen=[tcp(z_port)],
+        zenoh_mode="client", zenoh_connect=[tcp(z_port)],
         interlock=f'enabled = true\nreset = "token"\nreset_token = "{TOKEN}"',
     )
     token_file = tmp_path / "token"
     token_file.write_text(TOKEN + "\n")
     state = tmp_path / "state"
     env = {"STATE_DIRECTORY": str(state)}
-    network = ["--connect", tcp(z_port), "--no-scouting", "--timeout", "10"]
-    with Procs(tmp_path) as procs:
+    network = ["--mode", "client", "--connect", tcp(z_port), "--no-scouting", "--timeout", "10"]
+    with Procs(tmp_path) as procs, contextlib.closing(router):
         daemon = procs.start("daemon", ["run", "--config", str(cfg)], env_extra=env)
-        sub = Subscriber([tcp(z_port)], machine)
+        sub = Subscriber([tcp(z_port)], machine, mode="client")
         impostor = None
         try:
             wait_for(lambda: sub.get("estimate") or daemon.poll() is not None, SLOW_S, "estimates")
             assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
             impostor = Impostor(z_port, machine)
             impostor.alive_as("auth-other")
+            impostor.known_to(sub.session)   # the router has it: a client connecting now is told at once
 
             # -- an impostor on cmd/* beside the real daemon: said, nothing sent, nothing ran
             p = _cli(["afc", "on", "--machine", machine, "--token-file", str(token_file), *network], env)
@@ -147,6 +153,7 @@ def test_the_cli_never_guesses_the_machine_nor_the_outcome_beside_an_impostor(tm
             # -- alone on a key, an answer that fails the MAC: the outcome is unknown (exit 3), said how to check
             ghost = Impostor(z_port, "auth-ghost")
             try:
+                ghost.known_to(sub.session)
                 p = _cli(["afc", "on", "--machine", "auth-ghost", "--token-file", str(token_file), *network], env)
             finally:
                 ghost.close()

@@ -123,12 +123,12 @@ class Impostor:
     """A second real Zenoh session answering on `millsense/<m>/cmd/*` like a daemon without the token:
     a well-formed challenge, then a success it cannot sign. It records what it was sent."""
 
-    def __init__(self, port: int, machine: str, *, answer_prove: bool = True) -> None:
+    def __init__(self, port: int, machine: str, *, answer_prove: bool = True, answer_challenge: bool = True) -> None:
         from tests.conftest import free_tcp_port
 
         # it listens too, so that the requester (linked to the daemon only) learns of it by gossip and links to it
         self.session = open_session(zsettings(connect=[tcp(port)], listen=[tcp(free_tcp_port())]), retry_for_s=0)
-        self.machine, self.answer_prove = machine, answer_prove
+        self.machine, self.answer_prove, self.answer_challenge = machine, answer_prove, answer_challenge
         self.got: list[dict] = []
         self.lock = threading.Lock()
         self.q = self.session.declare_queryable(f"millsense/{machine}/cmd/*", self._on)
@@ -146,6 +146,8 @@ class Impostor:
         with self.lock:
             self.got.append(request)
         if request.get("step") == "challenge":
+            if not self.answer_challenge:
+                return
             body = {"step": "challenge", "machine": self.machine, "command": command, "policy": "token",
                     "server_nonce": "c" * 64, "expires_s": 10}
         elif self.answer_prove:
@@ -153,6 +155,15 @@ class Impostor:
         else:
             return
         query.reply(str(query.key_expr), json.dumps(body).encode())
+
+    def known_to(self, session: Any, timeout_s: float = 5.0) -> None:
+        """Wait until `session` knows this impostor's queryable (a key only it answers: the daemon has no
+        `cmd/zz-probe`), so that a command from `session` reaches it too."""
+        querier = session.declare_querier(f"millsense/{self.machine}/cmd/zz-probe")
+        try:
+            wait_for(lambda: querier.matching_status.matching, timeout_s, "the impostor's queryable is known")
+        finally:
+            querier.undeclare()
 
     def steps(self) -> list[str]:
         with self.lock:

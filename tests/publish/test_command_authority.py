@@ -19,7 +19,7 @@ from millsense.daemon.publish.limits_args import ACTIONS as LIMITS_ACTIONS
 from millsense.daemon.publish.sink import ZenohSink
 from tests.config.helpers import base, dumps
 
-from .helpers import KEY, Impostor, OperatorControls, open_pair, wait_for
+from .helpers import KEY, Impostor, OperatorControls, open_pair
 
 TOKEN = "Hk3vQ9xW2mPz7LcN5tRb8yFd4sGj6aUe1oKi0nVw_-E"
 
@@ -138,14 +138,28 @@ def test_an_impostor_beside_the_daemon_is_said_and_nothing_is_sent(linked, port,
     sink = ZenohSink(a, "m1", controls)
     impostor = Impostor(port, "m1")
     try:
-        q = b.declare_querier("millsense/m1/cmd/afc")
-        wait_for(lambda: q.matching_status.matching, 5.0, "the queryables are known")
-        q.undeclare()
-        wait_for(lambda: len(list(b.info.peers_zid())) >= 2, 5.0, "both peers linked")
+        impostor.known_to(b)
         with pytest.raises(CommandError, match=r"2 programs answer on millsense/m1/cmd/afc .*nothing was sent"):
             exchange(b, "m1", "afc", TOKEN, {"action": "on"})
         assert controls.ran == [] and impostor.steps() == ["challenge"]   # no proof went anywhere
         assert not (tmp_path / "audit.log").exists()
+    finally:
+        impostor.close()
+        sink.close()
+
+
+def test_a_forged_answer_beside_the_daemons_signed_one_changes_nothing(linked, port, tmp_path):
+    """A program that stays quiet at the challenge and answers the proof: the daemon's signed answer decides."""
+    a, b = linked
+    controls = OperatorControls(TOKEN, AuditLog(tmp_path / "audit.log", "m1"))
+    sink = ZenohSink(a, "m1", controls)
+    impostor = Impostor(port, "m1", answer_challenge=False)
+    try:
+        impostor.known_to(b)
+        out = exchange(b, "m1", "limits", TOKEN, {"action": "relearn", "key": KEY})
+        assert out.verified and out.result == {"action": "relearn", "key": KEY, "ok": True}
+        assert impostor.steps()[-1] == "prove"   # it answered the proof, with a forged success
+        assert controls.ran == [("limits", {"action": "relearn", "key": KEY})]
     finally:
         impostor.close()
         sink.close()
@@ -156,9 +170,7 @@ def test_an_answer_that_fails_the_mac_leaves_the_outcome_unknown(linked, port):
     a, b = linked
     impostor = Impostor(port, "m1")
     try:
-        q = b.declare_querier("millsense/m1/cmd/afc")
-        wait_for(lambda: q.matching_status.matching, 5.0, "the impostor is known")
-        q.undeclare()
+        impostor.known_to(b)
         with pytest.raises(CommandError) as err:
             exchange(b, "m1", "afc", TOKEN, {"action": "on"})
         assert err.value.unknown and err.value.result is None
