@@ -190,6 +190,8 @@ def _settings_from(data: dict[str, Any], base_dir: Path) -> Settings:
     if interlock is not None and interlock.reset is None and parts.get("zenoh") is not None:
         # Secure by default (docs/security.md): a session other hosts can reach takes commands only from
         # whoever proves the token. Without a token nobody can, over the network; `config_warnings` says so.
+        # A loopback-only session is "open", which lets any local user clear or test a hold and nothing more:
+        # whatever loosens protection needs the token or the uid-checked local socket (command_auth.OPEN_COMMANDS).
         reset = "open" if loopback_only(parts["zenoh"]) and not interlock.token() else "token"
         updates["interlock"] = interlock.model_copy(update={"reset": reset})
     problems.extend(cross_problems(parts))

@@ -4,8 +4,10 @@ Exit 0 with a one-line summary when the file is valid, after one `warning:`
 line for each thing a valid file still does that its user should know
 (`config_warnings.py`); otherwise `ConfigError`
 propagates to the CLI front door, which prints every problem (one per line,
-`section.key: what is wrong (what is expected)`) and exits 78. Only pydantic and
-the config modules are imported: this must stay quick enough for an editor hook.
+`section.key: what is wrong (what is expected)`) and exits 78. Only pydantic,
+the config modules and command_auth (the standard library's hmac: the policy in
+effect, who may command over which transport, ends the summary) are imported:
+this must stay quick enough for an editor hook.
 """
 
 from __future__ import annotations
@@ -39,7 +41,16 @@ def summary(settings) -> str:
     ]
     if settings.calibration:
         parts.append(f"calibration {settings.calibration}")
+    parts.append(_command_policy(settings))
     return ", ".join(parts)
+
+
+def _command_policy(settings) -> str:
+    """Who may command over which transport (issue 36): the policy in effect, a default resolved or not."""
+    from millsense.daemon.publish.command_auth import policy_summary
+
+    il = settings.interlock
+    return policy_summary(il.reset or "off", bool(il.token()))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -4,12 +4,16 @@ Over Zenoh (`millsense/<machine>/cmd/reset`) by the challenge–response of
 docs/zenoh.md: the token never leaves this process, and the daemon's answer is
 believed only when its MAC proves that it knows the token too. Prints the
 daemon's result (the new interlock state) as one JSON line. Exit 0 when the
-daemon cleared the hold, 1 when it refused, nobody answered, or the answer
-could not be trusted.
+daemon cleared the hold, 1 when it refused or nobody answered (nothing ran),
+3 when the proof went out and no answer came that can be trusted (none, or
+one that fails the daemon's MAC): the outcome is unknown, and the message
+says how to check.
 
-Without `--machine`, the one daemon whose liveliness token `millsense/*/alive`
-is visible is asked; with several, it names them and asks to choose, since
-clearing a feed hold on the wrong machine is not a guess to make.
+The machine is never guessed (publish/cli_args.py, `Target`): `--machine`,
+or `--config`'s; without either, on a network named by `--connect` with
+scouting off, the one daemon alive there (with several, it names them and
+asks to choose); else the default config's, the demo's (`mch10-demo`). The
+machine not named is said on stderr.
 
 `--local` asks through the daemon's control socket at the machine instead (root
 or the daemon's user): it works with `reset = "off"`, with the network down, and
@@ -31,7 +35,8 @@ import time
 
 from millsense.daemon.pipeline.local_control import CLIENT_TIMEOUT_S
 from millsense.daemon.publish.cli_args import (
-    DaemonConfig,
+    EXIT_UNKNOWN,
+    Target,
     add_config_argument,
     add_token_arguments,
     add_zenoh_arguments,
@@ -50,7 +55,8 @@ LOCAL_TIMEOUT_S = CLIENT_TIMEOUT_S
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--machine", "-m", metavar="ID", default=None, help="the machine id of the daemon (default: the only one alive)")
+    parser.add_argument("--machine", "-m", metavar="ID", default=None, help="the machine id of the daemon (default: --config's; else the only one on "
+                        "--connect with --no-scouting; else the demo's)")
     parser.add_argument("--local", action="store_true",
                         help="ask through the daemon's control socket at the machine (root or the daemon's user)")
     add_config_argument(parser, "its machine id and where to connect")
@@ -70,14 +76,13 @@ def run(args: argparse.Namespace) -> int:
     target = command_target(args, PROG, ZENOH_TIMEOUT_S, LOCAL_TIMEOUT_S)
     if isinstance(target, int):
         return target
-    daemon, machine = target.daemon, target.machine
     if args.local:
-        return _local(machine, args.timeout)
+        return _local(target.machine, args.timeout)
     try:
         token = read_token(args)
     except ValueError as exc:
         return _fail(f"error: {exc}")
-    return _over_zenoh(args, machine, token, daemon)
+    return _over_zenoh(args, target, token)
 
 
 def _local(machine: str, timeout_s: float) -> int:
@@ -94,10 +99,10 @@ def _local(machine: str, timeout_s: float) -> int:
     return 0
 
 
-def _over_zenoh(args: argparse.Namespace, machine: str | None, token: str | None, daemon: DaemonConfig | None) -> int:
+def _over_zenoh(args: argparse.Namespace, target: Target, token: str | None) -> int:
     from millsense.daemon.publish.command_auth import CommandError, exchange
 
-    opened = open_machine_session(args, daemon, machine, PROG, *HINT_MORE)
+    opened = open_machine_session(args, target, PROG, *HINT_MORE)
     if isinstance(opened, int):
         return opened
     machine, session = opened.machine, opened.session
@@ -108,7 +113,8 @@ def _over_zenoh(args: argparse.Namespace, machine: str | None, token: str | None
         except CommandError as exc:
             if exc.result is not None:
                 print(json.dumps(exc.result))
-            return _fail(command_error_text(exc, opened, "reset", args, daemon, token))
+            return _fail(command_error_text(exc, opened, "reset", args, target.daemon, token),
+                         EXIT_UNKNOWN if exc.unknown else 1)
         print(json.dumps(outcome.result))
         if not outcome.verified:
             print(f'{PROG}: note: {machine} takes commands from anyone (reset = "open"): this answer cannot be '

@@ -12,9 +12,14 @@ CNC took to report "feed held". Then it asks for a reset.
   MILLSENSE_RESET_TOKEN).
 
 Exit 0 when the daemon confirmed the hold (the DAQ's status, and the CNC's
-flag where the DAQ reports it) and granted the reset; 1 otherwise. When the
-test itself failed, no reset is sent: the feed stays held until someone has
-looked at the path and runs `millsense reset`.
+flag where the DAQ reports it) and granted the reset; 3 when a command's proof
+went out and no answer came that can be trusted (its outcome unknown); 1
+otherwise. When the test itself failed, no reset is sent: the feed stays held
+until someone has looked at the path and runs `millsense reset`.
+
+The machine is never guessed, as for every command (publish/cli_args.py,
+`Target`): `--machine`, `--config`'s, the only daemon on a network named by
+`--connect` with scouting off, or the demo's; the one not named is said.
 """
 
 from __future__ import annotations
@@ -25,13 +30,13 @@ from typing import Any
 
 from millsense.daemon.pipeline.local_control import CLIENT_TIMEOUT_S
 from millsense.daemon.publish.cli_args import (
-    EXIT_USAGE,
-    DaemonConfig,
+    EXIT_UNKNOWN,
+    Target,
     add_config_argument,
     add_token_arguments,
     add_zenoh_arguments,
     command_target,
-    open_command_session,
+    open_machine_session,
     read_token,
 )
 
@@ -43,7 +48,9 @@ LOCAL_TIMEOUT_S = CLIENT_TIMEOUT_S
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--machine", "-m", metavar="ID", default=None, help="the machine id of the daemon")
+    parser.add_argument("--machine", "-m", metavar="ID", default=None,
+                        help="the machine id of the daemon (default: --config's; else the only one on "
+                             "--connect with --no-scouting; else the demo's)")
     parser.add_argument("--local", action="store_true",
                         help="ask through the daemon's control socket at the machine (root or the daemon's user)")
     add_config_argument(parser, "its machine id and where to connect")
@@ -63,12 +70,9 @@ def run(args: argparse.Namespace) -> int:
     target = command_target(args, PROG, DEFAULT_TIMEOUT_S, LOCAL_TIMEOUT_S)
     if isinstance(target, int):
         return target
-    daemon, machine = target.daemon, target.machine
     if args.local:
-        return _local(machine, args.timeout)
-    if machine is None:
-        return _fail("error: give --machine or --config (a proof test is not sent to a guessed machine)", EXIT_USAGE)
-    return _zenoh(args, machine, daemon)
+        return _local(target.machine, args.timeout)
+    return _zenoh(args, target)
 
 
 def _local(machine: str, timeout_s: float) -> int:
@@ -89,7 +93,7 @@ def _local(machine: str, timeout_s: float) -> int:
     return _report_reset(machine, reset)
 
 
-def _zenoh(args: argparse.Namespace, machine: str, daemon: DaemonConfig | None) -> int:
+def _zenoh(args: argparse.Namespace, target: Target) -> int:
     try:
         from millsense.daemon.publish.command_auth import CommandError, send_command
     except ImportError:
@@ -98,23 +102,23 @@ def _zenoh(args: argparse.Namespace, machine: str, daemon: DaemonConfig | None) 
         token = read_token(args)
     except ValueError as exc:
         return _fail(f"error: {exc}")
-    opened = open_command_session(args, daemon, PROG, "at the machine: --local")
+    opened = open_machine_session(args, target, PROG, "at the machine: --local")
     if isinstance(opened, int):
         return opened
-    session, no_daemon_hint = opened.session, opened.no_daemon_hint
+    machine, session, no_daemon_hint = opened.machine, opened.session, opened.no_daemon_hint
     try:
         try:
             trip = send_command(session, machine, "test-trip", token, timeout_s=args.timeout)
         except CommandError as exc:
             more = f"\n{no_daemon_hint}" if str(exc).startswith("no daemon answered") else ""
-            return _fail(f"error: {machine}: test-trip: {exc}{more}")
+            return _fail(f"error: {machine}: test-trip: {exc}{more}", EXIT_UNKNOWN if exc.unknown else 1)
         if not _report_trip(machine, trip):
             return 1
         try:
             reset = send_command(session, machine, "reset", token, timeout_s=args.timeout)
         except CommandError as exc:
             return _fail(f"error: {machine}: the reset after the test was refused or not answered: {exc}; "
-                         "the feed stays held")
+                         "the feed stays held", EXIT_UNKNOWN if exc.unknown else 1)
         return _report_reset(machine, reset)
     finally:
         session.close()

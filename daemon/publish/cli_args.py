@@ -25,6 +25,9 @@ from millsense.daemon.publish.session import endpoints_arg
 
 MACHINE_RE = re.compile(r"^[A-Za-z0-9_-]+\Z")
 EXIT_USAGE = 2
+# A command's proof went out and no answer came back that can be trusted (none, or one that fails the daemon's
+# MAC): it may have run. Distinct from 1 (refused, or nothing sent) so that a script does not take it for either.
+EXIT_UNKNOWN = 3
 EXIT_CONFIG = 78
 
 class CliUsageError(ValueError):
@@ -259,10 +262,50 @@ def check_machine(machine: str | None, prog: str) -> str | None:
 
 @dataclass(frozen=True)
 class Target:
-    """Which daemon a command (`reset`, `test-trip`) is for: its config if given, and its machine id."""
+    """Which daemon a command (`reset`, `test-trip`, `limits`, `afc`) is for: its config if given, and its machine.
+
+    Never a guess (issue 36, finding 5): the machine is `--machine`, or `--config`'s; else, on a network the
+    user named (`network`: endpoints given and multicast scouting off), the only daemon alive there, found
+    once the session is open (`machine` None); else the default config's, the demo's (`millsense run` with
+    no config runs it), `why` saying so. Whatever was not named is said in the output.
+    """
 
     daemon: DaemonConfig | None
     machine: str | None
+    why: str = ""       # how the machine was chosen when it was not named: said on stderr
+    network: str = ""   # the endpoints of a named network, where the only daemon alive is taken
+
+
+def default_machine() -> str:
+    """The default config's machine: the built-in demo's (`millsense run` with no `--config`)."""
+    import tomllib
+    from importlib import resources
+
+    text = resources.files("millsense.daemon").joinpath("demo.toml").read_text(encoding="utf-8")
+    return str(tomllib.loads(text)["machine"])
+
+
+def named_network(args: argparse.Namespace) -> str:
+    """The endpoints the user named, when only they are searched (multicast scouting off); "" otherwise.
+
+    On a network found by scouting, "the only daemon alive" is whatever scouting met first: on a host where
+    scouting found another daemon, `limits list` answered for the wrong machine.
+    """
+    try:
+        endpoints = checked_endpoints(getattr(args, "connect", None), "--connect")
+    except CliUsageError:
+        return ""  # said when the session is opened
+    scouting = not getattr(args, "no_scouting", False)
+    if getattr(args, "zenoh_config", ""):
+        try:
+            own = _json5_connection(Path.cwd() / "-", str(Path(args.zenoh_config).resolve()))
+        except DaemonConfigError:
+            return ""  # said when the session is opened
+        if not endpoints:
+            endpoints = [str(e) for e in own.get("connect", []) or []]
+        if not getattr(args, "no_scouting", False):
+            scouting = own.get("multicast_scouting", True) is not False
+    return ", ".join(endpoints) if endpoints and not scouting else ""
 
 
 def command_target(args: argparse.Namespace, prog: str, zenoh_timeout_s: float, local_timeout_s: float) -> Target | int:
@@ -287,7 +330,12 @@ def command_target(args: argparse.Namespace, prog: str, zenoh_timeout_s: float, 
         print(f"{prog}: error: --local needs --machine or --config (to find the daemon's state directory)",
               file=sys.stderr)
         return EXIT_USAGE
-    return Target(daemon, machine)
+    if machine is not None:
+        return Target(daemon, machine)
+    network = named_network(args)
+    if network:
+        return Target(daemon, None, network=network)
+    return Target(daemon, default_machine(), why="the demo's, the default config: no --machine or --config given")
 
 
 # ---- the commands' token and session (`reset`, `test-trip`, `limits`, `afc`): one copy -------------------
@@ -337,22 +385,37 @@ class CommandSession:
     deadline: float = 0.0
 
 
-def open_machine_session(args: argparse.Namespace, daemon: DaemonConfig | None, machine: str | None, prog: str,
-                         *hint_more: str) -> CommandSession | int:
-    """`open_command_session`, then the machine: `machine`, or the only one alive (closed and the exit code
-    when there is none or several)."""
+def open_machine_session(args: argparse.Namespace, target: Target, prog: str, *hint_more: str) -> CommandSession | int:
+    """`open_command_session`, then the machine of `target`, said on stderr when it was not named: the only
+    daemon alive on the named network, or the default config's when it is alive (closed and the exit code,
+    after saying who is alive, otherwise)."""
     import time
 
     started = time.monotonic()
-    opened = open_command_session(args, daemon, prog, *hint_more)
+    opened = open_command_session(args, target.daemon, prog, *hint_more)
     if isinstance(opened, int):
         return opened
     opened.deadline = started + args.timeout
+    machine = target.machine
     if machine is None:
-        machine, code = only_machine_alive(opened.session, opened.deadline, args.timeout, opened.no_daemon_hint, prog)
+        machine, code = only_machine_alive(opened.session, opened.deadline, args.timeout, opened.no_daemon_hint,
+                                           prog, target.network)
         if machine is None:
             opened.session.close()
             return code
+        print(f"{prog}: machine {machine} (the only daemon on {target.network})", file=sys.stderr)
+    elif target.why:
+        alive = machines_alive(opened.session, opened.deadline, lambda seen: machine in seen)
+        if machine not in alive:
+            opened.session.close()
+            if alive:
+                print(f"{prog}: no daemon {machine} alive ({target.why}); alive: {', '.join(sorted(alive))}: "
+                      "choose one with --machine, or give its --config", file=sys.stderr)
+            else:
+                print(f"{prog}: no daemon {machine} alive within {args.timeout:g} s ({target.why})\n"
+                      f"{opened.no_daemon_hint}", file=sys.stderr)
+            return 1
+        print(f"{prog}: machine {machine} ({target.why})", file=sys.stderr)
     opened.machine = machine
     return opened
 
@@ -361,6 +424,8 @@ def command_error_text(exc: Any, opened: CommandSession, command: str, args: arg
                        daemon: DaemonConfig | None, token: str | None) -> str:
     """What to print when `exchange` raised `CommandError`: nobody answered (with the `try:` line), no
     token where the daemon's config names a token file (with that file), or the daemon's refusal."""
+    if exc.unknown:
+        return str(exc)   # the proof went out: the message says the outcome is unknown and how to check
     if exc.no_answer:
         message = str(exc)
         if message.startswith("no daemon answered"):  # the user's timeout, not what was left of it
@@ -394,13 +459,13 @@ def open_command_session(args: argparse.Namespace, daemon: DaemonConfig | None, 
     return CommandSession(session, settings, no_daemon_hint)
 
 
-def only_machine_alive(session: Any, deadline: float, timeout_s: float, no_daemon_hint: str,
-                       prog: str) -> tuple[str | None, int]:
-    """The one machine whose `millsense/*/alive` token is visible by `deadline`; with none or several,
-    (None, 1) after saying so: a command is not sent to a guessed machine."""
+def machines_alive(session: Any, deadline: float, enough: Any) -> set[str]:
+    """The machines whose `millsense/*/alive` token is visible, asked until `enough(seen)` holds and two rounds
+    agree (a session still learning its peers sees one daemon before it sees two), or until `deadline`."""
     import time
 
     machines: set[str] = set()
+    before: set[str] | None = None
     while True:
         left = deadline - time.monotonic()
         for reply in session.liveliness().get("millsense/*/alive", timeout=max(0.1, min(left, 0.5))):
@@ -408,15 +473,25 @@ def only_machine_alive(session: Any, deadline: float, timeout_s: float, no_daemo
                 parts = str(reply.ok.key_expr).split("/")
                 if len(parts) == 3:
                     machines.add(parts[1])
-        if machines or deadline - time.monotonic() <= 0.05:
+        if (enough(machines) and machines == before) or deadline - time.monotonic() <= 0.05:
             break
-        time.sleep(0.05)  # the session may still be learning its peers' tokens
+        before = set(machines)
+        time.sleep(0.05)
+    return machines
+
+
+def only_machine_alive(session: Any, deadline: float, timeout_s: float, no_daemon_hint: str,
+                       prog: str, network: str = "") -> tuple[str | None, int]:
+    """The one machine whose `millsense/*/alive` token is visible by `deadline`; with none or several,
+    (None, 1) after saying so: a command is not sent to a guessed machine."""
+    machines = machines_alive(session, deadline, bool)
+    where = f" on {network}" if network else ""
     if not machines:
-        print(f"{prog}: no daemon alive on millsense/*/alive within {timeout_s:g} s\n{no_daemon_hint}",
+        print(f"{prog}: no daemon alive on millsense/*/alive{where} within {timeout_s:g} s\n{no_daemon_hint}",
               file=sys.stderr)
         return None, 1
     if len(machines) > 1:
-        print(f"{prog}: several daemons are alive ({', '.join(sorted(machines))}); choose one with --machine",
-              file=sys.stderr)
+        print(f"{prog}: several daemons are alive ({', '.join(sorted(machines))}); choose one with --machine "
+              "(or give its --config)", file=sys.stderr)
         return None, 1
     return machines.pop(), 0

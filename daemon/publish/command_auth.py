@@ -20,8 +20,17 @@ nothing (SN is spent), and a daemon without the token can neither learn it
 (HMAC, 256-bit tokens) nor forge S. The same idea as SCRAM's proofs.
 
 Policies (`[interlock] reset`): "token" as above; "open" (no MAC either way:
-whoever reaches the queryable may command, and the requester cannot verify the
-answer); "off" (every network command refused: the local reset at the machine).
+whoever reaches the queryable may clear or test a hold, `OPEN_COMMANDS`, and
+nothing more: every command that may loosen protection or raise the feed is
+refused, since no token exists to prove, and the refusal points to the local
+socket; the requester cannot verify the answer); "off" (every network command
+refused: the local reset at the machine).
+
+The requester asks every queryable on the key and keeps every answer apart
+(`QueryTarget.ALL`, no consolidation): two programs answering the challenge
+are said, and no proof is sent; an answer to the proof that fails the daemon's
+MAC leaves the outcome unknown (`CommandError.unknown`), never reported as a
+refusal or a success.
 
 Zenoh cannot tell requesters apart reliably, so failed proofs are limited
 globally: after `max_failures` within `window_s`, every proof is refused for
@@ -52,6 +61,52 @@ SERVER_NONCE_RE = re.compile(r"^[0-9a-f]{64}\Z")
 MAC_RE = re.compile(r"^[0-9a-f]{64}\Z")
 ZID_RE = re.compile(r"^[0-9a-f]{1,32}\Z")
 LOCAL_HINT = "use the local reset at the machine: millsense reset --local"
+
+# What `reset = "open"` lets anyone who reaches the queryable do: clear a hold, prove the hold path, and read.
+# An allow-list, so that whatever else `cmd/*` takes needs the token's proof (or the local socket): every action
+# that widens, accepts, relearns, marks an alarm false, starts a tool afresh or turns a check off, `afc on` (it
+# raises the feed) and `afc off` (it too may raise the feed: from a reduced override back to 100 %), and any
+# action added later, the day it is added. None: the command takes no args (checked by the command itself).
+OPEN_COMMANDS: dict[str, tuple[str, ...] | None] = {
+    "reset": None,
+    "test-trip": None,
+    "limits": ("list", "show"),
+    "afc": ("status",),
+}
+LOCAL_SOCKET_HINT = ("at the machine, as root or the daemon's user, add --local (the daemon's control socket: "
+                     "no token needed there)")
+
+
+def open_to_anyone(command: str, args: Any) -> bool:
+    """May `command` with `args` run under `reset = "open"`, with no proof? Only what `OPEN_COMMANDS` names."""
+    if command not in OPEN_COMMANDS:
+        return False
+    actions = OPEN_COMMANDS[command]
+    if actions is None:
+        return True
+    return isinstance(args, dict) and args.get("action") in actions
+
+
+def command_words(command: str, args: Any) -> str:
+    """`limits widen`, `afc on`, `reset`: a command as an operator types it."""
+    action = args.get("action") if isinstance(args, dict) else None
+    return f"{command} {action.replace('_', '-')}" if isinstance(action, str) and action else command
+
+
+def policy_summary(policy: str, has_token: bool) -> str:
+    """Who may do what over which transport under `policy`, in one phrase (check-config's summary line).
+
+    Reads (`status`, `config`, `limits`, `afc status`) need nothing; the local socket (root or the daemon's
+    user, `--local`) takes every command whatever the policy: neither is repeated here.
+    """
+    changes = "limits changes and afc on/off"
+    if policy == "token" and has_token:
+        return 'commands over Zenoh with the token\'s proof (reset = "token")'
+    if policy == "open":
+        return (f'reset and test-trip open to anyone who reaches it over Zenoh, {changes} only at the machine '
+                '(--local) (reset = "open", no token)')
+    why = 'reset = "token" without a token' if policy == "token" else f'reset = "{policy}"'
+    return f"no command over Zenoh, every command only at the machine (--local) ({why})"
 
 
 # --------------------------------------------------------------------------- encodings
@@ -255,6 +310,13 @@ class CommandGate:
             # guess; a garbled payload tried none
             if not isinstance(args, dict):
                 return self._signed_refusal(command, requester, sn, cn, "payload: args must be an object")
+            if self.policy == "open" and not open_to_anyone(command, args):
+                # not a failed proof either: no token exists to try
+                return self._signed_refusal(
+                    command, requester, sn, cn,
+                    f"{command_words(command, args)} needs the reset token over the network, and {self.machine} "
+                    f'has none (reset = "open" lets anyone clear or test a hold, nothing more): '
+                    f"{LOCAL_SOCKET_HINT}")
             if self.policy == "token":
                 given = request.get("mac")
                 try:
@@ -327,11 +389,13 @@ class CommandError(Exception):
 
     `result`: the daemon's verified (or, with policy "open", unverifiable) refusal, when there is one.
     `no_answer`: nobody answered at all.
+    `unknown`: the proof went out and no answer came back that can be trusted (none, or one that fails the
+    daemon's MAC): the command may have run. The CLI exits `EXIT_UNKNOWN` (3) and says how to check.
     """
 
-    def __init__(self, message: str, result: dict | None = None, no_answer: bool = False):
+    def __init__(self, message: str, result: dict | None = None, no_answer: bool = False, unknown: bool = False):
         super().__init__(message)
-        self.result, self.no_answer = result, no_answer
+        self.result, self.no_answer, self.unknown = result, no_answer, unknown
 
 
 @dataclass
@@ -352,14 +416,29 @@ def send_command(session: Any, machine: str, command: str, token: str | None, ar
     return exchange(session, machine, command, token, args, timeout_s).result
 
 
+def how_to_check(command: str, machine: str) -> str:
+    """Where an operator sees whether `command` ran on `machine` (said with an unknown outcome)."""
+    read = {"afc": f"millsense afc status --machine {machine}",
+            "limits": f"millsense limits list --machine {machine}"}.get(
+        command, f"millsense watch --machine {machine} (its interlock)")
+    return (f"check with `{read}` and the daemon's audit log (audit.log in its state directory: "
+            f"/var/lib/millsense/{machine}/ under systemd), which records every command granted or refused")
+
+
 def exchange(session: Any, machine: str, command: str, token: str | None, args: dict | None = None,
              timeout_s: float = 2.0) -> Outcome:
     """`send_command` with the policy and whether the answer was verified."""
+    import zenoh
+
     args = {} if args is None else args
     canonical_json(args)  # a bad argument is the caller's error, before anything is sent
     key = f"millsense/{machine}/cmd/{command}"
     deadline = time.monotonic() + timeout_s
-    querier = session.declare_querier(key, timeout=max(0.1, timeout_s))
+    # Every queryable on the key is asked and every answer kept apart: with Zenoh's default (the best-matching
+    # queryable, answers consolidated to the latest) a second program answering as the daemon went unseen, and its
+    # answer could stand in for the daemon's (finding 6 of issue 36).
+    querier = session.declare_querier(key, target=zenoh.QueryTarget.ALL,
+                                      consolidation=zenoh.ConsolidationMode.NONE, timeout=max(0.1, timeout_s))
     try:
         # A fresh session learns remote queryables a moment after it opens.
         while not querier.matching_status.matching:
@@ -393,21 +472,28 @@ def exchange(session: Any, machine: str, command: str, token: str | None, args: 
             if replies or time.monotonic() + 0.05 >= deadline:
                 break
             time.sleep(0.05)
-        unsure = (f"no answer from {machine} to the {command} proof: the command may or may not have run; "
-                  "check its status")
+        unsure = (f"no answer from {machine} to the {command} proof: the outcome is unknown (the command may or "
+                  f"may not have run); {how_to_check(command, machine)}")
         if not replies:
-            raise CommandError(unsure, no_answer=True)
+            raise CommandError(unsure, no_answer=True, unknown=True)
         try:
             return _verified(replies, machine, command, policy, sn, cn, token)
         except CommandError as exc:
             if tries > 1 and exc.result is not None and "server_nonce" in str(exc.result.get("error")):
-                raise CommandError(unsure, no_answer=True) from None  # an earlier try ran, its answer was lost
+                # an earlier try ran, its answer was lost
+                raise CommandError(unsure, no_answer=True, unknown=True) from None
             raise
     finally:
         try:
             querier.undeclare()
         except Exception:  # noqa: BLE001 - the session may be closing
             pass
+
+
+def _programs(replies: list[tuple[bool, Any, str | None]]) -> list[str]:
+    """Who answered, one entry per program: its Zenoh id, or "(unknown)" per answer that names none."""
+    ids = sorted({r for _, _, r in replies if r is not None})
+    return ids + ["(unknown)"] * sum(1 for _, _, r in replies if r is None)
 
 
 def _challenge(querier: Any, key: str, machine: str, command: str, cn: str, zid: str | None, deadline: float,
@@ -418,7 +504,11 @@ def _challenge(querier: Any, key: str, machine: str, command: str, cn: str, zid:
         request["client_zid"] = zid
     while True:
         replies = _get(querier, request)
-        answers = [(ok, body) for ok, body in replies]
+        programs = _programs(replies)
+        if len(programs) > 1:
+            raise CommandError(f"{len(programs)} programs answer on {key} (Zenoh ids {', '.join(programs)}): "
+                               f"something else answers as {machine}; nothing was sent")
+        answers = [(ok, body) for ok, body, _ in replies]
         for ok, body in answers:
             if not ok:
                 reason = body.get("error") if isinstance(body, dict) else body
@@ -440,34 +530,50 @@ def _challenge(querier: Any, key: str, machine: str, command: str, cn: str, zid:
         time.sleep(0.05)
 
 
-def _verified(replies: list[tuple[bool, Any]], machine: str, command: str, policy: str, sn: str, cn: str,
+def _verified(replies: list[tuple[bool, Any, str | None]], machine: str, command: str, policy: str, sn: str, cn: str,
               token: str | None) -> Outcome:
-    problem = "the answer is not a millsense command reply (docs/zenoh.md)"
-    for ok, body in replies:
+    """The outcome the answers to the proof prove. With "token", only an answer carrying the daemon's MAC counts:
+    any other answer (a forged success, a forged or unverifiable refusal) leaves the outcome unknown."""
+    proven: list[tuple[bool, dict]] = []
+    claims: list[str] = []   # what unverifiable answers say, for the message
+    for ok, body, _replier in replies:
         if not (isinstance(body, dict) and isinstance(body.get("result"), str)):
             if isinstance(body, dict) and isinstance(body.get("error"), str):
-                problem = f"{machine} refused {command}: {body['error']}"  # refused before any MAC was possible
+                claims.append(f"refused: {body['error']}")   # refused before any MAC was possible
+            else:
+                claims.append("an answer that is not a millsense command reply (docs/zenoh.md)")
             continue
         text = body["result"]
+        result = _object(text)
         if policy == "token":
             given = body.get("server_mac")
             expected = mac_hex(token or "", reply_message(command, machine, sn, cn, text))
             if not (isinstance(given, str) and hmac.compare_digest(given, expected)):
-                claimed = _object(text)
-                if claimed is not None and claimed.get("ok") is False:
-                    problem = (f"{machine} refused {command}: {claimed.get('error')} (unverified: the answer carries "
-                               "no valid MAC for this token: a wrong token, or not the real daemon)")
+                if result is not None and result.get("ok") is False:
+                    claims.append(f"{machine} refused {command}: {result.get('error')}")
                 else:
-                    problem = ("the answer failed the daemon's MAC: it does not come from a daemon that knows this "
-                               "token (an impostor, or a different token); do not trust it")
+                    claims.append("success" if result is not None and result.get("ok") else "an answer")
                 continue
-        result = _object(text)
         if result is None:
+            claims.append("an answer whose result is not a JSON object")
             continue
+        proven.append((ok, result))
+    if policy != "token" and len(_programs(replies)) > 1:
+        # "open": nothing is verifiable, and more than one program answered the proof
+        raise CommandError(f"{len(_programs(replies))} programs answered the {command} proof on {machine}: the "
+                           f"outcome is unknown; {how_to_check(command, machine)}", unknown=True)
+    if proven:
+        ok, result = proven[0]
         if not ok:
             raise CommandError(f"{machine} refused {command}: {result.get('error', result)}", result=result)
         return Outcome(result, policy, policy == "token")
-    raise CommandError(problem)
+    said = "; ".join(dict.fromkeys(claims)) or "nothing usable"
+    if policy != "token":
+        raise CommandError(f"{machine}: {said}")
+    raise CommandError(
+        f"the answer to the {command} proof fails the daemon's MAC for this token (it says: {said}): the outcome "
+        f"is unknown. Either the token is wrong (then the daemon ran nothing) or the answer is not the daemon's "
+        f"(then the command may have run); {how_to_check(command, machine)}", unknown=True)
 
 
 def _object(text: str) -> dict | None:
@@ -478,10 +584,11 @@ def _object(text: str) -> dict | None:
     return value if isinstance(value, dict) else None
 
 
-def _get(querier: Any, request: dict) -> list[tuple[bool, Any]]:
+def _get(querier: Any, request: dict) -> list[tuple[bool, Any, str | None]]:
+    """Every answer to `request`: (a normal reply?, its JSON (or text), the replier's Zenoh id when known)."""
     import zenoh
 
-    out: list[tuple[bool, Any]] = []
+    out: list[tuple[bool, Any, str | None]] = []
     for reply in querier.get(payload=_dumps(request), encoding=zenoh.Encoding.APPLICATION_JSON):
         sample = reply.ok if reply.ok is not None else reply.err
         data = sample.payload.to_bytes()
@@ -489,7 +596,8 @@ def _get(querier: Any, request: dict) -> list[tuple[bool, Any]]:
             body: Any = json.loads(data)
         except (UnicodeDecodeError, ValueError):
             body = data.decode("utf-8", "replace")
-        out.append((reply.ok is not None, body))
+        replier = getattr(getattr(reply, "replier_id", None), "zid", None)
+        out.append((reply.ok is not None, body, str(replier) if replier is not None else None))
     return out
 
 

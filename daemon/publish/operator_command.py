@@ -5,8 +5,10 @@ token, `--timeout`); at the machine, the daemon's control socket (`--local`);
 over Zenoh, a read on a queryable that needs no token, or a command on
 `cmd/<name>`, authorised by the challenge–response of docs/zenoh.md exactly like
 `millsense reset`. The command module says only what it asks and how its answer
-reads. Exit 0 when done, 1 when refused or unanswered, 2 for a bad argument, 78
-for an unreadable --config.
+reads. The machine is never guessed (cli_args.Target). Exit 0 when done, 1 when
+refused or unanswered (nothing ran), 2 for a bad argument, 3 when the command's
+proof went out and no answer came that can be trusted (the outcome is unknown:
+the message says how to check), 78 for an unreadable --config.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from typing import Any
 
 from millsense.daemon.pipeline.local_control import CLIENT_TIMEOUT_S
 from millsense.daemon.publish.cli_args import (
+    EXIT_UNKNOWN,
     add_config_argument,
     add_token_arguments,
     add_zenoh_arguments,
@@ -55,7 +58,8 @@ class OperatorCommand:
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--json", action="store_true", help="print the daemon's answer as one JSON object")
         parser.add_argument("--machine", "-m", metavar="ID", default=None,
-                            help="the machine id of the daemon (default: the only one alive)")
+                            help="the machine id of the daemon (default: --config's; else the only one on "
+                                 "--connect with --no-scouting; else the demo's)")
         parser.add_argument("--local", action="store_true",
                             help="ask through the daemon's control socket at the machine (root or the daemon's user)")
         add_config_argument(parser, "its machine id and where to connect")
@@ -101,7 +105,7 @@ class OperatorCommand:
                     token: str | None, report: Callable[[str, dict[str, Any]], int]) -> int:
         from millsense.daemon.publish.command_auth import CommandError, exchange
 
-        opened = open_machine_session(args, target.daemon, target.machine, self.prog, *self.hints)
+        opened = open_machine_session(args, target, self.prog, *self.hints)
         if isinstance(opened, int):
             return opened
         machine, session = opened.machine, opened.session
@@ -120,7 +124,8 @@ class OperatorCommand:
             except CommandError as exc:
                 if exc.result is not None and args.json:
                     print(json.dumps(exc.result))
-                return self.fail(command_error_text(exc, opened, self.command, args, target.daemon, token))
+                return self.fail(command_error_text(exc, opened, self.command, args, target.daemon, token),
+                                 EXIT_UNKNOWN if exc.unknown else 1)
             if not outcome.verified:
                 print(f'{self.prog}: note: {machine} takes commands from anyone (reset = "open"): this answer '
                       "cannot be verified", file=sys.stderr)

@@ -72,7 +72,8 @@ def test_afc_cli_switches_authorised_and_audited_against_a_real_daemon(tmp_path)
             p = _cli(["on", *where], env)
             assert p.returncode == 1 and "requires a reset token" in p.stderr, p.stderr
             p = _cli(["on", "--token-file", str(wrong_file), *where], env)
-            assert p.returncode == 1 and "refused afc" in p.stderr, p.stderr
+            # a wrong token cannot verify the daemon's signed refusal: said, as an unknown outcome (exit 3)
+            assert p.returncode == 3 and "refused afc" in p.stderr and "outcome is unknown" in p.stderr, p.stderr
             refused = wait_for(lambda: [a for a in _audit(state) if a["command"] == "afc"], 10.0, "the refusal")
             assert refused[0]["granted"] is False and "does not match" in refused[0]["reason"]
             p = _cli(["on", "--token-file", str(token_file), *where], env)

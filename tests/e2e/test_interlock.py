@@ -109,7 +109,7 @@ def test_overload_trips_within_a_revolution_and_reset_clears_it(tmp_path, step_c
             assert alarm["interlock"] == "feed_hold" and alarm["quantity"] == "torque_nm" and alarm["value"] > limit
 
             wrong = _reset(machine, z_port, "not-the-token")
-            assert wrong.returncode == 1, wrong.stdout + wrong.stderr
+            assert wrong.returncode == 3, wrong.stdout + wrong.stderr  # its refusal unverifiable: outcome unknown
             time.sleep(0.3)
             assert not _holds(read_jsonl(log_path), on=False), "a wrong token released the feed"
             _reset_when_allowed(machine, z_port, TOKEN, log_path)

@@ -92,6 +92,89 @@ class FakeInterlock:
         return {"ok": True, "interlock": "clear"}
 
 
+KEY = "1234/12/3"  # a process key program/tool/operation
+
+
+class OperatorControls(FakeInterlock):
+    """Every command the sink can serve, each call recorded: what ran is what is in `ran`."""
+
+    def __init__(self, token: str | None, audit: Any, machine: str = "m1") -> None:
+        super().__init__(token=token)
+        self.audit, self.machine = audit, machine
+        self.ran: list[tuple[str, dict]] = []
+
+    def test_trip(self, requester: str = "") -> dict:
+        self.ran.append(("test-trip", {}))
+        return {"ok": True, "daq_confirm_ms": 1.0, "cnc_confirm_ms": None}
+
+    def limits(self) -> dict:
+        return {"machine": self.machine, "enabled": True, "limits": [{"key": KEY, "state": "active", "high_nm": 5.0}]}
+
+    def limits_command(self, args: dict, requester: str = "") -> dict:
+        self.ran.append(("limits", dict(args)))
+        return {"ok": True}
+
+    def afc_command(self, args: dict, requester: str = "") -> dict:
+        self.ran.append(("afc", dict(args)))
+        return {"ok": True, "afc": {"enabled": args["action"] == "on"}}
+
+
+class Impostor:
+    """A second real Zenoh session answering on `millsense/<m>/cmd/*` like a daemon without the token:
+    a well-formed challenge, then a success it cannot sign. It records what it was sent."""
+
+    def __init__(self, port: int, machine: str, *, answer_prove: bool = True, answer_challenge: bool = True) -> None:
+        from tests.conftest import free_tcp_port
+
+        # it listens too, so that the requester (linked to the daemon only) learns of it by gossip and links to it
+        self.session = open_session(zsettings(connect=[tcp(port)], listen=[tcp(free_tcp_port())]), retry_for_s=0)
+        self.machine, self.answer_prove, self.answer_challenge = machine, answer_prove, answer_challenge
+        self.got: list[dict] = []
+        self.lock = threading.Lock()
+        self.q = self.session.declare_queryable(f"millsense/{machine}/cmd/*", self._on)
+        self.others: list[Any] = []
+
+    def alive_as(self, machine: str) -> None:
+        """Look like a second daemon too: `machine`'s alive token and a `status` that answers."""
+        self.others.append(self.session.liveliness().declare_token(f"millsense/{machine}/alive"))
+        self.others.append(self.session.declare_queryable(
+            f"millsense/{machine}/status", lambda q: q.reply(str(q.key_expr), json.dumps({"state": "running"}))))
+
+    def _on(self, query) -> None:
+        request = json.loads(query.payload.to_bytes())
+        command = str(query.key_expr).rsplit("/", 1)[-1]
+        with self.lock:
+            self.got.append(request)
+        if request.get("step") == "challenge":
+            if not self.answer_challenge:
+                return
+            body = {"step": "challenge", "machine": self.machine, "command": command, "policy": "token",
+                    "server_nonce": "c" * 64, "expires_s": 10}
+        elif self.answer_prove:
+            body = {"result": json.dumps({"ok": True, "afc": {"enabled": True}}), "server_mac": "d" * 64}
+        else:
+            return
+        query.reply(str(query.key_expr), json.dumps(body).encode())
+
+    def known_to(self, session: Any, timeout_s: float = 5.0) -> None:
+        """Wait until `session` knows this impostor's queryable (a key only it answers: the daemon has no
+        `cmd/zz-probe`), so that a command from `session` reaches it too."""
+        querier = session.declare_querier(f"millsense/{self.machine}/cmd/zz-probe")
+        try:
+            wait_for(lambda: querier.matching_status.matching, timeout_s, "the impostor's queryable is known")
+        finally:
+            querier.undeclare()
+
+    def steps(self) -> list[str]:
+        with self.lock:
+            return [r.get("step") for r in self.got]
+
+    def close(self) -> None:
+        for entity in [*self.others, self.q]:
+            entity.undeclare()
+        self.session.close()
+
+
 class LineReader:
     """Reads a subprocess's stdout lines on a thread, so waits can have deadlines."""
 

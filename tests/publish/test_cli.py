@@ -160,9 +160,12 @@ def test_reset_refused_exits_1_with_the_reason(millsense_cmd, port, daemon_sessi
     controls = FakeInterlock(token=TOKEN)
     sink = ZenohSink(daemon_session, "mch10-01", controls)
     try:
+        # the daemon's refusal is signed with its token, which the requester's wrong one cannot verify: it is
+        # said, but as an unknown outcome (exit 3), since a forged refusal would read the same
         proc = _reset(millsense_cmd, port, "--machine", "mch10-01", "--token", "guess-" + TOKEN)
-        assert proc.returncode == 1
+        assert proc.returncode == 3
         assert "mch10-01 refused reset: the proof does not match (wrong or missing reset token)" in proc.stderr
+        assert "the outcome is unknown" in proc.stderr and "Either the token is wrong" in proc.stderr
         assert controls.latched
 
         proc = _reset(millsense_cmd, port, "--machine", "mch10-01")
@@ -187,6 +190,7 @@ def test_reset_without_machine_asks_the_only_daemon_alive(millsense_cmd, port, d
         assert proc.returncode == 0, proc.stderr
         assert json.loads(proc.stdout)["interlock"] == "clear"
         assert len(controls.requesters) == 1
+        assert f"millsense reset: machine solo (the only daemon on {tcp(port)})" in proc.stderr  # said, not guessed
         second = ZenohSink(daemon_session, "duo", FakeInterlock(token=TOKEN))
         try:
             proc = _reset(millsense_cmd, port, token_env=TOKEN)
@@ -245,12 +249,13 @@ def test_reset_to_a_fake_daemon_sends_no_token_and_fails(millsense_cmd, port, da
         proc = _reset(millsense_cmd, port, token_env=TOKEN)  # no --machine: it picks the only one alive
     finally:
         fake.close()
-    assert proc.returncode == 1, proc.stdout + proc.stderr
+    # a forged success is not believed, and with a token policy the outcome is unknown (exit 3): the proof went out
+    assert proc.returncode == (3 if policy == "token" else 1), proc.stdout + proc.stderr
     assert '"ok": true' not in proc.stdout.lower()
     assert fake.payloads, "the fake daemon was never asked"
     assert not any(TOKEN.encode() in p for p in fake.payloads)
     expected = {None: "is not a millsense challenge", "open": "open to anyone",
-                "token": "failed the daemon's MAC"}[policy]
+                "token": "fails the daemon's MAC for this token (it says: success): the outcome is unknown"}[policy]
     assert expected in proc.stderr and "Traceback" not in proc.stderr
 
 

@@ -188,7 +188,7 @@ def test_an_impostor_that_fakes_success_is_not_believed(linked):
         q = b.declare_querier("millsense/m1/cmd/reset")
         wait_for(lambda: q.matching_status.matching, 5.0, "impostor known")
         q.undeclare()
-        with pytest.raises(CommandError, match="failed the daemon's MAC"):
+        with pytest.raises(CommandError, match="fails the daemon's MAC"):
             send_command(b, "m1", "reset", TOKEN)
         assert TOKEN not in json.dumps(got) and got[-1]["mac"] != TOKEN
     finally:
