@@ -280,9 +280,9 @@ def _hold_from_status(m: dict[str, Any], status: dict[str, Any]) -> None:
     release it (statuses and alarms travel at different priorities)."""
     hold = hold_of(status)
     t, alarm_t = status.get("t"), m.get("hold_from_alarm_t")
-    if hold is None and m.get("hold") and isinstance(t, (int, float)) and isinstance(alarm_t, (int, float)) \
-            and t < alarm_t:
-        return
+    if hold is None and m.get("hold") and isinstance(alarm_t, (int, float)) \
+            and isinstance(t, (int, float)) and t < alarm_t + 1.0:
+        return  # an alarm's t is its sample's: a status built within 1 s of it may predate the trip's decision
     m["hold"], m["hold_from_alarm_t"] = hold, None
 
 

@@ -93,7 +93,8 @@ function holdOfStatus(s) {
 function holdFromStatus(m, s) {
   const hold = holdOfStatus(s);
   // A status older than the alarm that showed the hold does not release it (they travel apart).
-  if (!hold && m.hold && m.hold.alarmT !== null && typeof s.t === "number" && s.t < m.hold.alarmT) return;
+  // (An alarm's t is its sample's time; a status built within 1 s of it may predate the trip's decision.)
+  if (!hold && m.hold && m.hold.alarmT !== null && typeof s.t === "number" && s.t < m.hold.alarmT + 1.0) return;
   m.hold = hold ? { ...hold, alarmT: null } : null;
   showHold(m);
 }
