@@ -215,10 +215,12 @@ class MachineNodes:
         limit = F.convert(payload.get("limit"), F.DOUBLE)
         hold = payload.get("interlock") if isinstance(payload.get("interlock"), str) else ""
         text = f"{self.machine}: {level} {quantity}"
-        if value is not None:
-            text += f" {value:g}" + (f" (limit {limit:g})" if limit is not None else "")
-        if not active and was:
-            text += f" (was {was})"
+        if active:
+            if value is not None:
+                text += f" {value:g}" + (f" (limit {limit:g})" if limit is not None else "")
+        else:  # a clear says what it ends, not its value beside the limit (issue 36, finding 7)
+            said = ([f"was {was}"] if was else []) + ([f"limit {limit:g}"] if limit is not None else [])
+            text += f" ({', '.join(said)})" if said else ""
         if hold:
             text += f"; {hold}"
         rev = F.convert(payload.get("rev"), F.INT64)
