@@ -7,6 +7,7 @@ const RING = 600;          // revolutions kept per machine, as on the server (bo
 const ALARMS_SHOWN = 50;
 const LATENCY_KEPT = 50000;
 const DRAW_EVERY_MS = 250; // plots are redrawn at most 4 times a second; the numbers at once
+const LIMIT_LINES = 8;     // learned-limits warnings shown per tile
 
 const machines = new Map(); // name -> {tile, estimates, dirty, lastAlarm, hold}
 let resetOffered = false;
@@ -132,6 +133,8 @@ function showLimits(m, ll) {
       if (typeof key === "string") lines.push("envelope_low off: " + key);
     }
   }
+  const more = lines.length - LIMIT_LINES;  // a daemon with many keys: the tile stays readable
+  if (more > 0) lines.splice(LIMIT_LINES, lines.length, "… and " + more + " more (millsense limits list)");
   box.hidden = lines.length === 0;
   box.textContent = lines.join("\n");
 }
