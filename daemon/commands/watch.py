@@ -33,7 +33,7 @@ from millsense.daemon.publish.cli_args import (
     hint,
     strip_rust,
 )
-from millsense.daemon.pipeline.status import held_text, hold_of
+from millsense.daemon.pipeline.status import TRIP_LEVELS, held_text, hold_of
 from millsense.daemon.stop_signals import stop_on_signals
 
 KINDS = ("estimate", "alarm", "process", "status")
@@ -267,10 +267,11 @@ def _hold_from_alarm(m: dict[str, Any], alarm: dict[str, Any]) -> None:
     if alarm.get("interlock") != "feed_hold" or m.get("hold"):
         return
     t = alarm.get("t") if isinstance(alarm.get("t"), (int, float)) else None
-    if alarm.get("level") == "clear":
-        reason = "latched"
-    else:
-        reason = f"{alarm.get('level')} {alarm.get('quantity')} {alarm.get('value')} > {alarm.get('limit')}"
+    if alarm.get("level") not in TRIP_LEVELS:
+        reason = "latched"  # a warning or a clear sent while held: held, not why
+    else:  # the runner's reason for a trip (runner._trip_reason)
+        side = "<" if alarm.get("level") == "envelope_low" else ">"
+        reason = f"{alarm.get('level')} {alarm.get('quantity')} {alarm.get('value')} {side} {alarm.get('limit')}"
     m["hold"] = (reason, t)
     m["hold_from_alarm_t"] = t
 

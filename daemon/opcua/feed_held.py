@@ -20,13 +20,11 @@ import datetime as dt
 from dataclasses import dataclass
 from typing import Any
 
-from millsense.daemon.pipeline.status import hold_of
+from millsense.daemon.pipeline.status import TRIP_LEVELS, hold_of
 
 NAME = "FeedHeld"
 # A held feed stops the machine: at least an overload's severity, more when its cause is graver.
 MIN_SEVERITY = 800
-# The alarm levels that trip the interlock (pipeline/alarms.py, TRIP_LEVELS; envelope alarms may hold too).
-TRIP_LEVELS = ("overload", "crash", "tool_breakage", "envelope_high", "envelope_low")
 # An alarm's `t` is its sample's time, a status's the moment it was built: a status that says "released"
 # must have been built this long after the tripping sample to be about this hold (statuses come every 1 s,
 # a trip is decided well within it).

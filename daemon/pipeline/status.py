@@ -130,7 +130,9 @@ def _fmt(value: Any, spec: str) -> str:
         return "–"
 
 
-HELD_STATES = ("feed_hold", "held_by_device")
+# The alarm levels whose alarm, sent with `"interlock": "feed_hold"`, is the trip itself (pipeline/alarms.py,
+# TRIP_LEVELS; envelope alarms hold as `[learning]` says): a display may show the hold from it at once.
+TRIP_LEVELS = ("overload", "crash", "tool_breakage", "envelope_high", "envelope_low")
 
 
 def interlock_detail(interlock: Any, driver: Any) -> dict[str, Any]:

@@ -8,6 +8,8 @@ const ALARMS_SHOWN = 50;
 const LATENCY_KEPT = 50000;
 const DRAW_EVERY_MS = 250; // plots are redrawn at most 4 times a second; the numbers at once
 const LIMIT_LINES = 8;     // learned-limits warnings shown per tile
+// The alarm levels that trip the interlock (pipeline/alarms.py; envelope alarms as [learning] says).
+const TRIP_LEVELS = ["overload", "crash", "tool_breakage", "envelope_high", "envelope_low"];
 
 const machines = new Map(); // name -> {tile, estimates, dirty, lastAlarm, hold}
 let resetOffered = false;
@@ -104,7 +106,10 @@ function holdFromAlarm(m, a) {
   // An alarm sent while the daemon holds the feed says so before the next status does.
   if (a.interlock !== "feed_hold" || m.hold) return;
   const t = typeof a.t === "number" ? a.t : null;
-  const reason = a.level === "clear" ? "latched" : a.level + " " + a.quantity + " " + a.value + " > " + a.limit;
+  // The runner's reason for a trip (runner._trip_reason): the alarm, its value and the limit crossed.
+  const side = a.level === "envelope_low" ? " < " : " > ";
+  const trip = TRIP_LEVELS.includes(a.level); // a warning or a clear sent while held: held, not why
+  const reason = trip ? a.level + " " + a.quantity + " " + a.value + side + a.limit : "latched";
   m.hold = { reason, since: t, alarmT: t };
   showHold(m);
 }
@@ -162,6 +167,7 @@ function alarmWords(a) {
     if (typeof a.limit === "number" && isFinite(a.limit)) parts.push("limit " + fmt(a.limit, 2));
     return " " + a.quantity + (parts.length ? " (" + parts.join(", ") + ")" : "");
   }
+  if (typeof a.value !== "number" && typeof a.limit !== "number") return " " + a.quantity; // daq_lost: no number
   const side = a.level === "envelope_low" ? " < " : " > ";
   return " " + a.quantity + " " + fmt(a.value, 2) + side + fmt(a.limit, 2);
 }
