@@ -297,8 +297,9 @@ class Handler(BaseHTTPRequestHandler):
         if self.headers.get("X-Millsense") != "reset":
             self._json(403, {"ok": False, "error": "missing header X-Millsense: reset"})
             return
-        if self.headers.get("Content-Length") is None:
-            self._json(411, {"ok": False, "error": "Content-Length is required"})  # chunked too: closed
+        if self.headers.get("Content-Length") is None or self.headers.get("Transfer-Encoding"):
+            # Chunked (with or without a length beside it, which it would override): refused, the connection closed.
+            self._json(411, {"ok": False, "error": "a body with Content-Length (not chunked) is required"})
             return
         try:
             length = int(self.headers.get("Content-Length") or 0)

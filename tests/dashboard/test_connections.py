@@ -335,7 +335,9 @@ def test_a_body_over_64_kib_or_without_a_length_closes_the_connection(server):
     for request, status in ((_post_raw("/api/nothing", big), 404),
                             (_post_raw("/api/reset/m-1", big, host="attacker.example"), 421),
                             (b"POST /api/reset/m-1 HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Millsense: reset\r\n"
-                             b"Transfer-Encoding: chunked\r\n\r\n5\r\nhello\r\n0\r\n\r\n", 411)):
+                             b"Transfer-Encoding: chunked\r\n\r\n5\r\nhello\r\n0\r\n\r\n", 411),
+                            (b"POST /api/reset/m-1 HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Millsense: reset\r\n"
+                             b"Content-Length: 5\r\nTransfer-Encoding: chunked\r\n\r\n5\r\nhello\r\n0\r\n\r\n", 411)):
         sock = _connect(server)
         try:
             sock.sendall(request + NEXT)
