@@ -120,8 +120,8 @@ def test_a_held_feed_is_one_retained_condition_from_the_trip_until_the_reset(tmp
                     await wait_async(overload_cleared, SLOW_S, "the overload's clear")
                     clear = next(e for e in events.all if getattr(e, "ConditionName", None) == "torque_nm"
                                  and e.Level == "clear")
-                    assert clear.Message.Text == f"{MACHINE}: clear torque_nm (was overload, limit {TORQUE_LIMIT_NM:g}); " \
-                                                 "feed_hold", clear.Message  # a clear reads as one
+                    said = f"{MACHINE}: clear torque_nm (was overload, limit {TORQUE_LIMIT_NM:g}); feed_hold"
+                    assert clear.Message.Text == said, clear.Message  # a clear reads as one
                     seen = await rev.read_value()
                     await wait_async(lambda: revolutions(seen + 25), SLOW_S, "two more statuses")  # 2.5 s at 600 rpm
                     assert [getattr(e, "ActiveState/Id") for e in events.named("FeedHeld")] == [True, False, True]

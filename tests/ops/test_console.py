@@ -176,7 +176,8 @@ def test_a_daemon_with_a_config_shows_the_live_line_on_a_terminal(terminal):
     held = [ln for ln in live if LIVE_LINE.match(ln) and "interlock feed_hold" in ln]
     assert held, live
     # why and since when, after the overload's alarm cleared too (issue 36, finding 7)
-    assert all(re.search(r"feed held: overload torque_nm [\d.]+ > 2\.3, since \d\d:\d\d:\d\d  rev", ln) for ln in held), held
+    why = re.compile(r"feed held: overload torque_nm [\d.]+ > 2\.3, since \d\d:\d\d:\d\d  rev")
+    assert all(why.search(ln) for ln in held), held
 
 
 def test_log_lines_never_share_a_line_with_the_live_line(terminal):
