@@ -3,7 +3,9 @@
 On a terminal: one refreshing line per machine, with the process in the
 spindle (program, tool, operation, revolutions since entry, the learned band),
 the last finished process (verdict, energy, the tool's wear) and the alarm
-(envelope and wear alarms with their process). Piped, or with `--json`: one
+(envelope and wear alarms with their process; a clear with the level it ends), and while the
+feed is held, "feed held: <reason>, since <time>" first, until the daemon's status says the DAQ
+released it. Piped, or with `--json`: one
 JSON object per line, `{"key", "kind", "payload"}`, kind being estimate, alarm,
 process, status, alive or gone, so that scripts and tests can read it.
 
@@ -31,6 +33,7 @@ from millsense.daemon.publish.cli_args import (
     hint,
     strip_rust,
 )
+from millsense.daemon.pipeline.status import TRIP_LEVELS, held_text, hold_of
 from millsense.daemon.stop_signals import stop_on_signals
 
 KINDS = ("estimate", "alarm", "process", "status")
@@ -182,11 +185,19 @@ class _TtyView:
         self.dirty = False
 
     def show(self, key: str, kind: str, payload: Any) -> None:
-        m = self.machines.setdefault(_machine_of(key), {"alive": None})
+        m = self.machines.setdefault(_machine_of(key), {"alive": None, "hold": None})
         if kind in ("alive", "gone"):
             m["alive"] = kind == "alive"
-        else:
-            m[kind] = payload if isinstance(payload, dict) else {}
+            self.dirty = True
+            self.tick()
+            return
+        payload = payload if isinstance(payload, dict) else {}
+        if kind == "alarm":
+            payload = _with_was(m.setdefault("raised", {}), payload)
+            _hold_from_alarm(m, payload)
+        elif kind == "status":
+            _hold_from_status(m, payload)
+        m[kind] = payload
         self.dirty = True
         self.tick()
 
@@ -221,12 +232,16 @@ class _TtyView:
         presence = {True: "alive", False: "GONE", None: "?"}[m["alive"]]
         level = a.get("level", "none")
         alarm = f"{level} {a.get('quantity', '')} {_num(a.get('value'), '.1f')}".strip() if level not in ("none", "clear") else level
+        if level == "clear" and a.get("quantity"):  # a clear reads as one: what it ends, never "value > limit"
+            alarm += f" {a['quantity']}" + (f" (was {a['was']})" if a.get("was") else "")
         if level in ("envelope_high", "envelope_low", "wear"):
             alarm += f" {_process_key(a)}" + (f" rev {a['process_rev']}" if a.get("process_rev") is not None else "")
         if a.get("interlock"):
             alarm += f" [{a['interlock']}]"
+        hold = m.get("hold")
         return (
-            f"{name:<12} {presence:<5} {_num(e.get('spindle_rpm'), '6.0f')} rpm  "
+            f"{name:<12} {presence:<5} " + (held_text(hold[0], hold[1]) + "  " if hold else "")
+            + f"{_num(e.get('spindle_rpm'), '6.0f')} rpm  "
             f"T {_num(e.get('torque_nm'), '6.2f')}±{_num(e.get('torque_sigma_nm'), '.2f')} N·m"
             + _band(e) + "  "
             f"F {_num(e.get('force_n'), '7.1f')} N  "
@@ -235,6 +250,41 @@ class _TtyView:
             + f"  alarm: {alarm}  status: {s.get('state', '–')}"
             + ("  [spindle speeding up: torque holds the inertia]" if e.get("accelerating") else "")
         )
+
+
+def _with_was(raised: dict[str, str], alarm: dict[str, Any]) -> dict[str, Any]:
+    """A clear, with the level it ends (`was`: the last level raised on its quantity, kept in `raised`)."""
+    quantity = str(alarm.get("quantity"))
+    if alarm.get("level") == "clear":
+        return {**alarm, "was": raised[quantity]} if quantity in raised else alarm
+    if isinstance(alarm.get("level"), str):
+        raised[quantity] = alarm["level"]
+    return alarm
+
+
+def _hold_from_alarm(m: dict[str, Any], alarm: dict[str, Any]) -> None:
+    """An alarm sent while the daemon holds the feed says so at once, before the next status does."""
+    if alarm.get("interlock") != "feed_hold" or m.get("hold"):
+        return
+    t = alarm.get("t") if isinstance(alarm.get("t"), (int, float)) else None
+    if alarm.get("level") not in TRIP_LEVELS:
+        reason = "latched"  # a warning or a clear sent while held: held, not why
+    else:  # the runner's reason for a trip (runner._trip_reason)
+        side = "<" if alarm.get("level") == "envelope_low" else ">"
+        reason = f"{alarm.get('level')} {alarm.get('quantity')} {alarm.get('value')} {side} {alarm.get('limit')}"
+    m["hold"] = (reason, t)
+    m["hold_from_alarm_t"] = t
+
+
+def _hold_from_status(m: dict[str, Any], status: dict[str, Any]) -> None:
+    """The status decides while held and when released; one older than the alarm that showed a hold does not
+    release it (statuses and alarms travel at different priorities)."""
+    hold = hold_of(status)
+    t, alarm_t = status.get("t"), m.get("hold_from_alarm_t")
+    if hold is None and m.get("hold") and isinstance(alarm_t, (int, float)) \
+            and isinstance(t, (int, float)) and t < alarm_t + 1.0:
+        return  # an alarm's t is its sample's: a status built within 1 s of it may predate the trip's decision
+    m["hold"], m["hold_from_alarm_t"] = hold, None
 
 
 def _process_key(p: dict[str, Any]) -> str:

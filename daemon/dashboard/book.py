@@ -36,8 +36,8 @@ ESTIMATE_FIELDS = (
     "depth_status", "cutting", "program", "tool", "operation", "process_rev", "envelope_low_nm",
     "envelope_high_nm", "feed_override_pct", "afc",
 )
-STATUS_FIELDS = ("state", "daq_link", "interlock", "interlock_detail", "alarm", "faults", "uptime_s", "version", "afc",
-                 "revolutions")
+STATUS_FIELDS = ("t", "state", "daq_link", "interlock", "interlock_detail", "alarm", "faults", "uptime_s", "version",
+                 "afc", "revolutions", "learned_limits")
 PROCESS_FIELDS = ("t", "process", "key", "program", "tool", "operation", "verdict", "envelope", "energy_ratio",
                   "tool_processes", "tool_wear_pct", "torque_peak_nm")
 
@@ -164,9 +164,15 @@ class Book:
             self._tell(update)
 
     def _list_alarm(self, m: Machine, payload: dict) -> dict:
-        """Keep an alarm change in the machine's list and the recent ones (the lock held)."""
+        """Keep an alarm change in the machine's list and the recent ones (the lock held).
+
+        A clear gets `was`, the level it ends (the one shown active for its quantity), so the page
+        can say "clear force_n (was overload, limit 550.00)" rather than show its value against the limit."""
+        had = m.shown.active.get(str(payload.get("quantity")))
         m.shown.shown(payload)
         payload = dict(payload, machine=m.name)
+        if payload.get("level") == "clear" and had is not None and isinstance(had.get("level"), str):
+            payload["was"] = had["level"]
         m.alarms.append(payload)
         self.recent_alarms.append(payload)
         return payload

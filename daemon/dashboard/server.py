@@ -18,6 +18,13 @@ hanging up is ordinary: no traceback.
   (zenoh_side.py). It needs the header `X-Millsense: reset`, which a form on
   another site cannot send without a CORS preflight this server never grants.
 
+Every answer first reads what is left of its request's body (`_drain_body`):
+a refused request's body (403, 404, 405, 413, 421, ...) left unread would be
+taken for the next request on the kept-alive connection (issue 36, finding 7:
+`501 Unsupported method ('{"step":…}GET')`, and the page's next reset broken).
+A body over `DRAIN_MAX_BYTES`, a length that is not a number, or a chunked one
+is not read: the answer says `Connection: close` and the connection ends.
+
 The reset is offered (`reset_offered` in `/api/info`) only where a browser gives
 the page WebCrypto: over HTTPS, or on a loopback address.
 """
@@ -43,6 +50,8 @@ from millsense.daemon.logging_setup import RateLimitedLogger
 STATIC = {"app.js": "text/javascript; charset=utf-8", "app.css": "text/css; charset=utf-8",
           "index.html": "text/html; charset=utf-8"}
 MAX_BODY_BYTES = 4096
+# The most of an unread body read (and thrown away) to keep a connection: more, and it is closed instead.
+DRAIN_MAX_BYTES = 64 * 1024
 KEEPALIVE_S = 10.0
 REQUEST_TIMEOUT_S = 5.0  # request line, headers and body, in all; also the wait for the next request
 SEND_TIMEOUT_S = 30.0  # one write blocked this long: the page stopped reading
@@ -175,6 +184,7 @@ class Handler(BaseHTTPRequestHandler):
     protocol_version = "HTTP/1.1"
     timeout = SEND_TIMEOUT_S  # set on the socket by socketserver; reads have the shorter deadline above
     read_by = 0.0  # time.monotonic() by which the current request must have been read
+    body_done = True  # the current request's body has been read (or there is none to read)
 
     def setup(self) -> None:
         super().setup()
@@ -190,13 +200,48 @@ class Handler(BaseHTTPRequestHandler):
 
     def handle_one_request(self) -> None:
         self.read_by = time.monotonic() + self.server.request_timeout_s
+        self.body_done = False
         super().handle_one_request()
+
+    def _drain_body(self) -> None:
+        """Read and drop the request's body, so the connection's next request starts where it should.
+
+        Up to DRAIN_MAX_BYTES, within the request's deadline; a larger, chunked or unreadable one
+        is not read and the connection is closed after the answer (`Connection: close`)."""
+        self.body_done = True
+        if self.headers is None:
+            return
+        if self.headers.get("Transfer-Encoding"):
+            self.close_connection = True  # chunked: not worth decoding only to throw away
+            return
+        text = self.headers.get("Content-Length")
+        if text is None:
+            return
+        try:
+            left = int(text)
+        except ValueError:
+            left = -1
+        if not 0 <= left <= DRAIN_MAX_BYTES:
+            self.close_connection = True
+            return
+        while left > 0:
+            chunk = self.rfile.read(min(left, 16384))
+            if not chunk:
+                self.close_connection = True  # the peer stopped sending: nothing more can follow
+                return
+            left -= len(chunk)
 
     def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - http.server's name
         pass  # a request per page load is not worth a log line; the command's own events say what matters
 
-    def _send(self, status: int, body: bytes, content_type: str) -> None:
+    def _send(self, status: int, body: bytes, content_type: str, headers: dict[str, str] | None = None) -> None:
+        if not self.body_done:
+            self._drain_body()
         self.send_response(status)
+        if self.close_connection:
+            self.send_header("Connection", "close")
+        for k, v in (headers or {}).items():
+            self.send_header(k, v)
         self.send_header("Content-Type", content_type)
         self.send_header("Content-Length", str(len(body)))
         for k, v in SECURITY_HEADERS.items():
@@ -204,8 +249,8 @@ class Handler(BaseHTTPRequestHandler):
         self.end_headers()
         self.wfile.write(body)
 
-    def _json(self, status: int, value: Any) -> None:
-        self._send(status, json.dumps(value, allow_nan=False, default=str).encode(), "application/json")
+    def _json(self, status: int, value: Any, headers: dict[str, str] | None = None) -> None:
+        self._send(status, json.dumps(value, allow_nan=False, default=str).encode(), "application/json", headers)
 
     def _host_refused(self) -> bool:
         """On a loopback address, only a loopback Host: a web site whose name an attacker re-points at
@@ -252,16 +297,22 @@ class Handler(BaseHTTPRequestHandler):
         if self.headers.get("X-Millsense") != "reset":
             self._json(403, {"ok": False, "error": "missing header X-Millsense: reset"})
             return
+        if self.headers.get("Content-Length") is None or self.headers.get("Transfer-Encoding"):
+            # Chunked (with or without a length beside it, which it would override): refused, the connection closed.
+            self._json(411, {"ok": False, "error": "a body with Content-Length (not chunked) is required"})
+            return
         try:
             length = int(self.headers.get("Content-Length") or 0)
         except ValueError:
             length = -1
         if not 0 < length <= MAX_BODY_BYTES:
-            self.close_connection = True
+            # The body is drained (up to DRAIN_MAX_BYTES) or the connection closed by the answer.
             self._json(413, {"ok": False, "error": f"a body of 1 to {MAX_BODY_BYTES} bytes is required"})
             return
         try:
-            request = json.loads(self.rfile.read(length))
+            body = self.rfile.read(length)
+            self.body_done = True
+            request = json.loads(body)
             replies = self.server.relay.relay_reset(path[len(prefix):], request)
         except (UnicodeDecodeError, ValueError) as exc:  # RelayRefused is a ValueError too
             reason = str(exc) if isinstance(exc, RelayRefused) else "the body is not JSON"
@@ -271,6 +322,15 @@ class Handler(BaseHTTPRequestHandler):
             self._json(502, {"ok": False, "error": f"relay failed: {type(exc).__name__}"})
             return
         self._json(200, {"ok": True, "replies": replies})
+
+    def _not_allowed(self) -> None:
+        """Any other method: 405 in JSON, the body drained like every refusal's (http.server's 501 is HTML
+        and always closes)."""
+        if self._host_refused():
+            return
+        self._json(405, {"ok": False, "error": f"method {self.command} not allowed"}, {"Allow": "GET, POST"})
+
+    do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _not_allowed  # noqa: N815 - http.server's names
 
     def _events(self) -> None:
         book = self.server.book

@@ -7,6 +7,8 @@ The modules, in the order a sample travels:
 - `fields.py`: which payload field becomes which OPC UA variable (pure: no asyncua, no Zenoh).
 - `machine_nodes.py`: one machine's part of the address space, its tool life (OPC 40501 names) and
   its alarm events (an AlarmConditionType subtype).
+- `feed_held.py`: the held feed as one retained condition per machine, `FeedHeld` (pure: when it goes
+  active and inactive, and what its event says).
 - `security.py`: the server certificate, the trust list of client certificates, who may open a session.
 - `server.py`: the asyncua Server and the loop that drains the inbox into the address space.
 

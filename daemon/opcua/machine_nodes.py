@@ -12,6 +12,8 @@ Alarm changes are fired as events of `MillsenseAlarmType`, a subtype of AlarmCon
 one condition per judged quantity (`ConditionName` = `torque_nm`, `force_n`, `daq`, ...):
 `ActiveState/Id` true from the alarm until its `clear`. Alarm changes this server missed (it
 connected late, or its link dropped) are fired from the next `status` (publish/alarm_state.py).
+The held feed is one more condition of the machine, `FeedHeld` (feed_held.py): active from the trip
+until the daemon says the feed is released, whatever its alarms do meanwhile.
 docs/opcua.md says what is and is not implemented of the condition model.
 """
 
@@ -25,6 +27,8 @@ import structlog
 from asyncua import Server, ua
 
 from millsense.daemon.opcua import fields as F
+from millsense.daemon.opcua.feed_held import NAME as FEED_HELD
+from millsense.daemon.opcua.feed_held import Change, FeedHeldTrack
 from millsense.daemon.publish.alarm_state import ShownAlarms, catch_up, caught_up
 
 log = structlog.get_logger("millsense.opcua")
@@ -104,6 +108,7 @@ class MachineNodes:
         self.last: dict[tuple[str, str], Any] = {}       # last value written, to skip unchanged writes
         self.tools: dict[int, tuple[Any, Any]] = {}      # tool number -> (ProcessCount, Wear)
         self.shown = ShownAlarms()                       # the alarm changes fired (active ones by quantity)
+        self.feed_held = FeedHeldTrack(SEVERITY)         # the FeedHeld condition's state (feed_held.py)
         self.alive_node: Any = None
         self.messages: Any = None
         self.tools_folder: Any = None
@@ -167,8 +172,10 @@ class MachineNodes:
         if kind == "alarm":
             if self.shown.is_new(payload):
                 await self._fire_alarm(payload)
+            await self._fire_feed_held(self.feed_held.on_alarm(payload))
         elif kind == "status":
             await self._catch_up(payload)
+            await self._fire_feed_held(self.feed_held.on_status(payload))
         elif kind == "process":
             await self._tool_life(payload)
 
@@ -208,10 +215,12 @@ class MachineNodes:
         limit = F.convert(payload.get("limit"), F.DOUBLE)
         hold = payload.get("interlock") if isinstance(payload.get("interlock"), str) else ""
         text = f"{self.machine}: {level} {quantity}"
-        if value is not None:
-            text += f" {value:g}" + (f" (limit {limit:g})" if limit is not None else "")
-        if not active and was:
-            text += f" (was {was})"
+        if active:
+            if value is not None:
+                text += f" {value:g}" + (f" (limit {limit:g})" if limit is not None else "")
+        else:  # a clear says what it ends, not its value beside the limit (issue 36, finding 7)
+            said = ([f"was {was}"] if was else []) + ([f"limit {limit:g}"] if limit is not None else [])
+            text += f" ({', '.join(said)})" if said else ""
         if hold:
             text += f"; {hold}"
         rev = F.convert(payload.get("rev"), F.INT64)
@@ -235,6 +244,33 @@ class MachineNodes:
             "ProcessKey": "/".join(str(payload.get(k)) for k in ("program", "tool", "operation"))
             if payload.get("process") is not None else "",
         }
+        await self._trigger(values, _source_time(payload))
+
+    async def _fire_feed_held(self, change: Change | None) -> None:
+        """The FeedHeld condition's event for one transition (None: nothing changed)."""
+        if change is None:
+            return
+        when = _source_time({"t": change.since if change.active else change.t})
+        values = {
+            "Message": ua.LocalizedText(change.message(self.machine)),
+            "Severity": change.severity,
+            "SourceName": self.machine,
+            "SourceNode": self.messages.nodeid,
+            "NodeId": self._id("Notification", "Messages", FEED_HELD),  # its ConditionId: one per machine
+            "ConditionName": FEED_HELD,
+            "ConditionClassId": ua.NodeId(ua.ObjectIds.ProcessConditionClassType),
+            "ConditionClassName": ua.LocalizedText("ProcessConditionClassType"),
+            "ActiveState": ua.LocalizedText("Active" if change.active else "Inactive"),
+            "ActiveState/Id": change.active,
+            "Retain": change.active,
+            "Level": "feed_hold" if change.active else "clear", "Quantity": FEED_HELD,
+            "Interlock": "feed_hold" if change.active else "",
+            "Value": float("nan"), "Limit": float("nan"), "Revolution": -1, "ProcessKey": "",
+        }
+        log.info("opcua.feed_held", machine=self.machine, active=change.active, reason=change.reason)
+        await self._trigger(values, when)
+
+    async def _trigger(self, values: dict[str, Any], when: dt.datetime | None) -> None:
         # The machine's Messages (OPC 40501's notifier) first, the Server object last: asyncua keeps the last
         # copy of a retained condition for ConditionRefresh, and plant alarm clients subscribe to Server.
         for generator, template in ((self.events, self.event_template), (self.ns.server_events, self.ns.server_template)):
@@ -242,7 +278,7 @@ class MachineNodes:
             for name, v in values.items():
                 setattr(event, name, v)
             generator.event = event
-            await generator.trigger(time_attr=_source_time(payload))
+            await generator.trigger(time_attr=when)
 
     async def _tool_life(self, payload: dict[str, Any]) -> None:
         tool = F.convert(payload.get("tool"), F.INT64)

@@ -33,6 +33,7 @@ log = structlog.get_logger("millsense.opcua")
 MIN_UPDATE_S = 0.05
 MAX_MACHINES = 256
 DEFAULT_PORT = 4840
+REFRESH_EVENT_SEVERITY = 100
 
 
 @dataclass
@@ -63,6 +64,10 @@ def parse_endpoint(text: str) -> tuple[str, int]:
 
 async def build_server(options: Options) -> tuple[Server, Namespaces, Any]:
     server = Server(user_manager=SessionUsers(options.trust))
+    # ConditionRefresh (and Refresh2): a client that connects while a condition is active (a held feed)
+    # asks for the retained conditions. asyncua binds the methods only when told; the value is the
+    # severity of its RefreshStart/RefreshEnd events (an int: True would make it 1).
+    server.iserver.bind_condition_methods = REFRESH_EVENT_SEVERITY
     await server.init()
     server.set_endpoint(options.endpoint)
     server.set_server_name("millsense")

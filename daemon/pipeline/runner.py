@@ -72,7 +72,7 @@ from millsense.daemon.pipeline.power_check import PowerSignCheck
 from millsense.daemon.pipeline.rate_check import RateCheck
 from millsense.daemon.pipeline.run_core import PipelineCore, estimate_payload, process_payload
 from millsense.daemon.pipeline.safety_check import FrameCheck
-from millsense.daemon.pipeline.status import LatencyStats, SeqClock, bad_frames, status_line
+from millsense.daemon.pipeline.status import LatencyStats, SeqClock, bad_frames, interlock_detail, status_line
 from millsense.daemon.publish.alarm_state import ActiveAlarms
 from millsense.drivers.base import LinkEvent, SampleBlock, name_os_thread
 from millsense.drivers.protocol import Context, Descriptor, Status
@@ -1055,7 +1055,7 @@ class Runner:
             "latency_ms": self.latency.percentiles_ms(),
             "rev_delay_ms": self.delay.percentiles_ms(),
             "interlock": self.interlock.state,
-            "interlock_detail": self.interlock.state_dict(),
+            "interlock_detail": interlock_detail(self.interlock, self.driver),
             "heartbeating": self.interlock.heartbeating,
             "last_trip_ms": self.last_trip_ms,
             "last_test_trip": self.last_test_trip,

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import collections
 import threading
+import time
 from array import array
 from typing import Any
 
@@ -129,16 +130,65 @@ def _fmt(value: Any, spec: str) -> str:
         return "–"
 
 
+# The alarm levels whose alarm, sent with `"interlock": "feed_hold"`, is the trip itself (pipeline/alarms.py,
+# TRIP_LEVELS; envelope alarms hold as `[learning]` says): a display may show the hold from it at once.
+TRIP_LEVELS = ("overload", "crash", "tool_breakage", "envelope_high", "envelope_low")
+
+
+def interlock_detail(interlock: Any, driver: Any) -> dict[str, Any]:
+    """The status's `interlock_detail`: the interlock's own state, and `daq_feed_hold`, what the DAQ's
+    last STATUS says of its feed-hold output (None before one came).
+
+    The interlock takes a reset's write as done; a display keeps the machine held until the DAQ
+    itself says the feed is released (issue 36, finding 7)."""
+    detail = dict(interlock.state_dict())
+    last = getattr(driver, "last_status", None)
+    detail["daq_feed_hold"] = None if last is None else bool(getattr(last, "feed_hold", False))
+    return detail
+
+
+def hold_of(status: dict[str, Any]) -> tuple[str, float | None] | None:
+    """(reason, since) while a status says the feed is held, else None.
+
+    Held: the interlock latched (`feed_hold`: its reason and the trip's Unix time), the DAQ holds a
+    feed this run did not set (`held_by_device`), or the DAQ's last STATUS still shows the hold (a
+    release written but not yet confirmed)."""
+    if not isinstance(status, dict):
+        return None
+    detail = status.get("interlock_detail") if isinstance(status.get("interlock_detail"), dict) else {}
+    state = status.get("interlock")
+    since = detail.get("since")
+    since = float(since) if isinstance(since, (int, float)) and not isinstance(since, bool) else None
+    if state == "feed_hold":
+        reason = detail.get("reason")
+        return (reason if isinstance(reason, str) and reason else "latched"), since
+    if state == "held_by_device":
+        return ("by the DAQ, not set by this run" + (" (its watchdog tripped)" if detail.get("watchdog_tripped")
+                                                      else "")), since
+    if detail.get("daq_feed_hold") is True:
+        return "release not yet confirmed by the DAQ", since
+    return None
+
+
+def held_text(reason: str, since: float | None) -> str:
+    """"feed held: <reason>, since HH:MM:SS" (local time), as every display says it."""
+    when = f", since {time.strftime('%H:%M:%S', time.localtime(since))}" if since is not None else ""
+    return f"feed held: {reason}{when}"
+
+
 def summary_line(estimate: dict[str, Any] | None, alarm_state: str, status: dict[str, Any]) -> str:
-    """The live line: state, interlock and alarm first, then rpm, torque, force, depths.
+    """The live line: state, interlock and alarm first (and while held, why and since when), then rpm,
+    torque, force, depths.
 
     Fixed widths, so that a line refreshed in place does not jitter; what matters for
     safety comes first, because a terminal narrower than the line cuts its end.
     """
     e = estimate or {}
+    hold = hold_of(status)
     return (
         f"{status.get('state', '?'):<8} interlock {status.get('interlock', '?'):<9}  alarm {alarm_state:<8}  "
-        f"rev {e.get('rev', '–')!s:>6}  "
+        + (held_text(*hold) + "  " if hold is not None else "")
+        + f"rev {e.get('rev', '–')!s:>6}  "
         f"{_fmt(e.get('spindle_rpm'), '5.0f')} rpm  "
         f"T {_fmt(e.get('torque_nm'), '6.2f')} N·m  "
         f"F {_fmt(e.get('force_n'), '6.0f')} N  "

@@ -261,3 +261,117 @@ def test_a_client_that_hangs_up_early_leaves_no_traceback(server, capfd):
     wait_for(lambda: not _handler_threads(), WAIT_S, "their threads to end")
     out, err = capfd.readouterr()
     assert "Traceback" not in out + err and "dashboard_request_failed" not in out + err, out + err
+
+
+# -- refused requests with a body (issue 36, finding 7) ----------------------------------------------------
+
+NEXT = b"GET /api/info HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n"  # the connection's next request
+
+
+def _read_answer(sock: socket.socket, got: bytes = b"") -> tuple[bytes, bytes, bytes]:
+    """One whole answer (not a stream) from `sock`: (head, JSON body, what came after it)."""
+    while True:
+        head, sep, rest = got.partition(b"\r\n\r\n")
+        if sep and len(rest) >= int(re.search(rb"Content-Length: (\d+)", head)[1]):
+            break
+        chunk = sock.recv(65536)
+        assert chunk, f"closed after {got!r}"
+        got += chunk
+    length = int(re.search(rb"Content-Length: (\d+)", head)[1])
+    return head, rest[:length], rest[length:]
+
+
+def _post_raw(path: str, body: bytes, host: str = "127.0.0.1", headers: str = "X-Millsense: reset\r\n",
+              method: str = "POST") -> bytes:
+    return (f"{method} {path} HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json\r\n{headers}"
+            f"Content-Length: {len(body)}\r\n\r\n").encode() + body
+
+
+STEP = json.dumps({"step": "challenge", "client_nonce": "ab" * 16}).encode()
+REFUSALS = {  # what the page or another client may send that is refused, each with a body
+    "403 header missing": (_post_raw("/api/reset/m-1", STEP, headers=""), 403),
+    "404 another path": (_post_raw("/api/nothing", STEP), 404),
+    "404 GET with a body": (_post_raw("/nothing", STEP, method="GET"), 404),
+    "405 another method": (_post_raw("/api/reset/m-1", STEP, method="PUT"), 405),
+    "413 a body over 4096 bytes": (_post_raw("/api/reset/m-1", b"x" * 5000), 413),
+    "421 another Host": (_post_raw("/api/reset/m-1", STEP, host="attacker.example"), 421),
+}
+
+
+@pytest.mark.parametrize("case", sorted(REFUSALS))
+def test_a_refused_request_with_a_body_leaves_the_connection_ready_for_the_next(server, case, capfd):
+    request, status = REFUSALS[case]
+    sock = _connect(server)
+    sock.sendall(request + NEXT)  # the next request follows at once, as a browser's kept-alive connection may
+    head, body, rest = _read_answer(sock)
+    assert head.startswith(f"HTTP/1.1 {status} ".encode()), head
+    assert json.loads(body)["ok"] is False and b"Connection: close" not in head
+    head, body, _ = _read_answer(sock, rest)
+    assert head.startswith(b"HTTP/1.1 200 "), (case, head, body)  # before: 501 Unsupported method ('{"step":…}GET')
+    assert json.loads(body)["reset_offered"] is True
+    sock.close()
+    _no_traceback(capfd)
+
+
+def test_a_refusal_when_the_reset_is_not_offered_drains_its_body_too():
+    s = DashboardServer(("0.0.0.0", 0), Book(), relay=None, https=False)
+    thread = threading.Thread(target=s.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+    thread.start()
+    try:
+        sock = socket.create_connection(("127.0.0.1", s.server_address[1]), timeout=WAIT_S)
+        sock.sendall(_post_raw("/api/reset/m-1", STEP) + NEXT)
+        head, body, rest = _read_answer(sock)
+        assert head.startswith(b"HTTP/1.1 403 ") and "HTTPS" in json.loads(body)["error"]
+        head, body, _ = _read_answer(sock, rest)
+        assert head.startswith(b"HTTP/1.1 200 ") and json.loads(body)["reset_offered"] is False
+        sock.close()
+    finally:
+        s.shutdown()
+        s.server_close()
+
+
+def test_a_body_over_64_kib_or_without_a_length_closes_the_connection(server):
+    big = b"x" * (64 * 1024 + 1)
+    for request, status in ((_post_raw("/api/nothing", big), 404),
+                            (_post_raw("/api/reset/m-1", big, host="attacker.example"), 421),
+                            (b"POST /api/reset/m-1 HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Millsense: reset\r\n"
+                             b"Transfer-Encoding: chunked\r\n\r\n5\r\nhello\r\n0\r\n\r\n", 411),
+                            (b"POST /api/reset/m-1 HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Millsense: reset\r\n"
+                             b"Content-Length: 5\r\nTransfer-Encoding: chunked\r\n\r\n5\r\nhello\r\n0\r\n\r\n", 411)):
+        sock = _connect(server)
+        try:
+            sock.sendall(request + NEXT)
+        except ConnectionError:
+            pass  # closed while the surplus was still being sent
+        head, body, rest = _read_answer(sock)
+        assert head.startswith(f"HTTP/1.1 {status} ".encode()) and b"Connection: close" in head, head
+        assert json.loads(body)["ok"] is False
+        wait_for(lambda: _closed_by_server(sock), WAIT_S, "the connection closed after the answer")
+        sock.close()
+
+
+def test_a_post_with_another_host_is_refused_before_anything_is_relayed(capfd):
+    """DNS rebinding against the relay: a site re-pointed at 127.0.0.1 must not reach `cmd/reset` (issue 36, 9)."""
+    relayed = []
+
+    class Relay:
+        def relay_reset(self, machine, request):
+            relayed.append((machine, request))
+            return []
+
+    s = DashboardServer(("127.0.0.1", 0), Book(), relay=Relay(), https=False)
+    thread = threading.Thread(target=s.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+    thread.start()
+    try:
+        sock = _connect(s)
+        sock.sendall(_post_raw("/api/reset/m-1", STEP, host="rebound.example:8470"))
+        head, body, rest = _read_answer(sock)
+        assert head.startswith(b"HTTP/1.1 421 ") and "localhost" in json.loads(body)["error"], head
+        sock.sendall(_post_raw("/api/reset/m-1", STEP, host="localhost:8470"))  # the page's own request
+        head, body, _ = _read_answer(sock, rest)
+        assert head.startswith(b"HTTP/1.1 200 ") and json.loads(body) == {"ok": True, "replies": []}
+        assert relayed == [("m-1", {"step": "challenge", "client_nonce": "ab" * 16})]
+        sock.close()
+    finally:
+        s.shutdown()
+        s.server_close()

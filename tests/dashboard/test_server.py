@@ -123,6 +123,7 @@ def test_a_dashboard_that_missed_an_alarm_lists_it_from_the_status(dashboard):
     got = wait_for(lambda: (pub.put("millsense/m-3/status", status()) or True) and len(alarms()) > 1 and alarms(),
                    10, "the clear")
     assert [a["level"] for a in got] == ["overload", "clear"], got
+    assert got[1]["was"] == "overload" and "was" not in got[0]  # the page says "clear torque_nm (was overload, ...)"
 
 
 def test_memory_is_bounded_per_machine_and_in_machines():

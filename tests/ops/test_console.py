@@ -40,7 +40,8 @@ SGR = re.compile(r"\x1b\[[0-9;]*m")
 LOG_LINE = re.compile(r"^\d\d:\d\d:\d\d \[(debug|info|warning|error|critical)\]")
 LIVE_MARK = " rpm  T "  # in every live line, in no log line
 LIVE_LINE = re.compile(
-    r"^(starting|running|degraded|stopping) +interlock \S+ +alarm \S+ +rev +\S+ +\S+ rpm  T .* mm(  \(speeding up\))?$"
+    r"^(starting|running|degraded|stopping) +interlock \S+ +alarm \S+ +(feed held: .+, since \d\d:\d\d:\d\d  )?"
+    r"rev +\S+ +\S+ rpm  T .* mm(  \(speeding up\))?$"
 )
 NUMBER = re.compile(r"(?<![\w.])-?\d+(?:\.\d+)?(?:[eE][+-]?\d+)?")
 
@@ -172,7 +173,11 @@ def test_a_daemon_with_a_config_shows_the_live_line_on_a_terminal(terminal):
     live = [ln for ln in screen(terminal) if LIVE_MARK in ln]
     assert live, terminal
     assert "\r" in terminal  # refreshed in place
-    assert any(LIVE_LINE.match(ln) and "interlock feed_hold" in ln for ln in live), live
+    held = [ln for ln in live if LIVE_LINE.match(ln) and "interlock feed_hold" in ln]
+    assert held, live
+    # why and since when, after the overload's alarm cleared too (issue 36, finding 7)
+    why = re.compile(r"feed held: overload torque_nm [\d.]+ > 2\.3, since \d\d:\d\d:\d\d  rev")
+    assert all(why.search(ln) for ln in held), held
 
 
 def test_log_lines_never_share_a_line_with_the_live_line(terminal):

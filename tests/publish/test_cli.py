@@ -441,3 +441,66 @@ def test_watch_on_a_terminal_draws_one_line_per_machine(millsense_cmd, port, dae
         sink.close()
         kill(proc)
         os.close(master)
+
+
+def test_watch_on_a_terminal_says_feed_held_until_the_daq_confirms_the_release(millsense_cmd, port, daemon_session):
+    """Issue 36, finding 7 in `watch`: a held machine reads as held (why, since when) after its alarm cleared,
+    until a status says the DAQ released it; the clear reads as a clear, not as "value > limit"."""
+    sink = ZenohSink(daemon_session, "mch10-01", None)
+    master, slave = pty.openpty()
+    proc = subprocess.Popen(
+        [*millsense_cmd, "watch", "--no-scouting", "--connect", tcp(port), "--seconds", "60"],
+        stdout=slave, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
+    )
+    os.close(slave)
+    screen = [b""]
+    tripped_at = time.time() - 30.0
+    since = time.strftime("%H:%M:%S", time.localtime(tripped_at))
+    reason = "overload torque_nm 31.7 > 30.0"
+
+    def status(t, interlock, **detail):
+        return {"t": t, "state": "running", "interlock": interlock, "alarm": "ok",
+                "interlock_detail": {"interlock": interlock, "enabled": True, "reason": None, "since": None,
+                                     "daq_feed_hold": False, **detail}}
+
+    def last_line_after(publish, wanted):
+        deadline = time.monotonic() + 15
+        while True:
+            publish()
+            while select.select([master], [], [], 0.1)[0]:
+                try:
+                    screen[0] += os.read(master, 4096)
+                except OSError:
+                    break
+            last = screen[0].decode("utf-8", "replace").split("\x1b[2K")[-1]
+            if wanted(last):
+                return last
+            assert time.monotonic() < deadline, f"never {wanted}; last line {last!r}"
+
+    try:
+        now = time.time()
+        held = status(now, "feed_hold", reason=reason, since=tripped_at, daq_feed_hold=True)
+        line = last_line_after(lambda: sink.status(held), lambda ln: "feed held" in ln)
+        assert f"feed held: {reason}, since {since}" in line, line
+        # The load is gone 0.2 s after the hold: the alarm clears, the feed stays held.
+        clear = {"t": now + 0.2, "level": "clear", "quantity": "torque_nm", "value": 1.2, "limit": 30.0,
+                 "interlock": "feed_hold"}
+        overload = {"t": now - 0.1, "level": "overload", "quantity": "torque_nm", "value": 31.7, "limit": 30.0,
+                    "interlock": "feed_hold"}
+        sink.alarm(overload)
+        line = last_line_after(lambda: sink.alarm(clear), lambda ln: "alarm: clear" in ln)
+        assert "alarm: clear torque_nm (was overload)" in line and "1.2" not in line.split("alarm:")[1], line
+        assert f"feed held: {reason}, since {since}" in line, line
+        # Reset written, the DAQ's STATUS not yet showing the release: still held.
+        releasing = status(now + 1, "armed", daq_feed_hold=True)
+        line = last_line_after(lambda: sink.status(releasing), lambda ln: "not yet confirmed" in ln)
+        assert "feed held: release not yet confirmed by the DAQ" in line, line
+        released = status(now + 2, "armed", daq_feed_hold=False)
+        line = last_line_after(lambda: sink.status(released), lambda ln: "feed held" not in ln)
+        assert line.startswith("mch10-01") and "alarm: clear torque_nm" in line
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
+    finally:
+        sink.close()
+        kill(proc)
+        os.close(master)

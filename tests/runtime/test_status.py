@@ -2,11 +2,23 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from millsense.daemon.pipeline.status import LatencyStats, SeqClock, bad_frames, percentile, status_line, summary_line
+from millsense.daemon.pipeline.status import (
+    LatencyStats,
+    SeqClock,
+    bad_frames,
+    hold_of,
+    interlock_detail,
+    percentile,
+    status_line,
+    summary_line,
+)
+from millsense.drivers.protocol import OUT_FEED_HOLD, Status
 
 
 def test_seq_clock_uses_the_least_delayed_block():
@@ -70,6 +82,40 @@ def test_lines_tolerate_missing_values():
     assert "speeding up" not in line
     assert summary_line({"rev": 6, "accelerating": True}, "ok", {}).endswith("(speeding up)")
     assert "Zenoh 0 routers, 2 peers" in status_line({"state": "running", "sink": {"zenoh_routers": 0, "zenoh_peers": 2}})
+
+
+def test_the_live_line_says_feed_held_why_and_since_until_the_daq_confirms_the_release():
+    """Issue 36, finding 7 on the live line: after the alarm cleared (alarm `ok`), the held feed still reads as held."""
+    since = 1_795_324_800.0
+    at = time.strftime("%H:%M:%S", time.localtime(since))
+    est = {"rev": 9, "spindle_rpm": 0.0}
+    held = {"state": "running", "interlock": "feed_hold",
+            "interlock_detail": {"reason": "overload torque_nm 9.3 > 9.0", "since": since, "daq_feed_hold": True}}
+    line = summary_line(est, "ok", held)
+    assert f"alarm ok        feed held: overload torque_nm 9.3 > 9.0, since {at}  rev" in line, line
+    device = {"state": "running", "interlock": "held_by_device",
+              "interlock_detail": {"reason": None, "since": None, "watchdog_tripped": True, "daq_feed_hold": True}}
+    assert "feed held: by the DAQ, not set by this run (its watchdog tripped)  rev" in summary_line(est, "ok", device)
+    releasing = {"state": "running", "interlock": "armed", "interlock_detail": {"daq_feed_hold": True}}
+    assert "feed held: release not yet confirmed by the DAQ" in summary_line(est, "ok", releasing)
+    released = {"state": "running", "interlock": "armed", "interlock_detail": {"daq_feed_hold": False}}
+    assert "feed held" not in summary_line(est, "ok", released)
+    assert hold_of(released) is None and hold_of({"interlock": "armed"}) is None
+
+
+def test_interlock_detail_adds_what_the_daqs_last_status_says():
+    class Interlock:
+        def state_dict(self):
+            return {"interlock": "armed", "reason": None}
+
+    class Driver:
+        last_status = None
+
+    assert interlock_detail(Interlock(), Driver()) == {"interlock": "armed", "reason": None, "daq_feed_hold": None}
+    Driver.last_status = Status(outputs=OUT_FEED_HOLD, flags=0, last_heartbeat=0)
+    assert interlock_detail(Interlock(), Driver())["daq_feed_hold"] is True
+    Driver.last_status = Status(outputs=0, flags=0, last_heartbeat=0)
+    assert interlock_detail(Interlock(), Driver())["daq_feed_hold"] is False
 
 
 def test_bad_frames_counts_decoder_refusals():

@@ -7,8 +7,11 @@ const RING = 600;          // revolutions kept per machine, as on the server (bo
 const ALARMS_SHOWN = 50;
 const LATENCY_KEPT = 50000;
 const DRAW_EVERY_MS = 250; // plots are redrawn at most 4 times a second; the numbers at once
+const LIMIT_LINES = 8;     // learned-limits warnings shown per tile
+// The alarm levels that trip the interlock (pipeline/alarms.py; envelope alarms as [learning] says).
+const TRIP_LEVELS = ["overload", "crash", "tool_breakage", "envelope_high", "envelope_low"];
 
-const machines = new Map(); // name -> {tile, estimates, dirty, lastAlarm}
+const machines = new Map(); // name -> {tile, estimates, dirty, lastAlarm, hold}
 let resetOffered = false;
 
 // When each estimate landed on the page (ms since the epoch), beside the daemon's `t`:
@@ -35,7 +38,7 @@ function tileOf(name) {
   // Tiles in name order, so a screen reads the same every day.
   const after = [...box.children].find((c) => c.dataset.machine > name);
   box.insertBefore(node, after || null);
-  m = { tile: node, estimates: [], dirty: true, lastAlarm: null };
+  m = { tile: node, estimates: [], dirty: true, lastAlarm: null, hold: null };
   machines.set(name, m);
   return m;
 }
@@ -71,6 +74,74 @@ function showStatus(m, s) {
   $(t, ".f-interlock").textContent = s.interlock || "–";
   const alarm = typeof s.alarm === "string" ? s.alarm : (s.alarm && s.alarm.level) || null;
   if (alarm !== null) setAlarm(m, alarm);
+  holdFromStatus(m, s);
+  showLimits(m, s.learned_limits);
+}
+
+// ---------------------------------------------------------------------------- the held feed
+// The tile follows the latched interlock, not the alarm: an overload clears 0.2 s after the hold
+// took the load off, and the machine stays held until a reset and the DAQ's own STATUS saying so
+// (status.interlock_detail.daq_feed_hold). Same rules as pipeline/status.py, hold_of.
+function holdOfStatus(s) {
+  const d = (s.interlock_detail && typeof s.interlock_detail === "object") ? s.interlock_detail : {};
+  const since = typeof d.since === "number" ? d.since : null;
+  if (s.interlock === "feed_hold") return { reason: (typeof d.reason === "string" && d.reason) || "latched", since };
+  if (s.interlock === "held_by_device") {
+    return { reason: "by the DAQ, not set by this run" + (d.watchdog_tripped ? " (its watchdog tripped)" : ""), since };
+  }
+  if (d.daq_feed_hold === true) return { reason: "release not yet confirmed by the DAQ", since };
+  return null;
+}
+
+function holdFromStatus(m, s) {
+  const hold = holdOfStatus(s);
+  // A status older than the alarm that showed the hold does not release it (they travel apart).
+  // (An alarm's t is its sample's time; a status built within 1 s of it may predate the trip's decision.)
+  if (!hold && m.hold && m.hold.alarmT !== null && typeof s.t === "number" && s.t < m.hold.alarmT + 1.0) return;
+  m.hold = hold ? { ...hold, alarmT: null } : null;
+  showHold(m);
+}
+
+function holdFromAlarm(m, a) {
+  // An alarm sent while the daemon holds the feed says so before the next status does.
+  if (a.interlock !== "feed_hold" || m.hold) return;
+  const t = typeof a.t === "number" ? a.t : null;
+  // The runner's reason for a trip (runner._trip_reason): the alarm, its value and the limit crossed.
+  const side = a.level === "envelope_low" ? " < " : " > ";
+  const trip = TRIP_LEVELS.includes(a.level); // a warning or a clear sent while held: held, not why
+  const reason = trip ? a.level + " " + a.quantity + " " + a.value + side + a.limit : "latched";
+  m.hold = { reason, since: t, alarmT: t };
+  showHold(m);
+}
+
+function showHold(m) {
+  const line = $(m.tile, ".f-held");
+  m.tile.classList.toggle("held", !!m.hold);
+  if (!m.hold) { line.hidden = true; line.textContent = ""; return; }
+  line.hidden = false;
+  line.textContent = "feed held: " + m.hold.reason
+    + (m.hold.since !== null ? ", since " + new Date(m.hold.since * 1000).toLocaleTimeString() : "");
+}
+
+// Learned limits set aside (learning afresh) or with envelope_low off: a warning line on the tile.
+// `learned_limits` is absent from older daemons' status: nothing shown then.
+function showLimits(m, ll) {
+  const box = $(m.tile, ".f-limits");
+  const lines = [];
+  if (ll && typeof ll === "object") {
+    for (const e of Array.isArray(ll.set_aside) ? ll.set_aside : []) {
+      const key = e && typeof e === "object" ? e.key : e;
+      if (typeof key === "string") lines.push("limits set aside: " + key + " (learning afresh)"
+        + (e && typeof e.reason === "string" && e.reason ? ": " + e.reason : ""));
+    }
+    for (const key of Array.isArray(ll.low_off) ? ll.low_off : []) {
+      if (typeof key === "string") lines.push("envelope_low off: " + key);
+    }
+  }
+  const more = lines.length - LIMIT_LINES;  // a daemon with many keys: the tile stays readable
+  if (more > 0) lines.splice(LIMIT_LINES, lines.length, "… and " + more + " more (millsense limits list)");
+  box.hidden = lines.length === 0;
+  box.textContent = lines.join("\n");
 }
 
 function setAlarm(m, level) {
@@ -83,7 +154,22 @@ function setAlarm(m, level) {
 function showAlarm(m, a) {
   setAlarm(m, a.level);
   if (a.interlock) $(m.tile, ".f-interlock").textContent = a.interlock;
+  holdFromAlarm(m, a);
   addAlarmLine(a);
+}
+
+// What an alarm line says after its level: a clear names what it ends, never "value > limit".
+function alarmWords(a) {
+  if (!a.quantity) return "";
+  if (a.level === "clear") {
+    const parts = [];
+    if (a.was) parts.push("was " + a.was);
+    if (typeof a.limit === "number" && isFinite(a.limit)) parts.push("limit " + fmt(a.limit, 2));
+    return " " + a.quantity + (parts.length ? " (" + parts.join(", ") + ")" : "");
+  }
+  if (typeof a.value !== "number" && typeof a.limit !== "number") return " " + a.quantity; // daq_lost: no number
+  const side = a.level === "envelope_low" ? " < " : " > ";
+  return " " + a.quantity + " " + fmt(a.value, 2) + side + fmt(a.limit, 2);
 }
 
 function addAlarmLine(a) {
@@ -94,9 +180,7 @@ function addAlarmLine(a) {
   const lvl = document.createElement("span");
   lvl.className = "lvl";
   lvl.textContent = a.level;
-  li.append(when + " " + a.machine + " ", lvl,
-    (a.quantity ? " " + a.quantity + " " + fmt(a.value, 2) + " > " + fmt(a.limit, 2) : "")
-    + (a.interlock ? " · " + a.interlock : ""));
+  li.append(when + " " + a.machine + " ", lvl, alarmWords(a) + (a.interlock ? " · " + a.interlock : ""));
   list.prepend(li);
   while (list.children.length > ALARMS_SHOWN) list.lastElementChild.remove();
 }
