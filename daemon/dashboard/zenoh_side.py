@@ -101,8 +101,12 @@ class ZenohSide:
             raise RelayRefused("a reset takes no args")
         body = dict(request, client_zid=str(self.session.zid()))  # who relayed: this dashboard (self-declared)
         out: list[dict] = []
+        # Every queryable asked and every answer kept apart, as `command_auth.exchange` does: with Zenoh's default
+        # (the best-matching queryable, answers consolidated) a second program answering as the daemon was hidden
+        # from the page, which refuses to prove when two answer (issue 36, finding 6).
         replies = self.session.get(f"millsense/{machine}/cmd/reset", payload=json.dumps(body).encode(),
-                                   encoding=zenoh.Encoding.APPLICATION_JSON, timeout=RELAY_TIMEOUT_S)
+                                   encoding=zenoh.Encoding.APPLICATION_JSON, timeout=RELAY_TIMEOUT_S,
+                                   target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE)
         for reply in replies:
             sample = reply.ok if reply.ok is not None else reply.err
             try:

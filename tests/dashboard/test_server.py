@@ -33,13 +33,15 @@ def _session(listen=None, connect=None):
 
 @pytest.fixture
 def dashboard():
-    """(server, publisher session): a dashboard on 127.0.0.1 and a peer that plays the daemons."""
+    """(server, publisher session): a dashboard on 127.0.0.1 and a peer that plays the daemons.
+    `server.zenoh_port`: the dashboard session's Zenoh listener."""
     port = free_tcp_port()
     dash_session = _session(listen=[tcp(port)])
     pub = _session(connect=[tcp(port)])
     book = Book()
     side = ZenohSide(dash_session, book)
     server = DashboardServer(("127.0.0.1", 0), book, side, https=False)
+    server.zenoh_port = port  # where another peer (an impostor) joins the dashboard's session
     thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
     thread.start()
     try:
@@ -160,6 +162,36 @@ def test_the_relay_forwards_only_the_two_reset_steps(dashboard):
     assert _post(server, "/api/reset/m-1", b"{not json", h)[0] == 400
     status, body = _post(server, "/api/reset/m-1", good, h)  # well formed: relayed, nobody answers
     assert status == 200 and body["replies"] == []
+
+
+def test_the_relay_hands_the_page_every_program_that_answers_as_the_machine(dashboard):
+    """Issue 36, finding 6: an impostor answering on `cmd/reset` beside the daemon must reach the page, which then
+    sends no proof ("several programs answer"). Zenoh's default query (the best-matching queryable, answers
+    consolidated) handed the relay one of the two."""
+    server, daemon_like = dashboard
+    impostor = _session(connect=[tcp(server.zenoh_port)])
+
+    def answer(nonce):
+        def handler(query):
+            body = {"step": "challenge", "machine": "m-1", "command": "reset", "policy": "open",
+                    "server_nonce": nonce, "expires_s": 10}
+            query.reply(query.key_expr, json.dumps(body).encode())
+        return handler
+
+    queryables = [daemon_like.declare_queryable("millsense/m-1/cmd/reset", answer("aa" * 32)),
+                  impostor.declare_queryable("millsense/m-1/cmd/reset", answer("bb" * 32))]
+    try:
+        challenge = json.dumps({"step": "challenge", "client_nonce": "ab" * 16}).encode()
+
+        def both():
+            status, body = _post(server, "/api/reset/m-1", challenge, {"X-Millsense": "reset"})
+            assert status == 200, body
+            return sorted(r["body"]["server_nonce"] for r in body["replies"]) == ["aa" * 32, "bb" * 32]
+        wait_for(both, 10, "the relay hands over both programs' answers")
+    finally:
+        for q in queryables:
+            q.undeclare()
+        impostor.close()
 
 
 def test_the_reset_is_not_offered_over_plain_http_off_localhost():

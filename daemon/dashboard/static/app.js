@@ -344,7 +344,7 @@ async function resetExchange(machine, token) {
     }
     if (policy === "token") {
       const expected = await hmacHex(token, ["millsense-reply-v1", "reset", machine, sn, cn, b.result]);
-      if (b.server_mac !== expected) throw new Error("the answer failed the daemon's MAC: a wrong token, or not the real daemon");
+      if (b.server_mac !== expected) throw new Error("the answer failed the daemon's MAC: the outcome is unknown (a wrong token, or not the real daemon); watch the interlock, and see audit.log at the machine");
     }
     const result = JSON.parse(b.result);
     if (!a.ok || result.ok === false) throw new Error(machine + " declined: " + (result.error || "no reason"));
