@@ -198,8 +198,10 @@ class Interlock:
                 self.device_hold_kept = False
                 self.watchdog_tripped = False
             self._changed()
+            # The state this reset left, read under its lock: a STATUS the DAQ sent before it took the release
+            # may land right after (the reader thread's `observe_status`) and say held until the next one.
+            result: dict[str, Any] = {"ok": ok, **self.state_dict()}
         log.info("interlock.reset", cleared=was, write_ok=ok)
-        result: dict[str, Any] = {"ok": ok, **self.state_dict()}
         if not ok:
             result["error"] = "the DAQ did not take the command (link down?)"
         return result
