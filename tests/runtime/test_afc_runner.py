@@ -214,10 +214,11 @@ def test_a_trip_writes_the_override_down_itself_before_any_further_revolution(ri
         assert r["ok"] is True, r
         assert runner.revolutions == revolutions and not gate.is_set()   # still parked: no revolution since
         events = [json.loads(line) for line in log_path.read_text().splitlines()]
-        holds = [k for k, e in enumerate(events) if e["event"] == "outputs" and e["feed_hold"] and e["cause"] == "command"]
-        assert holds, f"no hold command in the DAQ's log: {events}"
-        down = [e["value"] for e in events[holds[0] + 1:] if e["event"] == "feed_override_command" and e["value"] <= 1000]
-        assert down, ("the trip wrote no override <= 100 % after the hold: it waits for the next revolution; "
-                      f"the DAQ was told {[e for e in events if e['event'] in ('outputs', 'feed_override_command')]}")
+        told = [e for e in events if e["event"] in ("outputs", "feed_override_command")]  # in the DAQ's order
+        holds = [k for k, e in enumerate(told) if e["event"] == "outputs" and e["cause"] == "command"
+                 and e["feed_hold"]]  # the trip's hold
+        assert holds, f"no hold command in the DAQ's log: {told}"
+        down = [e for e in told[holds[0] + 1:] if e["event"] == "feed_override_command" and e["value"] <= 1000]
+        assert down, f"the trip wrote no override <= 100 % after the hold (the next revolution would): {told}"
     finally:
         gate.set()
