@@ -192,6 +192,7 @@ class ModbusDeviceServer:
                     current[address + i] = bool(v)
             dev.set_outputs(int(current[0]) | (int(current[1]) << 1), now)
             self._cnc.arm()
+            self._arm_watchdog()  # a clear re-arms it: the deadline counts from the last heartbeat, none may follow
         elif fc in (FC_WRITE_REG, FC_WRITE_REGS) and values is not None:
             if HR_FEED_OVERRIDE in range(address, address + len(values)):
                 override = int(values[HR_FEED_OVERRIDE - address])

@@ -30,6 +30,8 @@ class Emulator:
         self.stderr_path = tmp_path / f"{name}-stderr.txt"
         self.args = ["--scenario", "ramp", "--status-log", str(self.status_log), *args]
         self.proc: subprocess.Popen | None = None
+        self._log: list[dict] = []
+        self._log_offset = 0
 
     def start(self, timeout_s: float = 20.0) -> Emulator:
         self._err = open(self.stderr_path, "w")  # noqa: SIM115 - closed in stop()
@@ -63,17 +65,20 @@ class Emulator:
         return self.proc.returncode
 
     def events(self, kind: str | None = None) -> list[dict]:
-        if not self.status_log.exists():
-            return []
-        out = []
-        for line in self.status_log.read_text().splitlines():
-            try:
-                rec = json.loads(line)
-            except json.JSONDecodeError:  # a line being written right now
-                continue
-            if kind is None or rec["event"] == kind:
-                out.append(rec)
-        return out
+        """What the device logged so far, in its order. Read on from where the last call stopped (a test
+        that waits on the device's events calls this every few ms; the log only grows, opened to append)."""
+        if self.status_log.exists():
+            with open(self.status_log, "rb") as fh:
+                fh.seek(self._log_offset)
+                data = fh.read()
+            end = data.rfind(b"\n") + 1  # a line being written right now is taken next time
+            for line in data[:end].splitlines():
+                try:
+                    self._log.append(json.loads(line))
+                except json.JSONDecodeError:
+                    continue
+            self._log_offset += end
+        return [rec for rec in self._log if kind is None or rec["event"] == kind]
 
     def __enter__(self) -> Emulator:
         return self.start()

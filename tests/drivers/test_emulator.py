@@ -231,3 +231,41 @@ def test_sensor_fault_flags_refuse_nonsense():
         res = subprocess.run([*SIM_CMD, "--scenario", "step", "--capture", "/dev/null", "--duration-s", "0.1",
                               *flags], capture_output=True, text=True, timeout=60)
         assert res.returncode == 2 and expected in res.stderr and "Traceback" not in res.stderr, (flags, res.stderr)
+
+
+def test_modbus_a_clear_arms_the_watchdog_without_a_heartbeat_after_it(tmp_path, port):
+    """A device's watchdog runs on its own. A heartbeat that comes while the watchdog has tripped, then the
+    clear (coil 0) and no heartbeat more: the device must trip again one period after that heartbeat. The
+    Modbus emulator armed its timer only on register writes, so after this clear it never tripped (the stream
+    server arms after every command): the contract test's modbus cases then waited in vain (issue 37)."""
+    from pymodbus.client import ModbusTcpClient
+
+    emu = Emulator(tmp_path, "--modbus-tcp", f"127.0.0.1:{port}")
+    client = ModbusTcpClient("127.0.0.1", port=port, timeout=2)
+
+    def trips():
+        return [e for e in emu.events("outputs") if e["cause"] == "watchdog"]
+
+    def wait_trips(n):
+        # only so that a device that never trips fails instead of hanging: 25 periods
+        deadline = time.monotonic() + 5.0
+        while len(trips()) < n:
+            assert time.monotonic() < deadline, f"no watchdog trip {n}: {emu.events()}"
+            time.sleep(0.01)
+
+    try:
+        emu.start()
+        assert client.connect()
+        client.write_register(101, 200, device_id=1)  # the period, ms
+        client.write_register(100, 1, device_id=1)    # the first heartbeat arms it
+        wait_trips(1)
+        client.write_register(100, 2, device_id=1)    # a heartbeat to a tripped watchdog: heard, arms nothing
+        client.write_coil(0, False, device_id=1)      # the clear: armed again, from that heartbeat
+        wait_trips(2)
+        beat = emu.events("heartbeat")[-1]
+        second = trips()[-1]
+        assert second["last_heartbeat_mono"] == beat["mono"] and second["mono"] - beat["mono"] >= 0.2
+        assert client.read_discrete_inputs(0, count=2, device_id=1).bits[:2] == [True, True]
+    finally:
+        client.close()
+        emu.stop()

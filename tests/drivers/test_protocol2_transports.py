@@ -15,7 +15,7 @@ from millsense.drivers import create_driver
 from millsense.drivers.base import LinkEvent, SampleBlock
 from millsense.drivers.protocol import Context, Descriptor, Status
 from tests.drivers.emulator_proc import Emulator
-from tests.drivers.test_contract import check_every_sample_once, open_transport
+from tests.drivers.test_contract import HEARTBEAT_S, check_every_sample_once, open_transport
 
 # the CNC applies the override at once here (its lag and rate limit: test_cnc_override.py), so the
 # 200 ms watchdog cannot take it back to 100 % before it is reported
@@ -30,9 +30,15 @@ class Events:
         self.driver = driver
         self.items: list = []
 
-    def pump(self, seconds: float, until) -> bool:
+    def pump(self, seconds: float, until, heartbeat_s: float | None = None) -> bool:
+        """Drain events for up to `seconds` or until `until()`; with `heartbeat_s`, keep the heartbeat going
+        meanwhile (a wait for a STATUS must not race the device's 200 ms watchdog on a loaded box)."""
         deadline = time.monotonic() + seconds
+        next_hb = time.monotonic()
         while time.monotonic() < deadline:
+            if heartbeat_s is not None and time.monotonic() >= next_hb:
+                self.driver.heartbeat()
+                next_hb = time.monotonic() + heartbeat_s
             ev = self.driver.get(timeout=0.02)
             if ev is not None:
                 self.items.append(ev)
@@ -67,17 +73,19 @@ def test_version_2_context_override_and_cnc_feed_held(transport, tmp_path, port)
         assert ctx.cycle and ctx.monitor and not ctx.feed_held
         assert ev.of(Status)[-1].feed_override == 1000
 
-        # feed override: COMMAND 0x04 / holding register 102, reported in STATUS / input register 6
+        # feed override: COMMAND 0x04 / holding register 102, reported in STATUS / input register 6. The heartbeat
+        # goes on until the watchdog's step: before, a poll later than the 200 ms watchdog found 100 % again
         driver.heartbeat()
         assert driver.set_feed_override(850)
-        assert ev.pump(3.0, lambda: any(s.feed_override == 850 for s in ev.of(Status))), "override not reported"
+        assert ev.pump(3.0, lambda: any(s.feed_override == 850 for s in ev.of(Status)), HEARTBEAT_S), \
+            "override not reported"
 
         # feed hold: the DAQ confirms, then the CNC reports it holds the feed
-        driver.heartbeat()
         n_before = len(ev.items)
         assert driver.set_outputs(True)
         assert ev.pump(3.0, lambda: any(c.feed_held for c in ev.of(Context))
-                       and any(s.feed_hold for s in ev.of(Status))), "the DAQ or the CNC never reported feed held"
+                       and any(s.feed_hold for s in ev.of(Status)), HEARTBEAT_S), \
+            "the DAQ or the CNC never reported feed held"
         held = ev.first(lambda e: isinstance(e, Context) and e.feed_held)
         assert held >= n_before  # arrived after the command (Modbus polls outputs at 10 Hz, so no order vs STATUS)
         blocks = [e for e in ev.items[held:] if isinstance(e, SampleBlock)]
@@ -90,9 +98,9 @@ def test_version_2_context_override_and_cnc_feed_held(transport, tmp_path, port)
         assert [e["feed_override"] for e in emu.events("feed_override")] == [850]
 
         # released: the CNC follows
-        driver.heartbeat()
         assert driver.set_outputs(False)
-        assert ev.pump(3.0, lambda: not driver.last_context.feed_held and ev.of(Context)[-1].feed_held is False)
+        assert ev.pump(3.0, lambda: not driver.last_context.feed_held and ev.of(Context)[-1].feed_held is False,
+                       HEARTBEAT_S)
 
         # the heartbeat stops: the watchdog holds the feed and returns the override to 100.0 %
         assert ev.pump(3.0, lambda: any(s.watchdog_tripped and s.feed_override == 1000 for s in ev.of(Status))), \

@@ -11,12 +11,15 @@ a version-1 DAQ and a daemon without its interlock refuse `afc on`, saying why.
 
 from __future__ import annotations
 
+import json
+import threading
 from types import SimpleNamespace
 
 import pytest
 
 from millsense.daemon.config_models import AfcSettings
 from millsense.daemon.pipeline.runner import Runner
+from millsense.drivers.emulator.device import StatusLog
 from millsense.drivers.sim_driver import SimDriver
 from tests.runtime.test_runner import RecordingSink, ScriptedEstimator, wait_for
 
@@ -180,3 +183,42 @@ def test_a_cnc_that_does_not_follow_the_override_down_holds_the_feed(rig, monkey
     wait_for(lambda: len(sink.of("estimate")) >= n + 3, 5, "revolutions since the hold (evidence for a reset)")
     r = runner.reset("test")
     assert r["ok"] is False and r["condition"] == "feed_override", r
+
+
+def test_a_trip_writes_the_override_down_itself_before_any_further_revolution(rig, tmp_path):
+    """The trip's own `_afc_safe` (runner `_trip`): the hold is written, then the override at most 100 %, by the
+    tripping thread. Not left to the next revolution's safe decision: that one would come a revolution later
+    (the test above cannot tell the two apart). Here the estimator thread is parked inside a block, so no
+    revolution can be processed until the test lets it go; the DAQ's own log orders the hold and the
+    override commands, so nothing depends on timing (the watchdog's return to 100 % is logged apart, not as
+    a command)."""
+    gate, parked = threading.Event(), threading.Event()
+    gate.set()
+
+    def torque(rev):
+        if not gate.is_set():  # the estimator thread, building a revolution: it waits here
+            parked.set()
+            gate.wait()
+        return 10.0   # half the target: the controller raises the feed
+
+    runner, drv, sink = rig(torque)
+    try:
+        _above_100(runner, drv, sink)
+        log_path = tmp_path / "daq.jsonl"
+        drv.device.log = StatusLog(str(log_path))   # from here on, the DAQ logs what it is told, in order
+        gate.clear()
+        assert parked.wait(10), "the estimator thread never came to the next revolution"
+        revolutions = runner.revolutions
+        assert drv.device.feed_override_commanded > 1000
+        r = runner.test_trip("pytest")
+        assert r["ok"] is True, r
+        assert runner.revolutions == revolutions and not gate.is_set()   # still parked: no revolution since
+        events = [json.loads(line) for line in log_path.read_text().splitlines()]
+        told = [e for e in events if e["event"] in ("outputs", "feed_override_command")]  # in the DAQ's order
+        holds = [k for k, e in enumerate(told) if e["event"] == "outputs" and e["cause"] == "command"
+                 and e["feed_hold"]]  # the trip's hold
+        assert holds, f"no hold command in the DAQ's log: {told}"
+        down = [e for e in told[holds[0] + 1:] if e["event"] == "feed_override_command" and e["value"] <= 1000]
+        assert down, f"the trip wrote no override <= 100 % after the hold (the next revolution would): {told}"
+    finally:
+        gate.set()

@@ -74,6 +74,7 @@ def test_frame_check_computes_the_estimators_sample_level_power_and_current():
     fc, est = FrameCheck(settings, plant.descriptor), Estimator(settings, plant.descriptor)
     raw = plant.step(20000)
     compared = split = 0
+    peak_w = peak_a = 0.0
     for a in range(0, len(raw), 10):
         res = est.process(SampleBlock(a, a, raw[a : a + 10], 0, False))
         split += len(est.gain_steps) > 1
@@ -81,9 +82,13 @@ def test_frame_check_computes_the_estimators_sample_level_power_and_current():
         np.testing.assert_allclose(p_gap_w, res.p_gap_w, rtol=1e-9, atol=1e-6)
         np.testing.assert_allclose(current_a, res.current_a, rtol=1e-12)
         compared += len(res.p_gap_w)
+        peak_w, peak_a = max(peak_w, float(np.abs(p_gap_w).max())), max(peak_a, float(current_a.max()))
     assert compared == len(raw)
     assert split > 50  # frames in which a revolution closed: the gain changed inside them
-    assert np.max(np.abs(fc.p_gap_w)) >= 0.0
+    # the numbers agreed where they decide a trip: through the scenario's crash, over both crash limits (two
+    # sides that both read zero, or a comparison that never reached the crash, would agree just as well)
+    assert peak_w > settings.alarms.crash_power_w, f"compared up to {peak_w:.0f} W only"
+    assert peak_a > settings.alarms.crash_current_a, f"compared up to {peak_a:.1f} A only"
 
 
 @pytest.mark.parametrize("winding, drop, offsets", [

@@ -9,6 +9,7 @@ interlock drives); the real emulator on TCP is exercised in tests/e2e.
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import pytest
@@ -197,6 +198,22 @@ def test_sample_level_peaks_and_stall_of_the_latest_block(stopped):
     assert refused(c) is None
     # a current clipped at its sensor's limit while high is reported as inf: beyond any limit, not "no number"
     c.on_block(1040, {"p_gap_w": 900.0, "current_a": float("inf")}, False, stopped)
+    assert refused(c) == "crash"
+
+
+@pytest.mark.parametrize("stopped", [False, True])
+@pytest.mark.parametrize("peak, limit", [("p_gap_w", 15000.0), ("current_a", 60.0)])
+def test_a_peak_exactly_at_a_crash_limit_refuses_the_reset_and_just_below_allows_it(stopped, peak, limit):
+    """Rule 5 is "at or over" (docs/interlock.md: a reset needs the latest block *under* the limit): exactly
+    the limit is not under it. The test above uses 61 A against 60 A, which a `>` passes just as well."""
+    quiet = {"p_gap_w": 900.0, "current_a": 12.0}
+    c = check(crash_power_w=15000.0, crash_current_a=60.0)
+    c.on_block(1000, {**quiet, peak: limit}, False, stopped)
+    c.on_estimate(rev(11, 1150), [])
+    assert refused(c) == "crash", f"{peak} exactly at its crash limit {limit:g} let the reset through"
+    c.on_block(1010, {**quiet, peak: math.nextafter(limit, 0.0)}, False, stopped)
+    assert refused(c) is None, f"{peak} just under its crash limit {limit:g} still refused the reset"
+    c.on_block(1020, {**quiet, peak: limit}, False, stopped)  # the latest block decides, both ways
     assert refused(c) == "crash"
 
 
