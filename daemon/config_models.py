@@ -212,6 +212,7 @@ class ToolSettings(_Section):
     flutes: int = Field(ge=1)
     cf: Annotated[float | Literal["model"], BeforeValidator(_cf_value)] = 1.075
     helix_deg: float | None = Field(None, gt=0, lt=90)
+    flute_length_mm: float | None = Field(None, gt=0)   # (additive) unset: 2 × diameter_mm (physics/validity.py)
 
 
 class ToolTableSettings(_Section):
@@ -225,6 +226,7 @@ class ToolTableSettings(_Section):
     flutes: int = Field(ge=1)
     cf: Annotated[float | Literal["model"] | None, BeforeValidator(lambda v: v if v is None else _cf_value(v))] = None
     helix_deg: float | None = Field(None, gt=0, lt=90)
+    flute_length_mm: float | None = Field(None, gt=0)   # (additive) unset: 2 × this tool's diameter_mm
 
 
 def _tool_number(value: Any) -> Any:

@@ -10,6 +10,8 @@ papers ([P] spindle power → force; [D] average forces → depth of cut); see
 - ``force``: resultant force ([P] eq. 18), C_f from r₁(t_a)
 - ``milling``: average forces of end milling ([D] eqs. 7–10, 12), down/up/slot
 - ``depth``: exact inversions with a status ([D] §3)
+- ``validity``: where a depth and a cut may be claimed at all (feed per tooth,
+  speed, the tool's geometry, a spindle running up or braking)
 - ``calibration``: least-squares friction and C_f ([P] §4.2)
 - ``table3``: [D] Table 3 polynomial, for comparison only
 - ``numbers``: one formula for a plain float (the live revolution) and arrays

@@ -33,6 +33,7 @@ from typing import NamedTuple
 import numpy as np
 
 from millsense.daemon.physics import depth as depth_mod
+from millsense.daemon.physics import validity
 from millsense.daemon.physics.force import cf_model, resultant_force_magnitudes_n
 from millsense.daemon.physics.milling import (
     SCALAR,
@@ -163,24 +164,34 @@ class ToolGeometry:
     radius_mm: float
     flutes: int
     cf: float | None            # C_f of [P] eq. (18); None: "model", from r_1(t_a) ([D] eq. 9)
+    flute_length_mm: float = math.inf   # the deepest axial depth this tool can cut (validity.within_tool)
 
     @property
     def cf_model(self) -> bool:
         return self.cf is None
 
+    @property
+    def diameter_mm(self) -> float:
+        return 2.0 * self.radius_mm
+
     @classmethod
-    def of(cls, diameter_mm: float, flutes: int, cf: float | str) -> ToolGeometry:
-        return cls(float(diameter_mm) / 2.0, int(flutes), None if isinstance(cf, str) else float(cf))
+    def of(cls, diameter_mm: float, flutes: int, cf: float | str,
+           flute_length_mm: float | None = None) -> ToolGeometry:
+        length = validity.default_flute_length_mm(diameter_mm) if flute_length_mm is None else float(flute_length_mm)
+        return cls(float(diameter_mm) / 2.0, int(flutes), None if isinstance(cf, str) else float(cf), length)
 
 
 def tool_geometries(settings) -> tuple[ToolGeometry, dict[int, ToolGeometry]]:
-    """`[tool]` and every `[tools.N]` by number; a `[tools.N]` without `cf` takes `[tool]`'s."""
+    """`[tool]` and every `[tools.N]` by number; a `[tools.N]` without `cf` takes `[tool]`'s, one without
+    `flute_length_mm` twice its own diameter (validity.FLUTE_LENGTH_PER_DIAMETER)."""
     default = settings.tool
     listed = {
-        int(number): ToolGeometry.of(t.diameter_mm, t.flutes, default.cf if t.cf is None else t.cf)
+        int(number): ToolGeometry.of(t.diameter_mm, t.flutes, default.cf if t.cf is None else t.cf,
+                                     getattr(t, "flute_length_mm", None))
         for number, t in (getattr(settings, "tools", None) or {}).items()
     }
-    return ToolGeometry.of(default.diameter_mm, default.flutes, default.cf), listed
+    return ToolGeometry.of(default.diameter_mm, default.flutes, default.cf,
+                           getattr(default, "flute_length_mm", None)), listed
 
 
 @dataclass(frozen=True)
@@ -218,6 +229,7 @@ class RevolutionPhysics:
             for g in gears
         )
         self._max_rpm = tuple(g.max_spindle_rpm for g in self.gears)
+        self._max_model_rpm = validity.max_spindle_rpm(self._max_rpm[-1])   # eq. (13)'s friction known up to it
         # per-gear columns, indexed by the gear of each revolution
         self._names = [g.name for g in self.gears]
         self._ratios = np.array([g.ratio for g in self.gears])
@@ -285,8 +297,8 @@ class RevolutionPhysics:
                                       power_omega_rad_s=power_omega)                            # eq. (13)
         steady = self.steady(r.speed_rise_rpm, rpm, r.prev_spindle_rpm)
         p_inertia_w = None
+        inertia_nm = 0.0
         if gear.inertia_kgm2 is not None:
-            inertia_nm = 0.0
             if omega > 0.0 and not steady:
                 d_omega = TWO_PI * r.speed_rise_rpm / 60.0
                 inertia_nm = inertia_torque_nm(gear.inertia_kgm2, omega - d_omega / 2.0, omega + d_omega / 2.0,
@@ -307,7 +319,9 @@ class RevolutionPhysics:
             _, n_per_a, friction_n = self.feed_force
             force_feed_n = n_per_a * r.feed_current_a - friction_n
 
-        cutting = torque_nm >= self.min_torque_nm
+        # not while the spindle only runs up or brakes (docs/physics.md, "When a depth is published")
+        ramp = validity.spindle_ramp(r.speed_rise_rpm, rpm, r.prev_spindle_rpm, p_gap_w, inertia_nm, torque_nm)
+        cutting = torque_nm >= self.min_torque_nm and not ramp
         self.feed_check.update(r.feed_rate_mm_min, cutting and steady, 100.0 if override is None else override)
         noise_nm = self.min_torque_nm + self.FORCE_NOISE_SIGMAS * (sigma_nm if math.isfinite(sigma_nm) else 0.0)
         geometry = self.tools.get(tool, self.tool)
@@ -316,10 +330,12 @@ class RevolutionPhysics:
         radial_mm = axial_mm = None
         status = None
         if self.method != "off":
-            status = depth_mod.OUT_OF_RANGE if cutting else depth_mod.AIR_CUT
-            if cutting and t_c > 0:
+            status = self._precondition(ramp, cutting, rpm, t_c, geometry)
+            if status is None:
                 d = self._depth(geometry, torque_nm, tangential_n, force_feed_n, t_c, r.force_x_n, r.force_y_n)
                 status, radial_mm, axial_mm = d.status, _known(d.radial_depth_mm), _known(d.axial_depth_mm)
+                if not validity.within_tool(radial_mm, axial_mm, geometry.diameter_mm, geometry.flute_length_mm):
+                    status, radial_mm, axial_mm = validity.OUTSIDE_TOOL, None, None
         force_n = self._force_one(geometry, torque_nm, t_c, radial_mm, noise_nm)
         self.last_gain = gain
         self.gains = [gain]
@@ -342,6 +358,19 @@ class RevolutionPhysics:
             "cutting": cutting,
         }
 
+    def _precondition(self, ramp: bool, cutting: bool, rpm: float, t_c: float, tool: ToolGeometry) -> str | None:
+        """Why one revolution gets no depth before any root finding (None: solve it); `_depth_many`'s
+        masks in the same order (docs/physics.md, "When a depth is published")."""
+        if ramp:
+            return validity.SPEED_CHANGING
+        if not cutting:
+            return depth_mod.AIR_CUT
+        if rpm > self._max_model_rpm:
+            return validity.SPEED_OUT_OF_RANGE
+        if math.isnan(t_c):
+            return depth_mod.OUT_OF_RANGE   # no feed known: as before
+        return validity.feed_status(t_c, tool.radius_mm)
+
     def _force_one(self, tool: ToolGeometry, torque_nm: float, t_c: float, radial_mm: float | None,
                    noise_nm: float) -> float:
         """`_force_many` of one revolution on floats: [P] eq. (18), nan where none."""
@@ -353,6 +382,8 @@ class RevolutionPhysics:
                 radial_mm = self.known_radial_mm
             if radial_mm is None or not math.isfinite(radial_mm) or not t_c > 0:
                 return math.nan
+            if validity.feed_status(t_c, tool.radius_mm) is not None:
+                return math.nan   # r_1(t_a) only inside the chip model's range ([D] eq. 9)
             ratio = 2.0 if self.mode == "slot" else radial_mm / tool.radius_mm
             if not 0.0 < ratio <= 2.0:
                 return math.nan
@@ -392,6 +423,7 @@ class RevolutionPhysics:
         steady = self.steady(c.speed_rise_rpm, rpm, c.prev_spindle_rpm)
         inertia = self._inertia[gi]
         has_j = np.isfinite(inertia)
+        inertia_nm = np.zeros(count)
         if has_j.any():
             apply = has_j & (omega > 0.0) & ~steady
             d_omega = TWO_PI * c.speed_rise_rpm / 60.0
@@ -419,13 +451,15 @@ class RevolutionPhysics:
             _, n_per_a, friction_n = self.feed_force
             force_feed_n = n_per_a * c.feed_current_a - friction_n
 
-        cutting = torque_nm >= self.min_torque_nm
+        ramp = validity.spindle_ramp(c.speed_rise_rpm, rpm, c.prev_spindle_rpm, p_gap_w, inertia_nm, torque_nm)
+        cutting = (torque_nm >= self.min_torque_nm) & ~ramp
         self._feed_check_many(c.feed_rate_mm_min, cutting & steady, override)
         noise_nm = self.force_noise_nm(sigma_nm)
         groups = self._tool_groups(tools, count)
         if len(groups) == 1:   # the usual block: one tool, the whole columns
             t_c, tangential_n, radial_mm, axial_mm, status, force_n = self._with_tool(
-                groups[0][0], torque_nm, rpm, feed_mm_min, force_feed_n, c.force_x_n, c.force_y_n, cutting, noise_nm)
+                groups[0][0], torque_nm, rpm, feed_mm_min, force_feed_n, c.force_x_n, c.force_y_n, cutting, noise_nm,
+                ramp)
         else:
             t_c, tangential_n, radial_mm, axial_mm, force_n = (np.empty(count) for _ in range(5))
             status: list = [None] * count
@@ -434,7 +468,8 @@ class RevolutionPhysics:
                     return None if values is None else values[rows]
 
                 part = self._with_tool(tool, torque_nm[rows], rpm[rows], pick(feed_mm_min), pick(force_feed_n),
-                                       pick(c.force_x_n), pick(c.force_y_n), cutting[rows], noise_nm[rows])
+                                       pick(c.force_x_n), pick(c.force_y_n), cutting[rows], noise_nm[rows],
+                                       ramp[rows])
                 for whole, piece in zip((t_c, tangential_n, radial_mm, axial_mm), part[:4]):
                     whole[rows] = piece
                 force_n[rows] = part.force_n
@@ -472,7 +507,7 @@ class RevolutionPhysics:
         return [(self.tools.get(number, self.tool), np.array(r, dtype=np.intp)) for number, r in rows.items()]
 
     def _with_tool(self, tool: ToolGeometry, torque_nm, rpm, feed_mm_min, force_feed_n, force_x_n, force_y_n,
-                   cutting, noise_nm) -> _ToolPart:
+                   cutting, noise_nm, ramp) -> _ToolPart:
         """What depends on the tool, for revolutions that all had `tool` in the spindle."""
         if feed_mm_min is not None:
             t_c = np.where(rpm > 0, feed_mm_min / (tool.flutes * rpm), np.nan)                  # t_c = f/(N·n)
@@ -480,7 +515,7 @@ class RevolutionPhysics:
             t_c = np.full(len(rpm), np.nan)
         tangential_n = torque_nm / (tool.radius_mm * 1e-3)                                      # eq. (16)
         radial_mm, axial_mm, status = self._depth_many(tool, torque_nm, tangential_n, force_feed_n, t_c,
-                                                       force_x_n, force_y_n, cutting)
+                                                       force_x_n, force_y_n, cutting, rpm, ramp)
         force_n = self._force_many(tool, torque_nm, t_c, radial_mm, noise_nm)
         return _ToolPart(t_c, tangential_n, radial_mm, axial_mm, status, force_n)
 
@@ -574,20 +609,39 @@ class RevolutionPhysics:
             self.feed_check.update(measured, steady, ovr)
 
     def _depth_many(self, tool: ToolGeometry, torque_nm, tangential_n, force_feed_n, t_c, force_x_n, force_y_n,
-                    cutting):
-        """(radial mm, axial mm: nan where none; statuses): root finding only on cutting revolutions."""
+                    cutting, rpm, ramp):
+        """(radial mm, axial mm: nan where none; statuses): root finding only on cutting revolutions inside
+        the physics' preconditions (`_precondition`'s order), depths outside the tool taken back."""
         count = len(torque_nm)
         radial = np.full(count, np.nan)
         axial = np.full(count, np.nan)
         if self.method == "off":
             return radial, axial, [None] * count
-        status = np.where(cutting, depth_mod.OUT_OF_RANGE, depth_mod.AIR_CUT).tolist()
-        todo = np.flatnonzero(cutting & (t_c > 0))
+        fast = rpm > self._max_model_rpm
+        no_feed = np.isnan(t_c)
+        low, high = validity.feed_masks(t_c, tool.radius_mm)
+        status = np.select([ramp, ~cutting, fast, no_feed, low, high],
+                           [validity.SPEED_CHANGING, depth_mod.AIR_CUT, validity.SPEED_OUT_OF_RANGE,
+                            depth_mod.OUT_OF_RANGE, validity.NOT_FEEDING, validity.FEED_OUT_OF_RANGE],
+                           depth_mod.OUT_OF_RANGE).tolist()
+        todo = np.flatnonzero(cutting & ~(fast | no_feed | low | high))
         # one revolution (the live daemon's block) goes the scalar way below: numpy's pass over one
         # element costs more than the revolution's floats (test_depth_vector holds the two forms equal)
-        if len(todo) > 1 and self.method == "torque-only" and self._torque_only_many(tool, torque_nm, t_c, todo,
-                                                                                     radial, axial, status):
-            return radial, axial, status
+        if not (len(todo) > 1 and self.method == "torque-only"
+                and self._torque_only_many(tool, torque_nm, t_c, todo, radial, axial, status)):
+            self._depth_each(tool, todo, torque_nm, tangential_n, force_feed_n, t_c, force_x_n, force_y_n,
+                             radial, axial, status)
+        outside = ~validity.within_tool(radial, axial, tool.diameter_mm, tool.flute_length_mm)
+        if outside.any():
+            radial[outside] = np.nan
+            axial[outside] = np.nan
+            for i in np.flatnonzero(outside).tolist():
+                status[i] = validity.OUTSIDE_TOOL
+        return radial, axial, status
+
+    def _depth_each(self, tool: ToolGeometry, todo, torque_nm, tangential_n, force_feed_n, t_c, force_x_n,
+                    force_y_n, radial, axial, status) -> None:
+        """`_depth` revolution by revolution over `todo`, written into radial, axial, status."""
         if len(todo):
             fx = force_x_n.tolist() if force_x_n is not None else None
             fy = force_y_n.tolist() if force_y_n is not None else None
@@ -601,7 +655,6 @@ class RevolutionPhysics:
                     radial[i] = d.radial_depth_mm
                 if d.axial_depth_mm is not None:
                     axial[i] = d.axial_depth_mm
-        return radial, axial, status
 
     def _torque_only_many(self, tool: ToolGeometry, torque_nm, t_c, todo, radial, axial, status) -> bool:
         """Torque-only depths of the `todo` revolutions in one pass over their columns
@@ -667,7 +720,8 @@ class RevolutionPhysics:
             radial_mm = np.full(len(torque_nm), 2.0 * tool.radius_mm)
         elif self.known_radial_mm is not None:
             radial_mm = np.where(np.isnan(radial_mm), self.known_radial_mm, radial_mm)
-        usable = np.isfinite(radial_mm) & (t_c > 0)
+        low, high = validity.feed_masks(t_c, tool.radius_mm)
+        usable = np.isfinite(radial_mm) & (t_c > 0) & ~low & ~high   # r_1(t_a) only inside the chip model's range
         entry, exit_ = engagement_angles_rad(np.where(usable, radial_mm, 1.0) / tool.radius_mm, self.mode)
         t_a = average_chip_thickness_mm(np.where(usable, t_c, 1.0), entry, exit_)                # [D] eq. 8
         usable &= np.isfinite(t_a) & (t_a > 0)

@@ -121,6 +121,7 @@ SYNTH_TOOLS = """
 [tools.3]
 diameter_mm = 10.0
 flutes = 3
+flute_length_mm = 40.0   # the synthetic torque is a 36 mm deep slot for this cutter: a long-series one
 
 [tools.5]
 diameter_mm = 16.0
