@@ -40,7 +40,9 @@ FIELDS: tuple[Field, ...] = (
     _f("Spindle", "force_n", "estimate", DOUBLE, "resultant cutting force, N"),
     _f("Spindle", "radial_depth_mm", "estimate", DOUBLE, "radial depth of cut, mm"),
     _f("Spindle", "axial_depth_mm", "estimate", DOUBLE, "axial depth of cut, mm"),
-    _f("Spindle", "depth_status", "estimate", STRING, "ok, air_cut, no_second_force, out_of_range, unresolvable"),
+    _f("Spindle", "depth_status", "estimate", STRING,
+       "ok, air_cut, no_second_force, out_of_range, unresolvable, speed_changing, speed_out_of_range, not_feeding, "
+       "feed_out_of_range, outside_tool (docs/physics.md)"),
     _f("Spindle", "cutting", "estimate", BOOL, "the revolution cut (torque over [depth] min_torque_nm)"),
     _f("Spindle", "valid", "estimate", BOOL, "false for a damaged or implausible revolution"),
     _f("Spindle", "rev", "estimate", INT64, "the daemon's revolution number"),
