@@ -147,7 +147,9 @@ def zenoh_file_error(exc: BaseException) -> str:
     """Zenoh's reason a JSON5 file was refused, on one line and without its Rust source path: a parse error
     comes as a multi-line caret drawing (` --> 1:43 ... = expected array, ...`), a field's as
     `JSON error: Message { msg: "...", location: Some(Location { line: 1, column: 9 }) }`."""
-    text = re.sub(r" at /\S+\.rs:\d+\.?", "", str(exc)).strip()
+    from millsense.daemon.publish.cli_args import strip_rust  # imports this module: not at the top
+
+    text = strip_rust(str(exc))
     where = re.search(r"-->\s*(\d+):(\d+)", text) or re.search(r"line: (\d+), column: (\d+)", text)
     why = re.search(r"^\s*= (.+)$", text, re.M) or re.search(r'msg: "((?:[^"\\]|\\.)*)"', text)
     if where and why:
