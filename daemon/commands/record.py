@@ -128,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
         out.discard()  # a bug or Ctrl-C twice: no half-named file left behind
         raise
     finally:
-        driver.close()
+        driver.close(why=f"{PROG} is stopping")
         for s, h in old.items():
             signal.signal(s, h)
     # A full disk mid-way keeps what was recorded (cut to whole frames): samples that cannot be taken again.
