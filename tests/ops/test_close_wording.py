@@ -11,8 +11,8 @@ from __future__ import annotations
 import json
 import subprocess
 
-from tests.e2e.helpers import CMD
 from tests.config.helpers import DEMO_TOML
+from tests.e2e.helpers import CMD
 
 
 def _link_down_details(text: str) -> list[str]:
