@@ -55,7 +55,8 @@ def test_a_client_file_is_summarised_as_a_client(millsense_cmd, tmp_path):
 
 def test_a_mode_written_in_the_toml_wins_over_the_file_as_in_the_session(millsense_cmd, tmp_path):
     path = REPO / "config" / "zenoh-daemon.json5"
-    config = write(tmp_path, doc_with_zenoh({"config_file": str(path), "mode": "peer", "connect": ["tcp/127.0.0.1:7447"]}))
+    zenoh_section = {"config_file": str(path), "mode": "peer", "connect": ["tcp/127.0.0.1:7447"]}
+    config = write(tmp_path, doc_with_zenoh(zenoh_section))
     assert summary_modes(millsense_cmd, config) == ["peer"]
 
 
