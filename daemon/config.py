@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import os
+import shlex
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any
@@ -236,8 +237,9 @@ def _read_token(path: Path, key: str = "interlock.reset_token_file",
     what = f"a file holding {secret} on one line, readable by the millsense user only"
     try:
         token = path.read_text(encoding="utf-8").strip()
-    except FileNotFoundError:
-        return "", f"{key}: {path} does not exist ({what})"
+    except FileNotFoundError:  # say how to make it (issue 39): quoted, so that the line can be pasted into a shell
+        make = f"millsense token new --out {shlex.quote(str(path))}"
+        return "", f"{key}: {path} does not exist ({what}: make one with `{make}`)"
     except (OSError, UnicodeDecodeError) as exc:
         return "", f"{key}: {path} cannot be read: {getattr(exc, 'strerror', None) or exc} ({what})"
     if not token:

@@ -92,6 +92,10 @@ class ReplayPlot:
         return spans
 
     def write(self, path: str | Path, title: str) -> None:
+        self.figure(title).savefig(path, dpi=DPI, format="png")
+
+    def figure(self, title: str) -> Any:
+        """The figure `write` saves (a matplotlib Figure), for a test to read its axes."""
         require_matplotlib()
         from matplotlib.figure import Figure
 
@@ -113,12 +117,15 @@ class ReplayPlot:
                 color, style = ALARM_STYLE.get(al.get("level"), ("#7f7f7f", "-."))
                 ax.axvline(float(al["t"]), color=color, ls=style, lw=1.2)
             ax.grid(True, alpha=0.3)
+            # Values in their unit: a spindle steady at 600 rpm spans a fraction of an rpm, and matplotlib's
+            # default labelled that axis `+5.999e2` with ticks of 0.01 (issue 39). Plain numbers, no offset.
+            ax.ticklabel_format(axis="y", style="plain", useOffset=False)
         self._legend_extras(axes[0])
         axes[-1].set_xlabel("time after the capture's first sample (s)")
         n_alarms = Counter(a.get("level") for a in self.alarms)
         alarm_text = ", ".join(f"{k} {v}" for k, v in sorted(n_alarms.items())) or "none"
         fig.suptitle(f"{title}\n{len(self.estimates)} revolutions; alarms: {alarm_text}", fontsize=11)
-        fig.savefig(path, dpi=DPI, format="png")
+        return fig
 
     def _panel(self, ax, t, fields, ylabel: str) -> None:
         drawn = False

@@ -181,6 +181,7 @@ class Driver:
         self._backoff_max_s = backoff_max_s
         self._tracker = IndexTracker()
         self._closing = threading.Event()
+        self._closing_why = ""  # who closed it, said in the log (`close`)
         self._connected = threading.Event()
         self.last_connect_error: str | None = None   # why the last try to connect failed (for `run`'s message)
         self._thread: threading.Thread | None = None
@@ -211,7 +212,10 @@ class Driver:
         self._thread = threading.Thread(target=self._run, name=f"daq-{self.transport}", daemon=True)
         self._thread.start()
 
-    def close(self) -> None:
+    def close(self, why: str = "") -> None:
+        """Stop the reader and the link. `why` is who asked, for the log (issue 39: `record` is not the daemon):
+        `daq.link_down`'s detail reads "the driver is closing, as asked (WHY)"."""
+        self._closing_why = why
         self._closing.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
@@ -387,9 +391,10 @@ class Driver:
         self._after_link_up = up
         self._stats["link_changes"] += 1
         # a lost or refused link is something to act on: warning, like the daemon's own "unreachable";
-        # a link ended because the driver is closing (the daemon stopping) was asked for: info
+        # a link ended because the driver is closing (the daemon or `record` stopping) was asked for: info
         asked = not up and self._closing.is_set()
-        extra = {"detail": "the driver is closing, as asked (the daemon is stopping)"} if asked else {}
+        why = f" ({self._closing_why})" if self._closing_why else ""
+        extra = {"detail": f"the driver is closing, as asked{why}"} if asked else {}
         (log.info if up or asked else log.warning)(
             "daq.link_up" if up else "daq.link_down",
             transport=self.transport,

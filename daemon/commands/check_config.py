@@ -37,12 +37,27 @@ def summary(settings) -> str:
         f"depth {settings.depth.method}",
         f"{len(armed)} alarm limit{'s' if len(armed) != 1 else ''} armed",
         f"interlock {'on' if settings.interlock.enabled else 'off'}",
-        f"zenoh {settings.zenoh.mode}",
+        f"zenoh {_zenoh_mode(settings.zenoh)}",
     ]
     if settings.calibration:
         parts.append(f"calibration {settings.calibration}")
     parts.append(_command_policy(settings))
     return ", ".join(parts)
+
+
+def _zenoh_mode(zs) -> str:
+    """The mode the daemon's session will have: a `config_file` says it unless the TOML does (issue 39: a
+    client file was summarised as `zenoh peer`, the TOML key's default). Zenoh is imported only then: the
+    JSON5 file is read by its own loader, as `run` reads it; one it cannot read is refused, as `run` does."""
+    if not zs.config_file:
+        return zs.mode
+    from millsense.daemon.config import ConfigError
+    from millsense.daemon.publish.session import ZenohConfigError, mode_in_effect
+
+    try:
+        return mode_in_effect(zs)
+    except ZenohConfigError as exc:
+        raise ConfigError([str(exc)]) from None
 
 
 def _command_policy(settings) -> str:

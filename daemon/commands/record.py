@@ -10,7 +10,8 @@ file.  The file is written unbuffered, so that what is known written is on disk.
 The capture is written to a hidden file beside `--out` and renamed to it at the
 end: a DAQ that never answers, or a stop before it does, leaves nothing (and an
 older capture of that name as it was). A device or pipe (`/dev/stdout`) is
-written directly.
+written directly; a symbolic link is followed to the file it names (the file is
+replaced, the link kept). The log goes to stderr, never into the capture.
 """
 
 from __future__ import annotations
@@ -58,6 +59,10 @@ def run(args: argparse.Namespace) -> int:
     if Path(args.out).is_dir():
         return _fail(f"--out {args.out} is a directory: give a file name for the capture", 2)
     settings = load_config(args.config)
+    from millsense.daemon.logging_setup import configure_logging
+
+    # The log (the DAQ's link up and down) on stderr: stdout may be the capture (`--out /dev/stdout | …`).
+    configure_logging("info", "auto", sys.stderr, nonblocking=False)
     daq = settings.daq
     try:
         driver = create_driver(daq.transport, **driver_options(daq))
@@ -128,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
         out.discard()  # a bug or Ctrl-C twice: no half-named file left behind
         raise
     finally:
-        driver.close()
+        driver.close(why=f"{PROG} is stopping")
         for s, h in old.items():
             signal.signal(s, h)
     # A full disk mid-way keeps what was recorded (cut to whole frames): samples that cannot be taken again.
@@ -166,7 +171,10 @@ class _Output:
             direct = not stat.S_ISREG(self.target.stat().st_mode)
         except FileNotFoundError:
             direct = False
-        self.path = self.target if direct else self.target.with_name(f".{self.target.name}.{os.getpid()}.tmp")
+        # A link is followed to the file it names, which is replaced; the link never is: `--out /dev/stdout`
+        # into a file renamed the capture over the host's /dev/stdout (as root), `latest.cap` lost its link.
+        self.final = self.target if direct else Path(os.path.realpath(self.target))
+        self.path = self.target if direct else self.final.with_name(f".{self.final.name}.{os.getpid()}.tmp")
         flags = os.O_WRONLY | os.O_CREAT | (0 if direct else os.O_EXCL | os.O_TRUNC)
         fd = os.open(self.path, flags, 0o666)
         self.fh = open(fd, "wb", buffering=0)  # noqa: SIM115 - closed in finish/discard
@@ -185,7 +193,7 @@ class _Output:
         if not keep:
             self.discard()
         elif self.path != self.target:
-            os.replace(self.path, self.target)
+            os.replace(self.path, self.final)
         self.kept = keep
         if error is not None:
             raise error

@@ -194,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
             return 0
         finally:
             daemon.close()
-            driver.close()
+            driver.close(why="the daemon is stopping")
     finally:
         try:
             session.close()

@@ -24,7 +24,7 @@ import datetime as dt
 from typing import Any
 
 import structlog
-from asyncua import Server, ua
+from asyncua import Node, Server, ua
 
 from millsense.daemon.opcua import fields as F
 from millsense.daemon.opcua.feed_held import NAME as FEED_HELD
@@ -97,6 +97,29 @@ def condition_class(level: str, quantity: str, mt: int) -> tuple[ua.NodeId, str]
     return ua.NodeId(ua.ObjectIds.ProcessConditionClassType), "ProcessConditionClassType"
 
 
+async def add_notifier_child(parent: Any, nodeid: ua.NodeId, name: ua.QualifiedName) -> Any:
+    """An object whose one reference from `parent` is HasNotifier (the event-notifier hierarchy).
+
+    HasNotifier is itself a hierarchical reference, so a client's Browse and browse paths find the object
+    through it; asyncua's `add_object` would add a folder's Organizes beside it, and every client then
+    listed each machine twice under `Objects/millsense` (issue 39).
+    """
+    item = ua.AddNodesItem()
+    item.RequestedNewNodeId = nodeid
+    item.BrowseName = name
+    item.ParentNodeId = parent.nodeid
+    item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasNotifier)
+    item.NodeClass = ua.NodeClass.Object
+    item.TypeDefinition = ua.NodeId(ua.ObjectIds.BaseObjectType)
+    attrs = ua.ObjectAttributes()
+    attrs.DisplayName = ua.LocalizedText(name.Name)
+    attrs.Description = ua.LocalizedText(name.Name)
+    item.NodeAttributes = attrs
+    (result,) = await parent.session.add_nodes([item])
+    result.StatusCode.check()
+    return Node(parent.session, result.AddedNodeId)
+
+
 class MachineNodes:
     """The nodes of one machine; `apply` writes a payload into them."""
 
@@ -121,9 +144,8 @@ class MachineNodes:
 
     async def create(self, parent: Any) -> MachineNodes:
         ms, mt = self.ns.ms, self.ns.mt
-        self.obj = await parent.add_object(self._id(), ua.QualifiedName(self.machine, ms))
+        self.obj = await add_notifier_child(parent, self._id(), ua.QualifiedName(self.machine, ms))
         await self.obj.set_event_notifier([ua.EventNotifier.SubscribeToEvents])
-        await parent.add_reference(self.obj.nodeid, ua.ObjectIds.HasNotifier)
         self.alive_node = await self.obj.add_variable(self._id("alive"), ua.QualifiedName("alive", ms), False,
                                                       ua.VariantType.Boolean)
         for folder in dict.fromkeys(f.folder for f in F.FIELDS):

@@ -456,7 +456,22 @@ def open_command_session(args: argparse.Namespace, daemon: DaemonConfig | None, 
     except ZenohUnavailable as exc:
         print(f"{prog}: error: {strip_rust(str(exc))}\n{no_daemon_hint}", file=sys.stderr)
         return 1
-    return CommandSession(session, settings, no_daemon_hint)
+    return CommandSession(session, settings, no_daemon_hint + acl_hint(settings))
+
+
+def acl_hint(settings: Any) -> str:
+    """A second line for "nobody answered" when a router or a Zenoh file is on the way (issue 39): an access
+    control that denies a query drops it, so the user hears nothing, as from a stopped daemon. Not on a plain
+    peer session (the demo's): no ACL there to blame. Not for a session that could not open (an ACL does
+    not refuse a link)."""
+    endpoints = [str(e) for e in getattr(settings, "connect", None) or []]
+    routed = (bool(getattr(settings, "config_file", "")) or getattr(settings, "mode", "peer") == "client"
+              or any(e.split("/", 1)[0] in ("tls", "quic") for e in endpoints))
+    if not routed:
+        return ""
+    return ("\nor: a router's access control (ACL) may deny this identity: what it denies is dropped, and nothing "
+            "answers; ask whoever keeps the router's config whether your certificate's name may send this "
+            "(docs/security.md, the shop-network example)")
 
 
 def machines_alive(session: Any, deadline: float, enough: Any) -> set[str]:

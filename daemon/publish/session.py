@@ -31,6 +31,7 @@ attribute takes the documented default.
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -111,7 +112,8 @@ def zenoh_config(zenoh_settings: Any) -> zenoh.Config:
         try:
             conf = zenoh.Config.from_file(str(path))
         except Exception as exc:  # zenoh raises ZError with the offending key
-            raise ZenohConfigError(f"zenoh.config_file: {config_file} is not a valid Zenoh config: {exc}") from exc
+            raise ZenohConfigError(f"zenoh.config_file: {config_file} is not a valid Zenoh config: "
+                                   f"{zenoh_file_error(exc)}") from exc
     else:
         conf = zenoh.Config()
 
@@ -139,6 +141,26 @@ def zenoh_config(zenoh_settings: Any) -> zenoh.Config:
     if final_mode == "peer":
         _bound(conf, "transport/unicast/max_sessions", _ZENOH_DEFAULT_MAX_SESSIONS, MAX_PEER_SESSIONS)
     return conf
+
+
+def zenoh_file_error(exc: BaseException) -> str:
+    """Zenoh's reason a JSON5 file was refused, on one line and without its Rust source path: a parse error
+    comes as a multi-line caret drawing (` --> 1:43 ... = expected array, ...`), a field's as
+    `JSON error: Message { msg: "...", location: Some(Location { line: 1, column: 9 }) }`."""
+    from millsense.daemon.publish.cli_args import strip_rust  # imports this module: not at the top
+
+    text = strip_rust(str(exc))
+    where = re.search(r"-->\s*(\d+):(\d+)", text) or re.search(r"line: (\d+), column: (\d+)", text)
+    why = re.search(r"^\s*= (.+)$", text, re.M) or re.search(r'msg: "((?:[^"\\]|\\.)*)"', text)
+    if where and why:
+        return f"line {where.group(1)}, column {where.group(2)}: {why.group(1).strip()}"
+    return " ".join(text.split())
+
+
+def mode_in_effect(zenoh_settings: Any) -> str:
+    """The mode a session from these settings runs in: a `config_file`'s own unless the TOML names one
+    (read by Zenoh's loader, as `zenoh_config` does). Raises `ZenohConfigError` naming the key."""
+    return str(json.loads(zenoh_config(zenoh_settings).get_json("mode")))
 
 
 def _bound(conf: zenoh.Config, key: str, zenoh_default: int, bound: int) -> None:

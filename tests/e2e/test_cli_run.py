@@ -21,6 +21,9 @@ def test_demo_prints_a_summary_line_per_second_and_exits(tmp_path):
     assert "\r" not in p.stdout  # not a TTY: one line per second, no in-place refresh
     assert any("alarm" in ln and "N·m" in ln for ln in lines)
     assert "Traceback" not in p.stderr
+    # The daemon closes its driver and says so (issue 39: `record`, which is not the daemon, says its own).
+    downs = [json.loads(ln) for ln in p.stderr.splitlines() if '"daq.link_down"' in ln]
+    assert [d["detail"] for d in downs] == ["the driver is closing, as asked (the daemon is stopping)"], p.stderr
 
 
 def test_client_mode_daemon_reaches_subscribers_through_a_router(tmp_path):

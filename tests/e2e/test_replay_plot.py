@@ -85,3 +85,37 @@ def test_plot_into_a_missing_directory_fails_before_output(replay_inputs, tmp_pa
     if "matplotlib" not in p.stderr:                         # with the extra: the directory is the error
         assert "no such directory" in p.stderr
     assert "Traceback" not in p.stderr
+
+
+def test_the_rpm_axis_shows_rpm_not_an_offset(replay_inputs):
+    # Issue 39: a spindle held at 600 rpm spans a fraction of an rpm, and matplotlib's default formatter
+    # labelled the axis `+5.999e2` with ticks 0.01, 0.02, ... The figure of the replay's own payloads (the
+    # subprocess's JSON lines), drawn, then its tick labels read.
+    pytest.importorskip("matplotlib", reason="the plot extra (pip install 'millsense[plot]') is not installed")
+    import json
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from millsense.daemon.plot import ReplayPlot
+
+    cap, cfg = replay_inputs
+    p = _replay(cap, cfg)
+    assert p.returncode == 0, p.stderr
+    plot = ReplayPlot()
+    for line in p.stdout.splitlines():
+        plot.add(json.loads(line))
+    rpm = [e["spindle_rpm"] for e in plot.estimates if e.get("spindle_rpm") is not None]
+    assert rpm and max(rpm) - min(rpm) < 0.01 * min(rpm), "a steady spindle: the case the offset took"
+
+    fig = plot.figure("test")
+    FigureCanvasAgg(fig).draw()
+    rpm_axis = fig.axes[0].yaxis
+    assert rpm_axis.get_major_formatter().get_offset() == ""
+    assert rpm_axis.get_offset_text().get_text() == ""
+    shown = [float(t.get_text().replace("\u2212", "-")) for t in rpm_axis.get_ticklabels() if t.get_text()]
+    low, high = fig.axes[0].get_ylim()
+    inside = [v for v in shown if low <= v <= high]
+    assert inside, shown
+    assert all(0.5 * min(rpm) <= v <= 1.5 * max(rpm) for v in inside), (shown, min(rpm), max(rpm))
+    # Every panel reads in its own unit (torque, force and depth too).
+    assert [ax.yaxis.get_offset_text().get_text() for ax in fig.axes] == [""] * len(fig.axes)
