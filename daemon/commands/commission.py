@@ -91,7 +91,7 @@ class _Asker:
             if key in self.answers:
                 return _number(self.answers[key], key)
         while self.interactive:
-            text = input(prompt).strip()
+            text = _typed(prompt)
             if text.lower() in ("s", "skip", ""):
                 return None
             try:
@@ -106,11 +106,18 @@ class _Asker:
     def yes(self, key: str, prompt: str, given: bool) -> bool:
         if given or self.answers.get(key, "").lower() in ("y", "yes", "true", "1"):
             return True
-        return self.interactive and input(prompt).strip().lower() in ("y", "yes")
+        return self.interactive and _typed(prompt).lower() in ("y", "yes")
 
     def enter(self, prompt: str) -> None:
         if self.interactive:
-            input(prompt)
+            _typed(prompt)
+
+
+def _typed(prompt: str) -> str:
+    """A line typed at the terminal after `prompt` (on stdout, with the steps: `input()` without readline puts
+    it on stderr); the end of input is an empty answer."""
+    print(prompt, end="", flush=True)
+    return sys.stdin.readline().strip()
 
 
 def _number(text: str, key: str) -> float | None:
