@@ -250,14 +250,14 @@ def _commission(args, settings, driver, ask: _Asker, directory: Path) -> int:
             say("\n".join(steps[-1].lines()))
             if steps[-1].problems and bench.asserted:
                 may_test = False   # a hold the test could not prove stays: nothing more is released
-        if released_found and not bench.asserted:
-            bench.interlock.trip("held when commissioning began")
-            say("the feed hold found at the start is asserted again, as it was found")
     except BenchError as exc:
+        _leave_safe(bench, released_found, directory, say, "")
         return _fail(str(exc), 69)
     except KeyboardInterrupt:
-        _interrupted(bench, directory, say)
+        _leave_safe(bench, released_found, directory, say, "\ninterrupted: ")
         raise
+    else:
+        _leave_safe(bench, released_found, directory, say, "")
     finally:
         bench.close()
     failed = [s for s in steps if s.result != "pass"]
@@ -297,16 +297,21 @@ def _kind(kind: Any) -> str:
         return str(kind)
 
 
-def _interrupted(bench: Any, directory: Path, say) -> None:
-    """Ctrl-C: a hold this command set stays asserted, persisted as the daemon's latch, and is said."""
-    if not bench.asserted:
-        say("\ninterrupted: no feed hold of this command is asserted")
-        return
-    from millsense.daemon.pipeline.latch_store import LatchStore
+def _leave_safe(bench: Any, released_found: bool, directory: Path, say, lead: str) -> None:
+    """The DAQ as safe as found, or safer: a hold found and released for the tests is asserted again; a hold this
+    command set and could not prove (a failed step, Ctrl-C mid-step) stays asserted and is persisted as the
+    daemon's latch, so that a daemon started next asserts it again until `millsense reset`. Each is said."""
+    if released_found and not bench.asserted:
+        bench.interlock.trip("held when commissioning began")
+        say(f"{lead}the feed hold found at the start is asserted again, as it was found")
+    elif bench.asserted and bench.interlock.reason != "held when commissioning began":
+        from millsense.daemon.pipeline.latch_store import LatchStore
 
-    store = LatchStore(directory)
-    store.start()
-    store.save({**bench.interlock.record(), "reason": "commission interrupted"})
-    store.close(2.0)
-    say("\ninterrupted: the feed hold this command asserted stays asserted (latched in the state directory); "
-        "`millsense reset` clears it once the daemon runs")
+        store = LatchStore(directory)
+        store.start()
+        store.save({**bench.interlock.record(), "reason": f"commission: {bench.interlock.reason}"})
+        store.close(2.0)
+        say(f"{lead}the feed hold this command asserted stays asserted (latched in {directory}); "
+            "`millsense reset` clears it once the daemon runs")
+    elif lead:
+        say(f"{lead}no feed hold of this command is asserted")

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import free_tcp_port
-from tests.e2e.helpers import CMD, Procs, wait_for, write_config
+from tests.e2e.helpers import CMD, Procs, read_jsonl, wait_for, write_config
 from tests.ops.test_console import Pty
 
 SCENARIO = "speed-1000"
@@ -67,6 +67,7 @@ def _readings(meter: dict[str, float]) -> str:
 
 def _emulator(procs: Procs, port: int, *faults: str):
     sim = procs.start("sim", ["sim", "--scenario", SCENARIO, "--tcp", f"127.0.0.1:{port}",
+                              "--status-log", str(procs.tmp / "sim-status.jsonl"),
                               "--watchdog-ms", str(WATCHDOG_MS), "--protocol", "2", *faults])
     wait_for(lambda: "serving" in procs.text("sim") or sim.poll() is not None, 60.0, "emulator serving")
     assert sim.poll() is None, procs.text("sim")
@@ -205,3 +206,60 @@ def test_a_bad_config_names_section_and_key_and_exits_78(tmp_path):
     p = subprocess.run(CMD + ["commission", "--config", str(cfg)], capture_output=True, text=True, timeout=60)
     assert p.returncode == 78 and p.stderr.startswith("interlock.watchdog_ms:"), p.stderr
     assert "Traceback" not in p.stderr
+
+
+def _holds(tmp_path: Path) -> list[tuple[bool, str]]:
+    """The emulator's feed-hold output, each change in its order: (held, cause)."""
+    return [(e["feed_hold"], e["cause"]) for e in read_jsonl(tmp_path / "sim-status.jsonl") if e["event"] == "outputs"]
+
+
+def test_a_hold_found_is_released_only_when_told_and_asserted_again(tmp_path, meter):
+    port = free_tcp_port()
+    args = ("--readings", _readings(meter), "--spindle-rpm", str(RPM))
+    with Procs(tmp_path) as procs:
+        _emulator(procs, port)
+        cfg = _config(tmp_path, port)
+        first, _ = _commission(cfg, tmp_path, *args)
+        assert first.returncode == 0, first.stdout + first.stderr
+        # its heartbeats ended with it: the DAQ's watchdog holds the feed, as the command said it would
+        wait_for(lambda: _holds(tmp_path)[-1:] == [(True, "watchdog")], 30.0, "the watchdog's hold")
+        seen = len(_holds(tmp_path))
+        untold, record = _commission(cfg, tmp_path, *args)
+        assert untold.returncode == 1 and "not commissioned: 2 steps failed or not checked" in untold.stdout
+        steps = _steps(record)
+        assert steps["test-trip"]["result"] == steps["watchdog"]["result"] == "not checked"
+        assert "--release-found-hold" in steps["test-trip"]["not_checked"][0]
+        assert "the DAQ holds the feed: it did when commission connected" in untold.stdout
+        assert all(held for held, _ in _holds(tmp_path)[seen:]), _holds(tmp_path)   # never released
+        told, record = _commission(cfg, tmp_path, *args, "--release-found-hold")
+        assert told.returncode == 0, told.stdout + told.stderr
+        assert "the feed hold found at the start is asserted again, as it was found" in told.stdout
+        wait_for(lambda: _holds(tmp_path)[-1][0], 30.0, "the hold asserted again")
+    changes = _holds(tmp_path)[seen:]
+    assert changes[-1] == (True, "command"), changes   # asserted again by the command, not left to the watchdog
+
+
+def test_ctrl_c_mid_step_leaves_the_hold_asserted_and_latched(tmp_path, meter):
+    """A CNC that takes 5 s to confirm: the test-trip waits with the hold asserted; Ctrl-C comes then."""
+    port = free_tcp_port()
+    with Procs(tmp_path) as procs:
+        _emulator(procs, port, "--cnc-hold-lag-ms", "5000")
+        cfg = _config(tmp_path, port, machine="ctrl-c")
+        out = tmp_path / "cc.out"
+        with open(out, "w") as fh:
+            p = subprocess.Popen(CMD + ["commission", "--config", str(cfg), "--readings", _readings(meter),
+                                        "--spindle-rpm", str(RPM)], stdout=fh, stderr=subprocess.STDOUT,
+                                 env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            procs.procs.append(p)
+            wait_for(lambda: "asserting the feed hold (test-trip)" in out.read_text(), 60.0, "the test-trip")
+            wait_for(lambda: _holds(tmp_path)[-1:] == [(True, "command")], 30.0, "the hold on the DAQ")
+            p.send_signal(2)
+            assert p.wait(30) == 130, out.read_text()
+        text = out.read_text()
+        assert "interrupted: the feed hold this command asserted stays asserted" in text
+        assert "`millsense reset` clears it" in text and "Traceback" not in text
+        from millsense.daemon.pipeline.latch_store import state_dir
+
+        latch = json.loads((state_dir("ctrl-c") / "latch.json").read_text())
+        assert latch["latched"] is True and latch["reason"] == "commission: test-trip"
+        assert not [c for c in _holds(tmp_path) if not c[0]], _holds(tmp_path)   # never released
