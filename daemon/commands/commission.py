@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import math
 import platform
 import sys
 import time
@@ -76,7 +77,18 @@ def _answers(args: argparse.Namespace) -> dict[str, str] | str:
         out[key.strip()] = value.strip()
     if args.spindle_rpm is not None:
         out["spindle_rpm"] = str(args.spindle_rpm)
+    for key, value in out.items():   # before the DAQ is touched: a typo costs nothing
+        if key != "release_found_hold" and value.lower() not in ("s", "skip") and not _positive(value):
+            return f"{key}={value}: expected a positive number (or s to skip)"
     return out
+
+
+def _positive(text: str) -> bool:
+    try:
+        value = float(text)
+    except ValueError:
+        return False
+    return math.isfinite(value) and value > 0   # nan and inf: not a reading
 
 
 class _Asker:
@@ -94,12 +106,8 @@ class _Asker:
             text = _typed(prompt)
             if text.lower() in ("s", "skip", ""):
                 return None
-            try:
-                value = float(text)
-                if value > 0:
-                    return value
-            except ValueError:
-                pass
+            if _positive(text):
+                return float(text)
             print(f"  a positive number, or s to skip (got {text!r})")
         return None
 
@@ -121,15 +129,8 @@ def _typed(prompt: str) -> str:
 
 
 def _number(text: str, key: str) -> float | None:
-    if text.lower() in ("s", "skip"):
-        return None
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not value > 0:
-        raise SystemExit(_fail(f"{key}={text}: expected a positive number (or s to skip)", 2))
-    return value
+    """An answer `_answers` has checked: a positive number, or s."""
+    return None if text.lower() in ("s", "skip") else float(text)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -143,20 +144,29 @@ def run(args: argparse.Namespace) -> int:
     if isinstance(answers, str):
         return _fail(answers, 2)
     settings = load_config(args.config)   # ConfigError -> 78, each problem naming section.key
+    known = {*settings.channels, "current_a", "voltage_v", "spindle_rpm", "release_found_hold"}
+    unknown = sorted(set(answers) - known)
+    if unknown:
+        return _fail(f"{unknown[0]}: no such reading (a configured channel, current_a, voltage_v, spindle_rpm or "
+                     "release_found_hold)", 2)
     from millsense.daemon.logging_setup import configure_logging
 
     configure_logging("error", "console", stream=sys.stderr)   # the steps speak for themselves
-    from millsense.daemon.pipeline.latch_store import claim_state_dir, state_dir
+    from millsense.daemon.pipeline.latch_store import claim_state_dir, daemon_state_dir
     from millsense.drivers import DriverError, create_driver
 
     try:
         driver = create_driver(settings.daq.transport, **driver_options(settings.daq))
     except DriverError as exc:
         raise ConfigError([f"daq.transport: {exc}"]) from None
-    directory = state_dir(settings.machine)
+    # the daemon's own directory (a unit's, where its control socket is): the latch and the report go where it looks
+    directory = daemon_state_dir(settings.machine)
     lock, busy = claim_state_dir(directory)
     if busy is not None:
         return _fail(f"{busy}; commission drives the DAQ itself, and two masters on one DAQ would fight", 1)
+    if lock is None:   # a daemon may hold it, and a latch could not be kept: not safe to go on
+        return _fail(f"cannot take the state directory {directory} (run as root or the daemon's user, or set "
+                     "STATE_DIRECTORY)", 1)
     try:
         driver.start()
         if not driver.wait_connected(args.connect_timeout):

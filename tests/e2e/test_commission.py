@@ -263,3 +263,14 @@ def test_ctrl_c_mid_step_leaves_the_hold_asserted_and_latched(tmp_path, meter):
         latch = json.loads((state_dir("ctrl-c") / "latch.json").read_text())
         assert latch["latched"] is True and latch["reason"] == "commission: test-trip"
         assert not [c for c in _holds(tmp_path) if not c[0]], _holds(tmp_path)   # never released
+
+
+@pytest.mark.parametrize("readings, said", [("i_u=abc", "i_u=abc: expected a positive number"),
+                                            ("i_u=inf", "i_u=inf: expected a positive number"),
+                                            ("i_x=3", "i_x: no such reading")])
+def test_a_bad_reading_is_refused_before_the_daq_is_touched(tmp_path, readings, said):
+    cfg = _config(tmp_path, free_tcp_port())   # nothing listens there: a reading is judged first
+    p = subprocess.run(CMD + ["commission", "--config", str(cfg), "--readings", readings], capture_output=True,
+                       text=True, timeout=60)
+    assert p.returncode == 2 and p.stderr == f"millsense commission: error: {said}" + p.stderr.split(said)[1], p.stderr
+    assert p.stderr.count("\n") == 1 and p.stdout == ""
