@@ -19,6 +19,7 @@ import argparse
 import datetime
 import math
 import platform
+import re
 import sys
 import time
 from pathlib import Path
@@ -208,7 +209,7 @@ def _commission(args, settings, driver, ask: _Asker, directory: Path) -> int:
                      "capabilities": desc.capabilities,
                      "channels": [{"name": ch.name, "kind": _kind(ch.kind)} for ch in desc.channels]}
     for p in descriptor_problems(settings, desc):
-        first.fail(p, p.split(": ", 1)[0] + ": see the problem's own words")
+        first.fail(p, _remedy(p))
     steps.append(first)
     say("\n".join(first.lines()))
     bench = Bench(settings, driver)
@@ -245,11 +246,12 @@ def _commission(args, settings, driver, ask: _Asker, directory: Path) -> int:
         may_test = not bench.found_held or ask.yes(
             "release_found_hold", "  release it for the feed-hold and watchdog tests (held again at the end)? [y/N] ",
             args.release_found_hold)
+        why_not = ("the DAQ held the feed when commission came, and commission releases a hold it did not set only "
+                   "when told (--release-found-hold, or y at the prompt)")
         for name, fn in (("test-trip", proof.trip_step), ("watchdog", proof.watchdog_step)):
             if not may_test:
                 steps.append(report.Step(name, "the feed hold"))
-                steps[-1].not_checked("the DAQ held the feed when commission came, and commission releases a hold "
-                                      "it did not set only when told (--release-found-hold, or y at the prompt)")
+                steps[-1].not_checked(why_not)
             else:
                 if bench.found_held and not released_found:
                     released_found = bool(bench.interlock.reset().get("ok"))
@@ -260,6 +262,7 @@ def _commission(args, settings, driver, ask: _Asker, directory: Path) -> int:
             say("\n".join(steps[-1].lines()))
             if steps[-1].problems and bench.asserted:
                 may_test = False   # a hold the test could not prove stays: nothing more is released
+                why_not = f"the hold the {name} step asserted stays asserted (it failed): fix it first"
     except BenchError as exc:
         _leave_safe(bench, released_found, directory, say, "")
         return _fail(str(exc), 69)
@@ -296,6 +299,13 @@ def _commission(args, settings, driver, ask: _Asker, directory: Path) -> int:
         return _fail(f"cannot write the report {path}: {exc.strerror or exc}", 1)
     print(f"report: {json_path} and {text_path}")
     return 0 if not failed else 1
+
+
+def _remedy(problem: str) -> str:
+    """The daemon's descriptor problems end with what to do, in parentheses: that, under the key they name."""
+    key, _, rest = problem.partition(": ")
+    m = re.search(r"\(([^()]*)\)$", rest)
+    return f"{key}: {m.group(1)}" if m else f"{key}: make the DAQ and the configuration agree"
 
 
 def _kind(kind: Any) -> str:

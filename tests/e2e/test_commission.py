@@ -274,3 +274,27 @@ def test_a_bad_reading_is_refused_before_the_daq_is_touched(tmp_path, readings, 
                        text=True, timeout=60)
     assert p.returncode == 2 and p.stderr == f"millsense commission: error: {said}" + p.stderr.split(said)[1], p.stderr
     assert p.stderr.count("\n") == 1 and p.stdout == ""
+
+
+@pytest.mark.parametrize("fault, said", [(("--swap", "i_x,i_v"), "cannot swap i_x: the DAQ sends v_uv"),
+                                         (("--swap", "i_v,i_v"), "cannot swap i_v with itself"),
+                                         (("--reverse", "enc"), "cannot reverse enc: the DAQ sends v_uv")])
+def test_the_emulators_wiring_faults_refuse_a_channel_it_does_not_send(fault, said):
+    p = subprocess.run(CMD + ["sim", "--scenario", SCENARIO, "--tcp", f"127.0.0.1:{free_tcp_port()}", *fault],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and p.stderr.startswith(f"millsense sim: error: {said}"), p.stderr
+    assert p.stderr.count("\n") == 1
+
+
+def test_a_descriptor_that_does_not_fit_fails_first_and_the_signals_are_not_judged(tmp_path, meter):
+    port = free_tcp_port()
+    with Procs(tmp_path) as procs:
+        _emulator(procs, port, "--descriptor-rate", "2000")
+        p, record = _commission(_config(tmp_path, port), tmp_path, "--readings", _readings(meter),
+                                "--spindle-rpm", str(RPM))
+    assert p.returncode == 1, p.stdout + p.stderr
+    steps = _steps(record)
+    assert steps["descriptor"]["result"] == "fail" and steps["descriptor"]["figures"]["sample_rate_hz"] == 2000
+    assert steps["descriptor"]["fixes"][0].startswith("daq.sample_rate_hz: speeds and torques would be off by 2")
+    assert [steps[n]["result"] for n in ("scales", "phases", "speed")] == ["not checked"] * 3
+    assert steps["test-trip"]["result"] == steps["watchdog"]["result"] == "pass"
