@@ -231,7 +231,11 @@ def test_a_hold_found_is_released_only_when_told_and_asserted_again(tmp_path, me
         assert "--release-found-hold" in steps["test-trip"]["not_checked"][0]
         assert "the DAQ holds the feed: it did when commission connected" in untold.stdout
         assert all(held for held, _ in _holds(tmp_path)[seen:]), _holds(tmp_path)   # never released
-        told, record = _commission(cfg, tmp_path, *args, "--release-found-hold")
+        answers = tmp_path / "answers.txt"   # the same figures as a file, and the release told there
+        answers.write_text("# at the machine\n" + "\n".join(f"{k}={v}" for k, v in meter.items())
+                           + f"\nspindle_rpm={RPM}\nrelease_found_hold=yes\n")
+        told, record = _commission(cfg, tmp_path, "--answers", str(answers))
+        assert all(s["result"] == "pass" for s in record["steps"]), record
         assert told.returncode == 0, told.stdout + told.stderr
         assert "the feed hold found at the start is asserted again, as it was found" in told.stdout
         wait_for(lambda: _holds(tmp_path)[-1][0], 30.0, "the hold asserted again")
