@@ -54,15 +54,19 @@ class Bench:
         """Arm the watchdog, beat, and read the first STATUS (what the feed hold was when we came)."""
         for t in self._threads:
             t.start()
-        self.interlock.start()
-        self.resume_beats()
+        # a STATUS answers every command (a stream DAQ says nothing unasked): asked for before any heartbeat arms
+        # the watchdog, so that what the feed hold was is known before anything here could change it
+        self.driver.request_descriptor()
         deadline = time.monotonic() + FIRST_STATUS_S
         while self.driver.last_status is None:
             if time.monotonic() > deadline:
-                raise BenchError(f"the DAQ sent no STATUS within {FIRST_STATUS_S:g} s of the first heartbeat "
+                raise BenchError(f"the DAQ sent no STATUS within {FIRST_STATUS_S:g} s of a command "
                                  "(docs/protocol.md: a STATUS answers every command)")
             time.sleep(0.01)
         self.found_held = bool(self.driver.last_status.feed_hold)
+        self.interlock.start()
+        if self.interlock.enabled:
+            self.resume_beats()
 
     def close(self) -> None:
         self._beating.clear()

@@ -72,6 +72,10 @@ def watchdog_step(bench: Bench, say) -> Step:
     limit_ms = il.watchdog_ms + WATCHDOG_SLACK_MS
     step = Step("watchdog", f"with the heartbeats stopped the DAQ holds the feed within interlock.watchdog_ms "
                             f"({il.watchdog_ms} ms) + {WATCHDOG_SLACK_MS:g} ms")
+    if not il.enabled or not il.watchdog_ms:
+        step.fail("the interlock is disabled in the configuration: no heartbeat feeds the DAQ's watchdog",
+                  "interlock.enabled = true")
+        return step
     say(f"  heartbeats stopped; waiting for the DAQ's watchdog ({il.watchdog_ms} ms) ...")
     before = drv.last_status
     last_beat = bench.stop_beats()
