@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "reset": ("millsense.daemon.commands.reset", "clear a latched interlock (over Zenoh, or --local at the machine)"),
     "token": ("millsense.daemon.commands.token", "make a reset token (`token new`)"),
     "history": ("millsense.daemon.commands.history", "export the history (time range, program, tool, operation) as CSV or JSON lines"),
+    "commission": ("millsense.daemon.commands.commission", "guided check of a machine's DAQ, wiring, feed hold and watchdog; a report"),
     "test-trip": ("millsense.daemon.commands.test_trip", "proof test: assert feed hold, time its confirmation, reset"),
     "limits": ("millsense.daemon.commands.limits", "see, accept, relearn, widen or narrow learned limits; false alarms, new tools"),
     "afc": ("millsense.daemon.commands.afc", "adaptive feed control: on, off, or its state (authorised like reset)"),

@@ -95,6 +95,13 @@ part programs (--scenario part-program):
 """
 
 
+def _names_pair(text: str) -> tuple[str, str]:
+    a, sep, b = text.partition(",")
+    if not sep or not a.strip() or not b.strip():
+        raise argparse.ArgumentTypeError(f"expected CHANNEL,CHANNEL, got {text!r}")
+    return a.strip(), b.strip()
+
+
 def _positive(text: str) -> float:
     value = float(text)
     if not value > 0:
@@ -153,6 +160,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="current sensors give K times their datasheet's counts (large K: clipped at the int16 rails)")
     parser.add_argument("--clip-currents", type=_uint(1, 32767), default=None, metavar="COUNTS",
                         help="current sensors saturate at +-COUNTS")
+    # wiring mistakes and a DAQ without a working watchdog (`millsense commission` finds each): wiring.py
+    parser.add_argument("--swap", type=_names_pair, action="append", metavar="A,B",
+                        help="channels A and B wired to each other's inputs, e.g. i_v,i_w (repeatable)")
+    parser.add_argument("--reverse", action="append", metavar="CHANNEL",
+                        help="a sensor turned round: CHANNEL's counts negated (an encoder counts backwards; "
+                             "repeatable)")
+    parser.add_argument("--watchdog-broken", action="store_true",
+                        help="the DAQ takes heartbeats and the watchdog period but never holds the feed when "
+                             "the heartbeats stop (a watchdog that does not work)")
     parser.add_argument("--descriptor-rate", type=_uint(1, 65535), default=None, metavar="HZ",
                         help="the DESCRIPTOR claims HZ while the samples keep their true rate")
     # protocol version 2: the simulated CNC beside the DAQ (context, feed held, feed override)

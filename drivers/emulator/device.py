@@ -120,6 +120,7 @@ class DeviceModel:
         self.flags = 0
         self.last_heartbeat = 0
         self.watchdog_ms = watchdog_ms
+        self.watchdog_broken = False   # `sim --watchdog-broken`: a DAQ whose watchdog never holds the feed
         self._armed = False
         self._last_heartbeat_time = 0.0
         self._heard_heartbeat = False
@@ -344,7 +345,7 @@ class DeviceModel:
     def check_watchdog(self, now: float) -> bool:
         """Trip if the deadline passed: assert feed hold, raise the flag. True if it tripped now."""
         deadline = self.watchdog_deadline()
-        if deadline is None or now < deadline:
+        if deadline is None or now < deadline or self.watchdog_broken:
             return False
         self.outputs |= OUT_FEED_HOLD
         self.flags |= FLAG_WATCHDOG

@@ -71,6 +71,13 @@ def serve(args) -> int:
     except SourceError as exc:
         raise EmulatorError(str(exc), 2) from exc
     source = _with_sensor_faults(source, args)
+    if getattr(args, "swap", None) or getattr(args, "reverse", None):
+        from millsense.drivers.emulator.wiring import WiringFaults
+
+        try:
+            source = WiringFaults(source, swap=args.swap, reverse=args.reverse)
+        except ValueError as exc:
+            raise EmulatorError(str(exc), 2) from exc
     if args.ring_depth < 1:
         raise EmulatorError("--ring-depth must be at least 1", 2)
     for name in ("cnc_override_lag_ms", "cnc_override_rate_pct_s"):
@@ -92,6 +99,7 @@ def serve(args) -> int:
         cnc_override_rate_pct_s=args.cnc_override_rate_pct_s,
         afc_allowed=args.afc_allowed,
     )
+    device.watchdog_broken = bool(getattr(args, "watchdog_broken", False))
     status_log.write("start", first_index=device.head, scenario=args.scenario, protocol=device.protocol,
                      feed_override=device.feed_override if device.protocol >= 2 else None,
                      cnc_override_lag_ms=args.cnc_override_lag_ms,
