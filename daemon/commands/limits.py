@@ -3,12 +3,14 @@
 Its actions are listed in ACTIONS_HELP below, which `--help` prints.
 KEY is "program/tool/operation", e.g. 1234/12/3. `list` and `show` read the
 `limits` queryable (no token); the others are commands on `cmd/limits`,
-authorised and audited exactly like `millsense reset` (the challenge–response
-of docs/zenoh.md; the token from `--token-file`, `--token` or
-MILLSENSE_RESET_TOKEN), or through the daemon's control socket with `--local`.
+authorised by the token's proof and audited like `millsense reset` (the
+challenge–response of docs/zenoh.md; the token from `--token-file`, `--token` or
+MILLSENSE_RESET_TOKEN), or through the daemon's control socket with `--local`;
+never open: under `reset = "open"` only `--local` takes them.
 `--machine`, `--config`, `--connect`, `--timeout` find the daemon as `reset`
 does. Human lines by default, one JSON object with `--json`. Exit 0 when done,
-1 when refused or unanswered, 2 for a bad argument, 78 for an unreadable --config.
+1 when refused or unanswered (nothing ran), 2 for a bad argument, 3 when the
+outcome is unknown (docs/zenoh.md), 78 for an unreadable --config.
 """
 
 from __future__ import annotations

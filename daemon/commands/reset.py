@@ -100,7 +100,7 @@ def _local(machine: str, timeout_s: float) -> int:
 
 
 def _over_zenoh(args: argparse.Namespace, target: Target, token: str | None) -> int:
-    from millsense.daemon.publish.command_auth import CommandError, exchange
+    from millsense.daemon.publish.command_auth import CommandError, exchange, others_warning
 
     opened = open_machine_session(args, target, PROG, *HINT_MORE)
     if isinstance(opened, int):
@@ -119,6 +119,8 @@ def _over_zenoh(args: argparse.Namespace, target: Target, token: str | None) -> 
         if not outcome.verified:
             print(f'{PROG}: note: {machine} takes commands from anyone (reset = "open"): this answer cannot be '
                   "verified", file=sys.stderr)
+        if outcome.others:
+            print(others_warning(PROG, machine, "reset", outcome.others), file=sys.stderr)
         if outcome.result.get("ok") is False:
             return _fail(f"{machine} refused the reset: {outcome.result.get('error') or outcome.result}")
         return 0

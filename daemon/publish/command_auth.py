@@ -49,7 +49,7 @@ import secrets
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 CMD_LABEL = "millsense-cmd-v1"
@@ -403,6 +403,9 @@ class Outcome:
     result: dict
     policy: str  # "token": verified by server_mac; "open": the daemon's word, unverifiable
     verified: bool
+    # Other programs that answered the proof beside the daemon's signed answer (their Zenoh ids, "(unknown)"
+    # for one that names none): ignored, but something else answers as the machine, which the user is told.
+    others: list[str] = field(default_factory=list)
 
 
 def send_command(session: Any, machine: str, command: str, token: str | None, args: dict | None = None,
@@ -423,6 +426,15 @@ def how_to_check(command: str, machine: str) -> str:
         command, f"millsense watch --machine {machine} (its interlock)")
     return (f"check with `{read}` and the daemon's audit log (audit.log in its state directory: "
             f"/var/lib/millsense/{machine}/ under systemd), which records every command granted or refused")
+
+
+def others_warning(prog: str, machine: str, command: str, others: list[str]) -> str:
+    """The CLI's stderr line when other programs answered the proof beside the daemon's signed answer: the
+    outcome stands (only the daemon's MAC counts), but something else answers as the machine (docs/zenoh.md)."""
+    return (f"{prog}: warning: {len(others)} other program(s) also answered the {command} proof as {machine} "
+            f"(Zenoh ids {', '.join(others)}): their answers fail the daemon's MAC and were ignored, the daemon's "
+            f"own answer decides; but something else answers on millsense/{machine}/cmd/*: find it "
+            "(docs/security.md)")
 
 
 def exchange(session: Any, machine: str, command: str, token: str | None, args: dict | None = None,
@@ -535,8 +547,9 @@ def _verified(replies: list[tuple[bool, Any, str | None]], machine: str, command
     """The outcome the answers to the proof prove. With "token", only an answer carrying the daemon's MAC counts:
     any other answer (a forged success, a forged or unverifiable refusal) leaves the outcome unknown."""
     proven: list[tuple[bool, dict]] = []
+    provers: list[int] = []   # the index in `replies` of each proven answer
     claims: list[str] = []   # what unverifiable answers say, for the message
-    for ok, body, _replier in replies:
+    for i, (ok, body, _replier) in enumerate(replies):
         if not (isinstance(body, dict) and isinstance(body.get("result"), str)):
             if isinstance(body, dict) and isinstance(body.get("error"), str):
                 claims.append(f"refused: {body['error']}")   # refused before any MAC was possible
@@ -558,15 +571,20 @@ def _verified(replies: list[tuple[bool, Any, str | None]], machine: str, command
             claims.append("an answer whose result is not a JSON object")
             continue
         proven.append((ok, result))
+        provers.append(i)
     if policy != "token" and len(_programs(replies)) > 1:
         # "open": nothing is verifiable, and more than one program answered the proof
         raise CommandError(f"{len(_programs(replies))} programs answered the {command} proof on {machine}: the "
                            f"outcome is unknown; {how_to_check(command, machine)}", unknown=True)
     if proven:
         ok, result = proven[0]
+        daemon = replies[provers[0]][2]
+        others = [] if policy != "token" else _programs(
+            [r for i, r in enumerate(replies) if i != provers[0] and (daemon is None or r[2] != daemon)])
         if not ok:
-            raise CommandError(f"{machine} refused {command}: {result.get('error', result)}", result=result)
-        return Outcome(result, policy, policy == "token")
+            also = f" ({len(others)} other program(s) also answered, ignored: {', '.join(others)})" if others else ""
+            raise CommandError(f"{machine} refused {command}: {result.get('error', result)}{also}", result=result)
+        return Outcome(result, policy, policy == "token", others)
     said = "; ".join(dict.fromkeys(claims)) or "nothing usable"
     if policy != "token":
         raise CommandError(f"{machine}: {said}")

@@ -103,7 +103,7 @@ class OperatorCommand:
 
     def _over_zenoh(self, args: argparse.Namespace, target: Any, request: dict[str, Any], read: Read | None,
                     token: str | None, report: Callable[[str, dict[str, Any]], int]) -> int:
-        from millsense.daemon.publish.command_auth import CommandError, exchange
+        from millsense.daemon.publish.command_auth import CommandError, exchange, others_warning
 
         opened = open_machine_session(args, target, self.prog, *self.hints)
         if isinstance(opened, int):
@@ -129,6 +129,8 @@ class OperatorCommand:
             if not outcome.verified:
                 print(f'{self.prog}: note: {machine} takes commands from anyone (reset = "open"): this answer '
                       "cannot be verified", file=sys.stderr)
+            if outcome.others:
+                print(others_warning(self.prog, machine, self.command, outcome.others), file=sys.stderr)
             return report(machine, outcome.result)
         finally:
             session.close()

@@ -165,6 +165,37 @@ def test_a_forged_answer_beside_the_daemons_signed_one_changes_nothing(linked, p
         sink.close()
 
 
+def test_a_program_answering_only_the_proof_is_named_beside_the_daemons_outcome(linked, port, tmp_path):
+    """Measured on loopback: a fresh CLI session may learn of a second program on cmd/* only after its
+    challenge, and that program then answers the proof alone. The daemon's signed answer still decides; the
+    requester is also told that something else answers as the machine (before, it printed the outcome only)."""
+    a, b = linked
+    controls = OperatorControls(TOKEN, AuditLog(tmp_path / "audit.log", "m1"))
+    sink = ZenohSink(a, "m1", controls)
+    try:
+        alone = exchange(b, "m1", "limits", TOKEN, {"action": "relearn", "key": KEY})
+        assert alone.verified and alone.others == []
+        impostor = Impostor(port, "m1", answer_challenge=False)
+        try:
+            impostor.known_to(b)
+            out = exchange(b, "m1", "limits", TOKEN, {"action": "relearn", "key": KEY})
+            assert out.verified and out.result == {"action": "relearn", "key": KEY, "ok": True}
+            assert impostor.steps()[-1] == "prove"
+            assert out.others == [str(impostor.session.zid())], out.others
+            said = ca.others_warning("millsense limits", "m1", "limits", out.others)
+            assert said.startswith("millsense limits: warning: 1 other program(s) also answered the limits proof")
+            assert out.others[0] in said and "ignored" in said and "millsense/m1/cmd/*" in said
+            # a refusal the daemon signed says so too
+            with pytest.raises(CommandError, match=r"m1 refused limits: .*1 other program\(s\) also answered, "
+                                                   rf"ignored: {out.others[0]}\)") as err:
+                exchange(b, "m1", "limits", TOKEN, {"action": "relearn", "key": "not-a-key"})
+            assert not err.value.unknown and impostor.steps()[-1] == "prove"
+        finally:
+            impostor.close()
+    finally:
+        sink.close()
+
+
 def test_an_answer_that_fails_the_mac_leaves_the_outcome_unknown(linked, port):
     """Alone on the key, the impostor's unsigned "ok" is neither believed nor reported as a refusal."""
     a, b = linked

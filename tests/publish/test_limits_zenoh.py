@@ -408,10 +408,37 @@ def test_cmd_limits_refuses_json_nan_and_infinity_with_a_clear_message(pair, tmp
         (ok, body), = _get(b, "millsense/m1/cmd/limits", text.encode())
         assert not ok, body
         error = json.loads(body["result"])["error"]
-        # token: the MAC's canonical JSON takes no such number; open: the one args check says what is wrong
+        # token: the MAC's canonical JSON takes no such number; open: a widen never passes over Zenoh (issue 36,
+        # finding 3), whatever its args (the local socket, below, is where it goes and where they are checked)
         assert error == ("payload: args may not hold fractional numbers (use an integer in a stated unit)"
                          if policy == "token" else
-                         f"pct must be a finite whole number, not {float(literal)!r}"), error
+                         'limits widen needs the reset token over the network, and m1 has none (reset = "open" '
+                         "lets anyone clear or test a hold, nothing more): at the machine, as root or the daemon's "
+                         "user, add --local (the daemon's control socket: no token needed there)"), error
         assert controls.commands == [] and controls.high_nm[KEY] == 5.0
     finally:
         sink.close()
+
+
+@pytest.mark.parametrize("literal", ["NaN", "Infinity", "-Infinity", "1e999"])
+def test_the_local_socket_refuses_json_nan_and_infinity_with_a_clear_message(tmp_path, literal):
+    """Where a limits change goes under "open": the control socket's one args check names what is wrong."""
+    import os
+    import socket
+
+    from millsense.daemon.pipeline.local_control import LocalControl, socket_path
+
+    controls = LimitsControls(AuditLog(tmp_path / "audit.log", "m1"))
+    server = LocalControl(tmp_path / "state", controls, allowed_uids=(os.getuid(),))
+    assert server.start()
+    try:
+        line = f'{{"command": "limits", "args": {{"action": "widen", "key": "{KEY}", "pct": {literal}}}}}\n'
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+            sock.settimeout(30.0)
+            sock.connect(str(socket_path(tmp_path / "state")))
+            sock.sendall(line.encode())
+            reply = json.loads(sock.makefile("rb").readline())
+        assert reply == {"ok": False, "error": f"pct must be a finite whole number, not {float(literal)!r}"}, reply
+        assert controls.commands == [] and controls.high_nm[KEY] == 5.0
+    finally:
+        server.close()
