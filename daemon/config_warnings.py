@@ -42,18 +42,26 @@ def _context_authority_warnings(settings: Any, path: Path | None) -> list[str]:
             "(docs/zenoh.md, \"Signed context\"), or trust = \"acl\" behind a router whose ACL lets only "
             "adapters put it"
         )
-    if path is not None and context.key() and not context.adapter_key_file and _others_read(path):
-        out.append(f"context.adapter_key: {path} holds the key and other users can read it "
-                   f"(chmod 640 {path}, owner root, group millsense; or use adapter_key_file)")
-    if context.adapter_key_file:
-        key_path = Path(context.adapter_key_file)
-        if not key_path.is_absolute() and path is not None:
-            key_path = path.resolve().parent / key_path
-        if _others_read(key_path):
-            out.append(f"context.adapter_key_file: {key_path} can be read by other users (chmod 600, owner millsense)")
-        if _others_write(key_path):
-            out.append(f"context.adapter_key_file: {key_path} can be written by users other than its owner "
-                       "(chmod 600, owner millsense): they could set the key")
+    out += _secret_warnings("context.adapter_key", bool(context.key()), context.adapter_key_file, path, "key")
+    return out
+
+
+def _secret_warnings(key: str, inline: bool, file: str | None, path: Path | None, what: str) -> list[str]:
+    """A secret other users could read or set: inline in a config file they can read (`key`), or in its own
+    file (`key`_file) that is not the owner's alone. `what`: "token" or "key", for the messages."""
+    out: list[str] = []
+    if path is not None and inline and not file and _others_read(path):
+        out.append(f"{key}: {path} holds the {what} and other users can read it "
+                   f"(chmod 640 {path}, owner root, group millsense; or use {key.rsplit('.', 1)[1]}_file)")
+    if file:
+        secret_path = Path(file)
+        if not secret_path.is_absolute() and path is not None:
+            secret_path = path.resolve().parent / secret_path
+        if _others_read(secret_path):
+            out.append(f"{key}_file: {secret_path} can be read by other users (chmod 600, owner millsense)")
+        if _others_write(secret_path):
+            out.append(f"{key}_file: {secret_path} can be written by users other than its owner "
+                       f"(chmod 600, owner millsense): they could set the {what}")
     return out
 
 
@@ -155,22 +163,7 @@ def _security_warnings(settings: Any, path: Path | None) -> list[str]:
             'interlock.reset: "open" while the Zenoh session can be reached from other hosts: anyone on the network '
             'may clear a feed hold (reset = "token" with a token from `millsense token new`)'
         )
-    if path is not None and il.reset_token is not None and not il.reset_token_file and _others_read(path):
-        out.append(
-            f"interlock.reset_token: {path} holds the token and other users can read it "
-            f"(chmod 640 {path}, owner root, group millsense; or use reset_token_file)"
-        )
-    if il.reset_token_file:
-        token_path = Path(il.reset_token_file)
-        if not token_path.is_absolute() and path is not None:
-            token_path = path.resolve().parent / token_path
-        if _others_read(token_path):
-            out.append(f"interlock.reset_token_file: {token_path} can be read by other users (chmod 600, owner millsense)")
-        if _others_write(token_path):
-            out.append(
-                f"interlock.reset_token_file: {token_path} can be written by users other than its owner "
-                "(chmod 600, owner millsense): they could set the token"
-            )
+    out += _secret_warnings("interlock.reset_token", il.reset_token is not None, il.reset_token_file, path, "token")
     return out
 
 
