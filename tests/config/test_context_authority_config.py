@@ -127,3 +127,30 @@ def test_an_adapter_key_file_others_can_read_warns(tmp_path):
     assert warning == f"context.adapter_key_file: {key} can be read by other users (chmod 600, owner millsense)"
     key.chmod(0o600)
     assert _context_warnings(None, path) == []
+
+
+@pytest.mark.parametrize("name, section, key, what", [
+    ("reset.token", "interlock", "reset_token", "token"),
+    ("adapter.key", "context", "adapter_key", "key"),
+])
+def test_a_secret_other_users_could_read_or_set_warns_for_both_secrets(tmp_path, name, section, key, what):
+    """The reset token's file and the adapter key's file are judged by one rule (`_secret_warnings`)."""
+    secret = tmp_path / name
+    secret.write_text((TOKEN if section == "interlock" else KEY) + "\n")
+    doc = doc_with({"source": "zenoh", "adapter_key_file": name} if section == "context" else {"source": "zenoh"},
+                   interlock={"reset": "token", "reset_token_file": name} if section == "interlock" else None)
+    path = write(tmp_path, doc)
+    mine = lambda: [w for w in config_warnings(load_config(path), path) if w.startswith(f"{section}.{key}")]  # noqa: E731
+    secret.chmod(0o600)
+    assert mine() == []
+    secret.chmod(0o666)
+    assert mine() == [f"{section}.{key}_file: {secret} can be read by other users (chmod 600, owner millsense)",
+                      f"{section}.{key}_file: {secret} can be written by users other than its owner "
+                      f"(chmod 600, owner millsense): they could set the {what}"]
+    secret.chmod(0o600)
+    inline = doc_with({"source": "zenoh", "adapter_key": KEY} if section == "context" else {"source": "zenoh"},
+                      interlock={"reset": "token", "reset_token": TOKEN} if section == "interlock" else None)
+    path = write(tmp_path, inline)
+    path.chmod(0o644)
+    assert mine() == [f"{section}.{key}: {path} holds the {what} and other users can read it "
+                      f"(chmod 640 {path}, owner root, group millsense; or use {key}_file)"]
