@@ -3,7 +3,7 @@
 Why not the running daemon's `test-trip`: the daemon must not run while `commission` does (two masters on one
 DAQ fight over the hold and the watchdog), and the watchdog step must stop the heartbeats, which a running
 daemon would never let a client do. So both steps drive the daemon's own `Interlock` (the same trip, the same
-write, the same reset) on the bench, and time the confirmations as `Runner.test_trip` does (`_wait_ms`).
+write, the same reset) on the bench, and time the confirmations as `Runner.test_trip` does (`wait_ms`).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from typing import Any
 from millsense.daemon.commission.bench import Bench
 from millsense.daemon.commission.report import Step
 from millsense.daemon.pipeline.interlock import TEST_TRIP
-from millsense.daemon.pipeline.runner import TEST_TRIP_WAIT_S, _wait_ms
+from millsense.daemon.pipeline.interlock import TEST_TRIP_WAIT_S, wait_ms
 from millsense.drivers.protocol import CAP_CONTEXT
 
 WATCHDOG_SLACK_MS = 500.0   # beyond the watchdog period: the STATUS's way back and the host's scheduling
@@ -38,9 +38,9 @@ def trip_step(bench: Bench, say) -> Step:
     say("  asserting the feed hold (test-trip) ...")
     t0 = time.monotonic()
     written = il.trip(TEST_TRIP)
-    daq_ms = _wait_ms(lambda: drv.last_status is not before_status and bool(drv.last_status.feed_hold), t0,
+    daq_ms = wait_ms(lambda: drv.last_status is not before_status and bool(drv.last_status.feed_hold), t0,
                       TEST_TRIP_WAIT_S)
-    cnc_ms = _wait_ms(lambda: drv.last_context is not before_ctx and bool(drv.last_context.feed_held), t0,
+    cnc_ms = wait_ms(lambda: drv.last_context is not before_ctx and bool(drv.last_context.feed_held), t0,
                       TEST_TRIP_WAIT_S) if cnc else None
     step.figures.update(written=written == "feed_hold", daq_confirm_ms=daq_ms, cnc_reports_hold=cnc,
                         cnc_confirm_ms=cnc_ms)
@@ -85,7 +85,7 @@ def watchdog_step(bench: Bench, say) -> Step:
         return st is not None and st is not before and bool(st.feed_hold) and bool(st.watchdog_tripped)
 
     wait_s = 2.0 * limit_ms / 1000.0 + 1.0
-    seen_ms = _wait_ms(held, last_beat, wait_s)
+    seen_ms = wait_ms(held, last_beat, wait_s)
     step.figures.update(watchdog_ms=il.watchdog_ms, hold_after_ms=seen_ms, waited_ms=round(wait_s * 1000.0))
     if seen_ms is None:
         step.fail(f"the DAQ did not hold the feed within {wait_s:g} s of the last heartbeat (no STATUS with "

@@ -420,3 +420,18 @@ def _number(value: Any) -> float | None:
     except (TypeError, ValueError):
         return None
     return f if f == f else None  # inf stays: a current clipped while high is beyond what the sensor measures
+
+
+TEST_TRIP_WAIT_S = 2.0  # longest wait for each confirmation of a test-trip (the daemon's and `commission`'s)
+
+
+def wait_ms(done: Callable[[], bool], t0: float, wait_s: float) -> float | None:
+    """Milliseconds from `t0` until `done()`, polled every half millisecond; None if not within wait_s.
+    How a proof test times the DAQ's and the CNC's confirmation of a hold (`Runner.test_trip`, `commission`)."""
+    while True:
+        now = time.monotonic()
+        if done():
+            return round((now - t0) * 1e3, 2)
+        if now - t0 > wait_s:
+            return None
+        time.sleep(0.0005)

@@ -65,7 +65,7 @@ from millsense.daemon.learning import context_auth
 from millsense.daemon.pipeline.alarms import AlarmEvent, alarm_payload
 from millsense.daemon.pipeline.feed_control import FeedController
 from millsense.daemon.pipeline.feed_output import OverrideOutput
-from millsense.daemon.pipeline.interlock import TEST_TRIP, Interlock, ResetCheck
+from millsense.daemon.pipeline.interlock import TEST_TRIP, TEST_TRIP_WAIT_S, Interlock, ResetCheck, wait_ms
 from millsense.daemon.pipeline.loss_check import LossCheck
 from millsense.daemon.pipeline.phase_check import PhaseCheck
 from millsense.daemon.pipeline.power_check import PowerSignCheck
@@ -91,7 +91,6 @@ PROGRESS_S = 3.0  # sd_notify WATCHDOG=1 only if a revolution closed within this
 BLIND_KINDS = ("signals", "descriptor")  # faults that leave the daemon unable to see a crash
 DAQ_FAULTS = ("daq_link", "daq_stalled")
 CAP_CONTEXT = 0x02  # Descriptor.capabilities bit 1: the DAQ sends CONTEXT frames (protocol 2)
-TEST_TRIP_WAIT_S = 2.0  # longest wait for each confirmation of a test-trip
 # A thread waiting for the GIL gets it when the running one lets go, at the latest after this: the
 # reader thread with a crash frame must not wait out the estimator's batch (Python's default is 5 ms).
 GIL_SWITCH_S = 0.0005
@@ -1174,9 +1173,9 @@ class Runner:
             ctx = getattr(drv, "last_context", None)
             return ctx is not None and ctx is not before_ctx and bool(getattr(ctx, "feed_held", False))
 
-        result["daq_confirm_ms"] = _wait_ms(status_held, t0, wait_s)
+        result["daq_confirm_ms"] = wait_ms(status_held, t0, wait_s)
         if cnc:
-            result["cnc_confirm_ms"] = _wait_ms(cnc_held, t0, wait_s)
+            result["cnc_confirm_ms"] = wait_ms(cnc_held, t0, wait_s)
         result["cnc_reports_hold"] = cnc
         result["ok"] = bool(written == "feed_hold" and result["daq_confirm_ms"] is not None
                             and (not cnc or result["cnc_confirm_ms"] is not None))
@@ -1273,17 +1272,6 @@ def _arrival(parts: list[tuple[int, int, float]], seq: int, default: float) -> f
         if first <= seq < first + count:
             return mono if mono > 0.0 else default
     return default
-
-
-def _wait_ms(done: Callable[[], bool], t0: float, wait_s: float) -> float | None:
-    """Milliseconds from `t0` until `done()`, polled every half millisecond; None if not within wait_s."""
-    while True:
-        now = time.monotonic()
-        if done():
-            return round((now - t0) * 1e3, 2)
-        if now - t0 > wait_s:
-            return None
-        time.sleep(0.0005)
 
 
 def _limit(section: Any, name: str) -> float | None:

@@ -18,7 +18,7 @@ import pytest
 from millsense.daemon.learning.envelope import LOW_MAX_FRACTION, MAX_WIDENING
 from millsense.daemon.learning.monitor import ProcessMonitor
 from millsense.daemon.publish.limits_args import ACTIONS, check_args
-from tests.learning.synth import LEVELS_NM, Shape, Shop, ctx, learning
+from tests.learning.synth import LEVELS_NM, Shape, Shop, learning
 
 KEY = "1001/12/1"
 

@@ -29,7 +29,7 @@ from millsense.daemon.learning.monitor import ProcessMonitor
 from millsense.daemon.publish.limits_args import check_args
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for, write_config
-from tests.learning.synth import Shape, Shop, ctx, learning
+from tests.learning.synth import Shop, ctx, learning
 
 TOKEN = "limits-token-of-at-least-32-characters-0123456789"
 SLOW_S = 60.0                 # detects a hang; no budget

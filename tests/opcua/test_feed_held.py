@@ -26,7 +26,7 @@ from millsense.daemon.opcua.feed_held import FeedHeldTrack  # noqa: E402
 from millsense.daemon.opcua.machine_nodes import SEVERITY  # noqa: E402
 from millsense.daemon.publish.command_auth import send_command  # noqa: E402
 from tests.conftest import free_tcp_port  # noqa: E402
-from tests.e2e.helpers import Procs, Subscriber, tcp, wait_for, write_config  # noqa: E402
+from tests.e2e.helpers import Procs, Subscriber, tcp, write_config  # noqa: E402
 from tests.opcua.rig import MS_NS, SLOW_S, child, connect, make_pki, start_opcua, wait_async  # noqa: E402
 
 MACHINE = "held-01"
