@@ -46,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(it is asserted again before commission ends)")
     parser.add_argument("--report", metavar="FILE", default=None,
                         help="the report (.json, and .txt beside it; default: the state directory's "
-                             "commissioning-<machine>-<UTC date>.json)")
+                             "commissioning-<machine>-<UTC date>.json, -2 … for a later run that day)")
     parser.add_argument("--seconds", type=float, default=SAMPLE_S, metavar="S",
                         help=f"samples taken for each measurement (default {SAMPLE_S:g})")
     parser.add_argument("--connect-timeout", type=float, default=10.0, metavar="S",

@@ -365,3 +365,23 @@ def test_crossed_phases_are_fixed_at_the_daqs_inputs_not_in_the_configuration(tm
         p, record = _commission(_config(tmp_path, port), tmp_path, "--readings", _readings(meter),
                                 "--spindle-rpm", str(RPM))
     assert p.returncode == 0 and _steps(record)["phases"]["result"] == "pass", p.stdout + p.stderr
+
+
+def test_a_second_run_the_same_day_keeps_the_first_runs_report(tmp_path, meter):
+    """The default report is the shop's record: the run after a commissioned one (here it finds the hold the
+    first left and is not told to release it: not commissioned) writes beside it, never over it."""
+    port = free_tcp_port()
+    state = tmp_path / "state"
+    env = {**os.environ, "STATE_DIRECTORY": str(state)}
+    args = CMD + ["commission", "--config", str(_config(tmp_path, port)), "--readings", _readings(meter),
+                  "--spindle-rpm", str(RPM)]
+    with Procs(tmp_path) as procs:
+        _emulator(procs, port)
+        first = subprocess.run(args, capture_output=True, text=True, timeout=120, env=env)
+        second = subprocess.run(args, capture_output=True, text=True, timeout=120, env=env)
+    assert (first.returncode, second.returncode) == (0, 1), first.stdout + second.stdout
+    reports = sorted(state.glob("commissioning-comm-*.json"), key=lambda p: len(p.name))   # the first, then -2
+    assert [p.name for p in reports] == [f"{reports[0].stem}.json", f"{reports[0].stem}-2.json"], reports
+    assert json.loads(reports[0].read_text())["commissioned"] is True
+    assert json.loads(reports[1].read_text())["commissioned"] is False
+    assert f"report: {reports[1]} and {reports[1].with_suffix('.txt')}" in second.stdout
