@@ -46,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(it is asserted again before commission ends)")
     parser.add_argument("--report", metavar="FILE", default=None,
                         help="the report (.json, and .txt beside it; default: the state directory's "
-                             "commissioning-<machine>-<UTC date>.json)")
+                             "commissioning-<machine>-<UTC date>.json, -2 … for a later run that day)")
     parser.add_argument("--seconds", type=float, default=SAMPLE_S, metavar="S",
                         help=f"samples taken for each measurement (default {SAMPLE_S:g})")
     parser.add_argument("--connect-timeout", type=float, default=10.0, metavar="S",
@@ -283,8 +283,14 @@ def _commission(args, settings, driver, ask: _Asker, directory: Path) -> int:
         for why in s.unchecked:
             say(f"  {s.name}: not checked: {why}")
     if bench.interlock.enabled and bench.interlock.watchdog_ms:
-        say("the heartbeats end with this command: the DAQ's watchdog holds the feed until the daemon runs and "
-            "`millsense reset` clears it")
+        # Say the watchdog holds the feed only when this run saw it do so: after a failed or unchecked watchdog
+        # step that sentence would promise a stop nobody proved.
+        if any(s.name == "watchdog" and s.result == "pass" for s in steps):
+            say("the heartbeats end with this command: the DAQ's watchdog holds the feed until the daemon runs and "
+                "`millsense reset` clears it")
+        else:
+            say("the heartbeats end with this command, and the DAQ's watchdog was not proved to hold the feed (the "
+                "watchdog step did not pass): do not rely on it until commission passes")
     record = {"machine": settings.machine, "date_utc": started.isoformat(timespec="seconds"),
               "commissioned": not failed, "config": str(Path(args.config).resolve()),
               "versions": {"millsense": __version__, "python": platform.python_version(),

@@ -46,8 +46,16 @@ class Step:
 
 
 def default_path(directory: Path, machine: str, date_utc: str) -> Path:
-    """`commissioning-<machine>-<UTC date>.json` in the state directory (the `.txt` beside it)."""
-    return directory / f"commissioning-{machine}-{date_utc}.json"
+    """`commissioning-<machine>-<UTC date>.json` in the state directory (the `.txt` beside it); a later run the
+    same day takes `-2`, `-3`, …: the report is what the shop keeps, and a run after it (a failed one, one that
+    could not check the feed hold) must not put itself in its place."""
+    stem = f"commissioning-{machine}-{date_utc}"
+    n = 1
+    while True:
+        path = directory / (f"{stem}.json" if n == 1 else f"{stem}-{n}.json")
+        if not path.exists() and not path.with_suffix(".txt").exists():
+            return path
+        n += 1
 
 
 def write(path: Path, record: dict[str, Any], text: str) -> tuple[Path, Path]:

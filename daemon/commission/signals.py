@@ -132,7 +132,7 @@ def _find_fix(settings, descriptor, raw, check, windows, lc) -> tuple[str | None
     tries: list[tuple[str, Any]] = []
     for names in (lc.i_names, lc.v_names):
         for a, b in itertools.combinations(names, 2):
-            tries.append((f"swap {a} and {b}: their cables on the DAQ (or the two [channels] tables' names)",
+            tries.append((f"swap {a} and {b}: their cables on the DAQ (the DAQ names its inputs: renaming [channels] tables moves no signal)",
                           lambda r, a=a, b=b: _swapped(r, [(cols[a], cols[b])])))
         if len(names) == 3:
             for shift in (1, 2):

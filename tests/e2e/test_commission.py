@@ -116,6 +116,7 @@ def test_a_sound_machine_is_commissioned_with_every_figure_in_the_report(tmp_pat
     assert trip["released"] is True
     wd = steps["watchdog"]["figures"]
     assert WATCHDOG_MS <= wd["hold_after_ms"] and wd["released"] is True
+    assert "the DAQ's watchdog holds the feed until the daemon runs" in p.stdout
     # the text report beside it is what was printed
     assert (tmp_path / "report.txt").read_text().strip().splitlines()[-1] in p.stdout
 
@@ -148,6 +149,9 @@ def test_each_installation_fault_fails_its_step_with_its_fix(tmp_path, meter, fa
         assert abs(proposed / (0.002 / 1.5) - 1) < 0.015, proposed
     if step == "speed" and replace:
         assert abs(steps["speed"]["figures"]["encoder"]["counts_per_rev_measured"] / 4096 - 1) < 0.03
+    if step == "watchdog":   # the last words do not promise the stop the watchdog step failed to see
+        assert "the DAQ's watchdog holds the feed" not in p.stdout
+        assert "the DAQ's watchdog was not proved to hold the feed" in p.stdout.split("not commissioned")[1]
 
 
 def test_the_prompts_on_a_terminal(tmp_path, meter):
@@ -302,3 +306,82 @@ def test_a_descriptor_that_does_not_fit_fails_first_and_the_signals_are_not_judg
     assert steps["descriptor"]["fixes"][0].startswith("daq.sample_rate_hz: speeds and torques would be off by 2")
     assert [steps[n]["result"] for n in ("scales", "phases", "speed")] == ["not checked"] * 3
     assert steps["test-trip"]["result"] == steps["watchdog"]["result"] == "pass"
+
+
+def _apply(cfg: Path, fixes: list[str]) -> list[str]:
+    """Each `channels.X.key = value` a fix proposes, written into the configuration as a user would."""
+    import tomllib
+
+    from tests.config.helpers import dumps
+
+    doc = tomllib.loads(cfg.read_text())
+    applied = []
+    for fix in fixes:
+        for name, key, value in re.findall(r"channels\.(\w+)\.(\w+) = (-?[0-9.e+-]+)", fix):
+            doc["channels"][name][key] = int(value) if key == "counts_per_rev" else float(value)
+            applied.append(f"channels.{name}.{key} = {value}")
+    cfg.write_text(dumps(doc))
+    return applied
+
+
+@pytest.mark.parametrize("faults, replace", [
+    (("--current-gain", "1.5"), None),
+    (("--reverse", "i_w"), None),
+    (("--reverse", "sp_rpm"), None),
+    ((), ("counts_per_rev = 4096", "counts_per_rev = 2048")),
+], ids=["current-gain", "reversed-current-sensor", "reversed-speed-signal", "counts-per-rev"])
+def test_a_configuration_fix_written_into_the_file_commissions_the_same_machine(tmp_path, meter, faults, replace):
+    """The fix is the answer, not a hint: the emulator keeps its fault, the file takes the fix, commission passes."""
+    port = free_tcp_port()
+    cfg = _config(tmp_path, port, replace=replace)
+    with Procs(tmp_path) as procs:
+        _emulator(procs, port, *faults)
+        p, record = _commission(cfg, tmp_path, "--readings", _readings(meter), "--spindle-rpm", str(RPM))
+        assert p.returncode == 1, p.stdout + p.stderr
+        assert _apply(cfg, [f for s in record["steps"] for f in s["fixes"]]), record
+        # the first run's heartbeats ended: the DAQ's watchdog holds the feed, released for the tests when told
+        p, record = _commission(cfg, tmp_path, "--readings", _readings(meter), "--spindle-rpm", str(RPM),
+                                "--release-found-hold")
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert "\ncommissioned\n" in p.stdout
+
+
+def test_crossed_phases_are_fixed_at_the_daqs_inputs_not_in_the_configuration(tmp_path, meter):
+    """The DAQ's DESCRIPTOR names its channels; a [channels] table only scales the one of its name. So the fix
+    for two crossed phases is their cables (here: the emulator's inputs crossed back), and it says no other."""
+    port = free_tcp_port()
+    (tmp_path / "crossed").mkdir()
+    (tmp_path / "crossed-back").mkdir()
+    with Procs(tmp_path / "crossed") as procs:
+        _emulator(procs, port, "--swap", "i_v,i_w")
+        p, record = _commission(_config(tmp_path, port), tmp_path, "--readings", _readings(meter),
+                                "--spindle-rpm", str(RPM))
+    fixes = _steps(record)["phases"]["fixes"]
+    assert p.returncode == 1 and fixes[0].startswith("swap i_v and i_w: their cables on the DAQ"), fixes
+    assert not re.search(r"\(or [^)]*\[channels\] tables' names\)", fixes[0]), fixes   # a rename moves no signal
+    port = free_tcp_port()
+    with Procs(tmp_path / "crossed-back") as procs:
+        _emulator(procs, port, "--swap", "i_v,i_w", "--swap", "i_v,i_w")   # the two cables swapped at the DAQ
+        p, record = _commission(_config(tmp_path, port), tmp_path, "--readings", _readings(meter),
+                                "--spindle-rpm", str(RPM))
+    assert p.returncode == 0 and _steps(record)["phases"]["result"] == "pass", p.stdout + p.stderr
+
+
+def test_a_second_run_the_same_day_keeps_the_first_runs_report(tmp_path, meter):
+    """The default report is the shop's record: the run after a commissioned one (here it finds the hold the
+    first left and is not told to release it: not commissioned) writes beside it, never over it."""
+    port = free_tcp_port()
+    state = tmp_path / "state"
+    env = {**os.environ, "STATE_DIRECTORY": str(state)}
+    args = CMD + ["commission", "--config", str(_config(tmp_path, port)), "--readings", _readings(meter),
+                  "--spindle-rpm", str(RPM)]
+    with Procs(tmp_path) as procs:
+        _emulator(procs, port)
+        first = subprocess.run(args, capture_output=True, text=True, timeout=120, env=env)
+        second = subprocess.run(args, capture_output=True, text=True, timeout=120, env=env)
+    assert (first.returncode, second.returncode) == (0, 1), first.stdout + second.stdout
+    reports = sorted(state.glob("commissioning-comm-*.json"), key=lambda p: len(p.name))   # the first, then -2
+    assert [p.name for p in reports] == [f"{reports[0].stem}.json", f"{reports[0].stem}-2.json"], reports
+    assert json.loads(reports[0].read_text())["commissioned"] is True
+    assert json.loads(reports[1].read_text())["commissioned"] is False
+    assert f"report: {reports[1]} and {reports[1].with_suffix('.txt')}" in second.stdout
