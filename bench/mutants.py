@@ -101,12 +101,15 @@ MUTANTS: tuple[Mutant, ...] = (
            "return self.hold_seq is None or (seq is not None and seq > self.hold_seq)",
            "return self.hold_seq is None or (seq is not None and seq >= self.hold_seq)",
            ("tests/runtime/test_interlock.py", "tests/faults/test_reset_at_standstill.py", E2E_INTERLOCK)),
-    Mutant("il-restore-not-written", "interlock",
-           "a latch restored at start is latched in memory but its hold is not written to the DAQ",
+    Mutant("il-test-trip-masks-real-trip", "interlock",
+           "a real trip during a proof test leaves the latch's reason `test-trip` (reset then judges no condition)",
            "daemon/pipeline/interlock.py",
-           "            self.trips = max(self.trips, int(trips or 0))\n            self._write(True)\n",
-           "            self.trips = max(self.trips, int(trips or 0))\n",
-           ("tests/runtime/test_latch.py", "tests/runtime/test_interlock.py", E2E_INTERLOCK)),
+           "                if self.reason == TEST_TRIP and reason != TEST_TRIP:\n"
+           "                    # a real condition during a proof test: the latch now stands for it\n"
+           "                    self.reason = reason\n"
+           "                    self._changed()\n",
+           "",
+           ("tests/runtime/test_interlock.py", "tests/runtime/test_runner.py", "tests/e2e/test_test_trip.py")),
     Mutant("il-latch-damaged-unlatched", "interlock",
            "latch store: a damaged latch file is read as `nothing latched` instead of held",
            "daemon/pipeline/latch_store.py",
@@ -217,11 +220,11 @@ MUTANTS: tuple[Mutant, ...] = (
            "or now * factor > MAX_WIDENING * (1.0 + 1e-9):",
            "or factor > MAX_WIDENING * (1.0 + 1e-9):",
            ("tests/learning", "tests/publish/test_limits_zenoh.py", "tests/e2e/test_limits_cli.py")),
-    Mutant("le-set-aside-valueerror-only", "learning",
-           "restore: only a ValueError sets a stored row aside; a row of the wrong type stops the daemon",
-           "daemon/learning/monitor.py",
-           "        except Exception as exc:  # noqa: BLE001 - whatever is stored, the daemon starts (ValueError when",
-           "        except ValueError as exc:  # noqa: BLE001 - whatever is stored, the daemon starts (ValueError when",
+    Mutant("le-set-aside-negative-width", "learning",
+           "restore: a stored band with a negative half-width is restored, not set aside (only the finite check kept)",
+           "daemon/learning/envelope.py",
+           "if not np.all(np.isfinite(values[known]) & (values[known] >= 0.0)):",
+           "if not np.all(np.isfinite(values[known])):",
            ("tests/learning", "tests/history/test_stored_limits.py")),
     Mutant("le-context-seq-replay", "learning",
            "context authority: a signed context with the same sequence number as the last is taken again (replay)",
@@ -363,10 +366,17 @@ def table_problems(root: Path, mutants: tuple[Mutant, ...] = MUTANTS) -> dict[st
         if m.search == m.replace:
             problems[m.id] = "the replacement is the search string"
             continue
-        missing = [t for t in m.targets if not (root / t.split("::", 1)[0]).exists()]
+        missing = [t for t in m.targets if not _target_exists(root, t)]
         if missing or not m.targets:
             problems[m.id] = f"target tests missing: {', '.join(missing) or '(none given)'}"
     return problems
+
+
+def _target_exists(root: Path, target: str) -> bool:
+    path, _, test = target.partition("::")
+    if not (root / path).exists():
+        return False
+    return not test or f"def {test.split('[', 1)[0]}(" in (root / path).read_text(encoding="utf-8")
 
 
 # ---------------------------------------------------------------------------------------------------------- sandbox
@@ -571,6 +581,27 @@ def _git(args: list[str]) -> str:
         return ""
 
 
+def markdown_rows(results_files: list[Path]) -> str:
+    """The per-mutant table of docs/testing.md, its "before" column from result files (a later file's result
+    for a mutant replaces an earlier one's); a mutant in none of them is "not yet run"."""
+    found: dict[str, dict] = {}
+    for path in results_files:
+        for r in json.loads(path.read_text(encoding="utf-8"))["results"]:
+            found[r["id"]] = r
+    rows = ["| id | area | planted bug | before | after |", "| --- | --- | --- | --- | --- |"]
+    for m in MUTANTS:
+        r = found.get(m.id)
+        if r is None:
+            before = "not yet run"
+        elif r["status"] == "killed":
+            before = f"killed by `{r['killed_by']}` ({r['seconds']:.0f} s)"
+        else:
+            before = f"**{r['status']}** ({r['seconds']:.0f} s)" + (f": {r['detail']}" if r.get("detail") else "")
+        mark = " (trust issue)" if m.trust else ""
+        rows.append(f"| `{m.id}` | {m.package} | {m.description.replace('|', '/')}{mark} | {before} | |")
+    return "\n".join(rows)
+
+
 def _on_sigterm(signum: int, frame: object) -> None:
     raise KeyboardInterrupt(f"signal {signum}")
 
@@ -586,7 +617,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="JSON results, rewritten after each mutant (default ./mutants-result.json)")
     ap.add_argument("--no-confirm", action="store_true",
                     help="do not re-run a killing test alone without its mutant")
+    ap.add_argument("--markdown", nargs="+", type=Path, metavar="RESULT",
+                    help="print docs/testing.md's per-mutant table from these result files and exit")
     args = ap.parse_args(argv)
+    if args.markdown:
+        print(markdown_rows(args.markdown))
+        return 0
 
     table = by_id()
     if args.only:
