@@ -219,7 +219,7 @@ MUTANTS: tuple[Mutant, ...] = (
            "daemon/learning/envelope.py",
            "or now * factor > MAX_WIDENING * (1.0 + 1e-9):",
            "or factor > MAX_WIDENING * (1.0 + 1e-9):",
-           ("tests/learning", "tests/publish/test_limits_zenoh.py", "tests/e2e/test_limits_cli.py")),
+           ("tests/learning", "tests/e2e/test_limits_cli.py")),
     Mutant("le-set-aside-negative-width", "learning",
            "restore: a stored band with a negative half-width is restored, not set aside (only the finite check kept)",
            "daemon/learning/envelope.py",
