@@ -77,6 +77,8 @@ class Mutant:
 
 
 # Target sets shared by several mutants (paths from the repository root; a node id selects one test).
+RUNTIME = "tests/runtime"   # the interlock's, the runner's and the frame check's own package tests
+STANDSTILL = "tests/faults/test_reset_at_standstill.py"
 E2E_INTERLOCK = "tests/e2e/test_interlock.py"
 E2E_FAILURES = "tests/e2e/test_failures.py"
 E2E_CRASH = "tests/e2e/test_crash_trips.py"
@@ -94,13 +96,14 @@ MUTANTS: tuple[Mutant, ...] = (
            "daemon/pipeline/interlock.py",
            "i_a is not None and i_a >= self.crash_current_a:",
            "i_a is not None and i_a > self.crash_current_a:",
-           ("tests/runtime/test_interlock.py", "tests/runtime/test_runner.py", E2E_INTERLOCK), trust=True),
+           ("tests/runtime/test_interlock.py", "tests/runtime/test_runner.py", RUNTIME, STANDSTILL, E2E_INTERLOCK),
+           trust=True),
     Mutant("il-reset-judged-on-hold-sample", "interlock",
            "reset check: data from the last sample before the hold counts as newer (`>=` for `>`)",
            "daemon/pipeline/interlock.py",
            "return self.hold_seq is None or (seq is not None and seq > self.hold_seq)",
            "return self.hold_seq is None or (seq is not None and seq >= self.hold_seq)",
-           ("tests/runtime/test_interlock.py", "tests/faults/test_reset_at_standstill.py", E2E_INTERLOCK)),
+           ("tests/runtime/test_interlock.py", STANDSTILL, RUNTIME, E2E_INTERLOCK, E2E_CRASH)),
     Mutant("il-test-trip-masks-real-trip", "interlock",
            "a real trip during a proof test leaves the latch's reason `test-trip` (reset then judges no condition)",
            "daemon/pipeline/interlock.py",
@@ -109,33 +112,34 @@ MUTANTS: tuple[Mutant, ...] = (
            "                    self.reason = reason\n"
            "                    self._changed()\n",
            "",
-           ("tests/runtime/test_interlock.py", "tests/runtime/test_runner.py", "tests/e2e/test_test_trip.py")),
+           ("tests/runtime/test_interlock.py", "tests/runtime/test_runner.py", RUNTIME, "tests/e2e/test_test_trip.py")),
     Mutant("il-latch-damaged-unlatched", "interlock",
            "latch store: a damaged latch file is read as `nothing latched` instead of held",
            "daemon/pipeline/latch_store.py",
            'return {"latched": True, "reason": f"latch file damaged ({exc}): {self.path}", "since": None, "trips": 0}',
            "return None",
-           ("tests/runtime/test_latch.py", "tests/faults/test_state_dir.py", E2E_INTERLOCK)),
+           ("tests/runtime/test_latch.py", "tests/faults/test_state_dir.py", RUNTIME, E2E_INTERLOCK)),
     Mutant("il-watchdog-not-rearmed", "interlock",
            "watchdog: after the link comes back the DAQ's watchdog is not armed again (a restarted DAQ forgot it)",
            "daemon/pipeline/runner.py",
            "            self._safe(self.interlock.start)\n",
            "",
            ("tests/runtime/test_interlock.py", "tests/runtime/test_runner.py", "tests/faults/test_watchdog_hold.py",
-            E2E_FAILURES)),
-    Mutant("il-heartbeat-while-estimator-hangs", "interlock",
-           "watchdog: heartbeats go on while the estimator loop hangs (health checks only the samples' age)",
-           "daemon/pipeline/runner.py",
-           "return now - self._last_block_mono < HEALTH_STALL_S and now - self._loop_mono < HEALTH_STALL_S",
-           "return now - self._last_block_mono < HEALTH_STALL_S",
-           ("tests/runtime/test_runner.py", "tests/runtime/test_interlock.py", E2E_FAILURES)),
+            RUNTIME, E2E_FAILURES, "tests/faults/test_link.py")),
+    Mutant("il-watchdog-never-armed", "interlock",
+           "watchdog: the interlock's start no longer sets the DAQ's watchdog (a hung daemon leaves the feed running)",
+           "daemon/pipeline/interlock.py",
+           "        if self.watchdog_ms > 0:\n            self._out.set_watchdog_ms(self.watchdog_ms)\n",
+           "",
+           ("tests/runtime/test_interlock.py", "tests/runtime/test_runner.py", "tests/faults/test_watchdog_hold.py",
+            RUNTIME, E2E_FAILURES, "tests/faults/test_link.py")),
     Mutant("il-frame-check-not-rearmed", "interlock",
            "a reset does not re-arm the reader thread's frame check: the next crash is not caught there",
            "daemon/pipeline/runner.py",
            "                if self.frame_check is not None:\n                    self.frame_check.rearm()\n",
            "                pass\n",
            ("tests/runtime/test_frame_check.py", "tests/runtime/test_interlock.py", "tests/runtime/test_runner.py",
-            E2E_CRASH, E2E_INTERLOCK)),
+            RUNTIME, STANDSTILL, E2E_CRASH, E2E_INTERLOCK)),
     # -- signal checks -----------------------------------------------------------------------------------------
     Mutant("sc-frame-check-clip-gate", "signal checks",
            "frame check: a frame is looked at only when a current passes crash_current_a (a clipped sensor, "
@@ -143,13 +147,13 @@ MUTANTS: tuple[Mutant, ...] = (
            "daemon/pipeline/safety_check.py",
            "not (bound_w > self._p_limit or bound_a >= self._i_gate)",
            "not (bound_w > self._p_limit or bound_a > self._i_limit)",
-           (*FRAME, E2E_CRASH)),
+           (*FRAME, RUNTIME, E2E_CRASH)),
     Mutant("sc-frame-check-clip-edge", "signal checks",
            "frame check: a count at exactly the sensor's limit is not taken as clipped (`<`/`>` for `<=`/`>=`)",
            "daemon/pipeline/safety_check.py",
            "bool(((counts <= self._lo) | (counts >= self._hi)).any())",
            "bool(((counts < self._lo) | (counts > self._hi)).any())",
-           (*FRAME, E2E_CRASH)),
+           (*FRAME, RUNTIME, E2E_CRASH)),
     Mutant("sc-stuck-sensor-weak-forgotten", "signal checks",
            "signal check: only a flat channel is named; one that swings a tenth of its phases' (unplugged, noisy) "
            "passes",
@@ -169,7 +173,7 @@ MUTANTS: tuple[Mutant, ...] = (
            "daemon/pipeline/phase_check.py",
            "if sum_ptp > KIRCHHOFF_SHARE * phase_ptp:",
            "if sum_ptp > phase_ptp:",
-           ("tests/faults/test_phase_order.py",)),
+           ("tests/faults/test_phase_order.py", "tests/faults/test_sensors.py", "tests/faults/test_signals.py")),
     Mutant("sc-rate-one-sided", "signal checks",
            "rate check: only a stream slower than stated is caught (`abs` forgotten on the drift)",
            "daemon/pipeline/rate_check.py",
@@ -225,7 +229,7 @@ MUTANTS: tuple[Mutant, ...] = (
            "daemon/learning/envelope.py",
            "if not np.all(np.isfinite(values[known]) & (values[known] >= 0.0)):",
            "if not np.all(np.isfinite(values[known])):",
-           ("tests/learning", "tests/history/test_stored_limits.py")),
+           ("tests/learning", "tests/history/test_stored_limits.py", "tests/e2e/test_learning_live.py")),
     Mutant("le-context-seq-replay", "learning",
            "context authority: a signed context with the same sequence number as the last is taken again (replay)",
            "daemon/learning/context_auth.py",
@@ -283,13 +287,13 @@ MUTANTS: tuple[Mutant, ...] = (
            "daemon/dashboard/server.py",
            "    def do_POST(self) -> None:  # noqa: N802\n        if self._host_refused():\n            return\n",
            "    def do_POST(self) -> None:  # noqa: N802\n",
-           ("tests/dashboard/test_server.py", "tests/dashboard/test_connections.py"), trust=True),
+           ("tests/dashboard/test_server.py", "tests/dashboard/test_connections.py", "tests/dashboard"), trust=True),
     Mutant("db-refusal-body-not-drained", "dashboard",
            "a refused request's body is not drained: the connection's next request starts inside it",
            "daemon/dashboard/server.py",
            "        if not self.body_done:\n            self._drain_body()\n        self.send_response(status)",
            "        self.send_response(status)",
-           ("tests/dashboard/test_connections.py", "tests/dashboard/test_server.py")),
+           ("tests/dashboard/test_connections.py", "tests/dashboard/test_server.py", "tests/dashboard")),
     # -- physics -----------------------------------------------------------------------------------------------
     Mutant("ph-force-radius-as-diameter", "physics",
            "eq. 16: F_T = T_c/R with the tool's diameter taken for R (a factor 2)",
@@ -330,13 +334,13 @@ MUTANTS: tuple[Mutant, ...] = (
            "daemon/opcua/feed_held.py",
            "return max(MIN_SEVERITY, levels.get(cause_level(reason), 0))",
            "return levels.get(cause_level(reason), MIN_SEVERITY)",
-           ("tests/opcua/test_feed_held.py", "tests/opcua/test_opcua_unit.py")),
+           ("tests/opcua/test_feed_held.py", "tests/opcua/test_opcua_unit.py", "tests/opcua")),
     Mutant("op-feedheld-stale-status-clears", "OPC UA",
            "FeedHeld: a status built before the trip clears the condition the alarm just raised",
            "daemon/opcua/feed_held.py",
            "t < self._from_alarm_t + NOT_BEFORE_S:",
            "t < self._from_alarm_t:",
-           ("tests/opcua/test_feed_held.py", "tests/opcua/test_opcua_unit.py")),
+           ("tests/opcua/test_feed_held.py", "tests/opcua/test_opcua_unit.py", "tests/opcua")),
 )
 
 
@@ -479,7 +483,8 @@ class Planted:
 
 
 # ---------------------------------------------------------------------------------------------------------- running
-_FIRST_FAILURE = re.compile(r"^(?:FAILED|ERROR) (\S+)", re.M)
+# the short summary's "FAILED <node id> - <message>"; a parametrised id may hold spaces inside its brackets
+_FIRST_FAILURE = re.compile(r"^(?:FAILED|ERROR) ([^\s\[]+(?:\[[^\n]*?\])?)(?= - |$)", re.M)
 
 
 def run_pytest(sb: Sandbox, targets: list[str], timeout_s: float) -> tuple[int | None, str, float]:
@@ -525,6 +530,19 @@ def classify(rc: int | None, out: str) -> tuple[str, str | None]:
     return "error", first.group(1) if first else None   # 2: collection error (an import broken), 3, 4, 5
 
 
+def expand_targets(root: Path, targets: tuple[str, ...]) -> list[str]:
+    """The targets in the order given, a folder as its test files (sorted), each file once: pytest would
+    otherwise collect a file named before its folder in the folder's order, and `-x` would stop elsewhere."""
+    out: list[str] = []
+    for t in targets:
+        path = root / t
+        if "::" not in t and path.is_dir():
+            out += [p.relative_to(root).as_posix() for p in sorted(path.rglob("test_*.py"))]
+        else:
+            out.append(t)
+    return list(dict.fromkeys(out))
+
+
 def run_mutant(sb: Sandbox, m: Mutant, timeout_s: float, confirm: bool) -> dict:
     result: dict = {"id": m.id, "package": m.package, "file": m.file, "description": m.description,
                     "targets": list(m.targets), "trust": m.trust}
@@ -532,7 +550,7 @@ def run_mutant(sb: Sandbox, m: Mutant, timeout_s: float, confirm: bool) -> dict:
     if problems:
         return {**result, "status": "refused", "detail": problems[m.id], "seconds": 0.0}
     with Planted(sb.src, m):
-        rc, out, seconds = run_pytest(sb, list(m.targets), timeout_s)
+        rc, out, seconds = run_pytest(sb, expand_targets(sb.src, m.targets), timeout_s)
     status, first = classify(rc, out)
     result.update(status=status, killed_by=first, seconds=round(seconds, 1), pytest_rc=rc,
                   tail=out.strip().splitlines()[-3:] if out.strip() else [])
