@@ -185,6 +185,20 @@ def test_the_overflowed_row_of_finding_1_is_set_aside_and_learned_again(db):
     assert m.keys[ACTIVE].state == "active" and m.learned_limits_status()["set_aside"] == []
 
 
+@pytest.mark.parametrize("field", ["h_high", "h_low", "std", "floor_low"])
+def test_a_stored_negative_width_is_set_aside(db, field):
+    """Finite but negative: a band whose low side sits above its mean (h_low < 0) would raise envelope_low on
+    every good cut, one whose high side sits below it envelope_high; neither is a learned value."""
+    row = copy.deepcopy(GOOD[ACTIVE])
+    values = row["envelope"]["torque"][field]
+    row["envelope"]["torque"][field] = [None if v is None else -abs(v) - 0.1 for v in values]
+    _write(db, [(ACTIVE, json.dumps(row, allow_nan=False))])
+    m = _restore(db)
+    assert m.learned_limits_status()["set_aside"] == [
+        {"key": ACTIVE, "reason": f"envelope.torque.{field}: not a finite number >= 0 where the mean is known"}]
+    assert m.keys[ACTIVE].state == "learning" and m.keys[ACTIVE].envelope is None
+
+
 def test_a_row_that_is_not_json_is_read_as_unreadable_with_its_text(db):
     _write(db, [(ACTIVE, "{torn"), (LEARNING, "NaN")])
     loaded = HistoryStore(db, machine="m1").load_limits()

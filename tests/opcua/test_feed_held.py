@@ -187,3 +187,25 @@ def test_the_track_fires_once_per_transition_and_never_on_a_status_from_before_t
     assert device.active and device.severity == 800 and "watchdog" in device.reason
     # A warning raised while held says feed_hold too; it is not a trip.
     assert FeedHeldTrack(SEVERITY).on_alarm({"t": 1.0, "level": "warning", "interlock": "feed_hold"}) is None
+
+
+def test_a_hold_whose_cause_ranks_below_an_overload_is_still_an_overloads_severity():
+    """An envelope alarm (600) or envelope_low stops the machine as surely as an overload: FeedHeld is at least
+    800 whatever its cause ranks (`MIN_SEVERITY`), more only for a graver one."""
+    for level, side in (("envelope_high", ">"), ("envelope_low", "<")):
+        assert SEVERITY[level] < 800
+        on = FeedHeldTrack(SEVERITY).on_alarm({"t": 10.0, "level": level, "quantity": "torque_nm", "value": 4.2,
+                                               "limit": 3.9, "interlock": "feed_hold"})
+        assert on.active and on.severity == 800 and on.reason == f"{level} torque_nm 4.2 {side} 3.9"
+
+
+def test_a_status_built_within_a_second_of_the_tripping_sample_does_not_release_the_hold():
+    """Alarms and statuses travel on different keys: a status built 0.5 s after the tripping sample may still
+    be from before the trip was decided. Only one built `NOT_BEFORE_S` (1 s) after it can release."""
+    track = FeedHeldTrack(SEVERITY)
+    track.on_alarm({"t": 101.0, "level": "overload", "quantity": "torque_nm", "value": 9.3, "limit": 9.0,
+                    "interlock": "feed_hold"})
+    assert track.on_status(_status(101.5, "armed", daq_feed_hold=False)) is None
+    assert track.active is not None
+    off = track.on_status(_status(102.1, "armed", daq_feed_hold=False))
+    assert off is not None and not off.active

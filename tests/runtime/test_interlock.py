@@ -223,6 +223,17 @@ def test_a_block_from_before_the_hold_counts_for_nothing():
     assert c.blocks == 0 and refused(c) == "no_data"
 
 
+def test_the_last_sample_before_the_hold_is_not_news_and_the_first_after_it_is():
+    """`mark(999)`: sample 999 was processed before the hold. A block beginning there is old evidence (what
+    tripped), one beginning at 1000 is the first after the hold (the boundary `test_a_block_from_before_the_hold`
+    leaves 9 samples away from)."""
+    c = check(crash_power_w=15000.0)
+    c.on_block(999, {"p_gap_w": 900.0}, False, True)
+    assert c.blocks == 0 and refused(c) == "no_data"
+    c.on_block(1000, {"p_gap_w": 900.0}, False, True)
+    assert c.blocks == 1 and refused(c) is None
+
+
 def test_a_spindle_stopped_since_the_hold_is_the_condition_gone():
     c = check(crash_power_w=15000.0)
     c.on_block(1000, {"p_gap_w": 20000.0}, False, False)
