@@ -86,6 +86,8 @@ def test_a_stuck_current_sensor_holds_the_feed_by_default(pipeline):
     wait_for(lambda: runner.interlock.latched, 5, "feed hold for the blind daemon")
     assert "signals" in runner.faults and "i_u" in runner.faults["signals"]
     assert runner.interlock.reason.startswith("blind: signals:") and drv.device.feed_hold
+    # the hold is written first, the alarm handed to the sink after it (on the same thread, a moment later)
+    wait_for(lambda: sink.of("alarm"), 5, "the blind alarm published after the hold")
     (alarm, held), *_ = sink.of("alarm")
     assert alarm["level"] == "overload" and alarm["quantity"] == "signals" and alarm["interlock"] == "feed_hold"
     assert held, "feed hold on the DAQ before the alarm is published"
