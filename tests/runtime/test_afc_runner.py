@@ -51,18 +51,28 @@ def rig():
     made = []
 
     def make(torque, *, protocol: int = 2, **kw):
-        drv = SimDriver("ramp", realtime=True, protocol=protocol)
-        drv.start()
-        assert drv.wait_connected(5)
-        wait_for(lambda: drv.descriptor is not None, 5, "descriptor")
-        runner = Runner(settings(**kw), drv, estimator_factory=Rpm600(torque), check_descriptor=lambda s, d: None)
-        sink = RecordingSink(lambda: drv.device)
-        made.append((runner, drv))
-        runner.start(sink)
-        wait_for(lambda: sink.of("estimate"), 5, "a first revolution")
-        return runner, drv, sink
+        return start_runner(made, settings(**kw), torque, protocol)
 
     yield make
+    stop_runners(made)
+
+
+def start_runner(made: list, config, torque, protocol: int = 2):
+    """A runner on the simulated DAQ (ramp, real time) at 600 rpm with `torque`, started and past its first
+    revolution; (runner, driver, sink), also appended to `made` for `stop_runners`."""
+    drv = SimDriver("ramp", realtime=True, protocol=protocol)
+    drv.start()
+    assert drv.wait_connected(5)
+    wait_for(lambda: drv.descriptor is not None, 5, "descriptor")
+    runner = Runner(config, drv, estimator_factory=Rpm600(torque), check_descriptor=lambda s, d: None)
+    sink = RecordingSink(lambda: drv.device)
+    made.append((runner, drv))
+    runner.start(sink)
+    wait_for(lambda: sink.of("estimate"), 5, "a first revolution")
+    return runner, drv, sink
+
+
+def stop_runners(made: list) -> None:
     for runner, drv in made:
         runner.stop(1.0)
         drv.close()

@@ -17,11 +17,9 @@ import pytest
 from pydantic import SecretStr
 
 from millsense.daemon.config_models import AfcSettings, AfcTargetSettings
-from millsense.daemon.pipeline.runner import Runner
-from millsense.drivers.sim_driver import SimDriver
 from tests.learning.doc_signer import signer
-from tests.runtime.test_afc_runner import TARGET_NM, Rpm600
-from tests.runtime.test_runner import RecordingSink, wait_for
+from tests.runtime.test_afc_runner import TARGET_NM, start_runner, stop_runners
+from tests.runtime.test_runner import wait_for
 
 MACHINE = "ctx-rt"
 KEY = "adapter-key-of-at-least-32-characters-0123456789"
@@ -47,22 +45,10 @@ def rig():
     made = []
 
     def make(**kw):
-        drv = SimDriver("ramp", realtime=True, protocol=2)
-        drv.start()
-        assert drv.wait_connected(5)
-        wait_for(lambda: drv.descriptor is not None, 5, "descriptor")
-        runner = Runner(settings(**kw), drv, estimator_factory=Rpm600(lambda rev: TARGET_NM / 2),
-                        check_descriptor=lambda s, d: None)
-        sink = RecordingSink(lambda: drv.device)
-        made.append((runner, drv))
-        runner.start(sink)
-        wait_for(lambda: sink.of("estimate"), 5, "a first revolution")
-        return runner, drv, sink
+        return start_runner(made, settings(**kw), lambda rev: TARGET_NM / 2)
 
     yield make
-    for runner, drv in made:
-        runner.stop(1.0)
-        drv.close()
+    stop_runners(made)
 
 
 def put(runner, payload: dict) -> None:
