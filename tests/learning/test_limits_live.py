@@ -16,10 +16,8 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import signal
 import sqlite3
-import subprocess
 
 import numpy as np
 from types import SimpleNamespace
@@ -28,7 +26,8 @@ from millsense.daemon.history.store import HistoryStore
 from millsense.daemon.learning.monitor import ProcessMonitor
 from millsense.daemon.publish.limits_args import check_args
 from tests.conftest import free_tcp_port
-from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for, write_config
+from tests.e2e.helpers import Procs, Subscriber, tcp, wait_for, write_config
+from tests.e2e.test_limits_cli import _audit, _cli
 from tests.learning.synth import Shop, ctx, learning
 
 TOKEN = "limits-token-of-at-least-32-characters-0123456789"
@@ -71,16 +70,6 @@ def _seed(db, rows: dict[str, dict]) -> None:
     with sqlite3.connect(db) as conn:
         conn.executemany("INSERT INTO limits (key, t, payload) VALUES (?, 0, ?)",
                          [(NULLED, json.dumps(nulled, allow_nan=False)), (INFINITE, json.dumps(infinite))])
-
-
-def _cli(args: list[str], env: dict[str, str]) -> subprocess.CompletedProcess:
-    return subprocess.run(CMD + ["limits", *args], capture_output=True, text=True, timeout=SLOW_S,
-                          env=dict(os.environ, **env))
-
-
-def _audit(state) -> list[dict]:
-    path = state / "audit.log"
-    return [json.loads(x) for x in path.read_text().splitlines()] if path.exists() else []
 
 
 def test_a_widen_storm_and_non_finite_rows_leave_a_daemon_that_runs_trips_and_restarts(tmp_path):
