@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import random
 import socket
 import sys
@@ -11,6 +12,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
+
+pytest_plugins = ["tests.parallel"]  # parallel workers, the serial phase, --cpu-report (tests/parallel.py)
 
 
 # Ports handed out by `free_tcp_port` in this process: a test that asks for two gets two.
@@ -27,6 +30,19 @@ def ephemeral_range() -> tuple[int, int]:
         return 32768, 60999
 
 
+def worker_port_slice(lowest: int, top: int) -> tuple[int, int]:
+    """This test process's own share of [lowest, top): the suite runs in parallel processes (pytest-xdist),
+    and a port one worker picked but has not yet listened on must not be picked by another. Worker gwN of
+    M takes the N-th of M equal slices; a run without xdist takes the whole range."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
+    if not worker.startswith("gw") or count <= 1:
+        return lowest, top
+    index = int(worker[2:])
+    width = (top - lowest) // count
+    return lowest + index * width, lowest + (index + 1) * width
+
+
 def free_tcp_port() -> int:
     """A TCP port on 127.0.0.1 that nothing listens on right now, below the ephemeral range.
 
@@ -34,12 +50,14 @@ def free_tcp_port() -> int:
     ephemeral range (what binding port 0 gives) can meanwhile become the local port of an outgoing
     connection (the daemon's, Zenoh's, the emulator's clients'): the listener then fails with
     "Address already in use" (seen in CI). Ports below that range are never given to outgoing
-    connections, and none is handed out twice in one run.
+    connections, none is handed out twice in one process, and each parallel worker picks from its
+    own slice (`worker_port_slice`): a port picked by one worker is never another's.
     """
     lo, _ = ephemeral_range()
     top = lo - 1 if lo - 1 > LOWEST_PORT + 1000 else 0
+    first, stop = worker_port_slice(LOWEST_PORT, top) if top else (0, 0)
     for _ in range(200 if top else 0):
-        port = random.randrange(LOWEST_PORT, top)
+        port = random.randrange(first, stop)
         if port in _HANDED_OUT:
             continue
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:

@@ -1,0 +1,137 @@
+"""How the suite runs in parallel processes (pytest-xdist), loaded by tests/conftest.py.
+
+The suite mostly waits on real processes, so pyproject runs it in several workers
+(`-n`, `--dist loadgroup`). Three rules keep that honest (docs/testing.md):
+
+- **Order.** Tests marked `slow` are handed out first, so that the longest ones do not
+  start last and leave one worker running alone at the end. `serial` tests come last.
+- **The serial phase.** A test marked `serial` asserts a latency or a period (crash →
+  hold, the watchdog, heartbeats, reset at standstill): it runs with no other test
+  running. All of them form one xdist group, so one worker runs them back to back;
+  that worker holds a lock the others need to start any test, from the first serial
+  test to the last (a readers–writer lock on files, with writers first: a waiting
+  serial test stops new tests from starting, then waits for those running to end).
+  The kernel drops a dead worker's lock, so a crash cannot wedge the others.
+- **CPU, not only time.** `--cpu-report N` prints the N tests that used most CPU
+  (the worker process and the children it waited for): on a 2-core box the suite's
+  time is bounded by CPU, and a test can be quick and still eat the others' share.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import resource
+import tempfile
+from pathlib import Path
+
+import pytest
+
+SERIAL_GROUP = "serial"
+_holding_serial = False
+_locks: dict[str, int] = {}
+
+
+def pytest_addoption(parser):
+    parser.addoption("--cpu-report", type=int, default=0, metavar="N",
+                     help="print the N tests that used the most CPU seconds (worker and waited-for children)")
+
+
+def _is(item, name: str) -> bool:
+    return item is not None and item.get_closest_marker(name) is not None
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the xdist_group markers
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if _is(item, "serial"):
+            item.add_marker(pytest.mark.xdist_group(SERIAL_GROUP))
+    # a stable sort: slow first, serial last, the collection's order kept within each
+    items.sort(key=lambda item: 2 if _is(item, "serial") else 0 if _is(item, "slow") else 1)
+
+
+def _lock_path(name: str) -> Path:
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID", "")
+    d = Path(tempfile.gettempdir()) / f"millsense-pytest-{run}"
+    d.mkdir(exist_ok=True)
+    return d / name
+
+
+def _fd(name: str) -> int:
+    if name not in _locks:
+        _locks[name] = os.open(_lock_path(name), os.O_RDWR | os.O_CREAT, 0o600)
+    return _locks[name]
+
+
+def _enter(serial: bool) -> None:
+    global _holding_serial
+    if serial:
+        if not _holding_serial:
+            fcntl.flock(_fd("gate"), fcntl.LOCK_EX)   # no new test starts from here ...
+            fcntl.flock(_fd("run"), fcntl.LOCK_EX)    # ... and the running ones have ended
+            _holding_serial = True
+        return
+    fcntl.flock(_fd("gate"), fcntl.LOCK_EX)
+    fcntl.flock(_fd("run"), fcntl.LOCK_SH)
+    fcntl.flock(_fd("gate"), fcntl.LOCK_UN)
+
+
+def _leave(serial: bool, next_serial: bool) -> None:
+    global _holding_serial
+    if serial and next_serial:
+        return                                        # the serial phase goes on
+    fcntl.flock(_fd("run"), fcntl.LOCK_UN)
+    if _holding_serial:
+        fcntl.flock(_fd("gate"), fcntl.LOCK_UN)
+        _holding_serial = False
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    parallel = bool(os.environ.get("PYTEST_XDIST_WORKER"))
+    serial = _is(item, "serial")
+    if parallel:
+        _enter(serial)
+    item.stash[_CPU_START] = _cpu_s()
+    try:
+        yield
+    finally:
+        if parallel:
+            _leave(serial, _is(nextitem, "serial"))
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_teardown(item):
+    yield
+    # before the teardown's report is made, which carries user_properties to the controller
+    item.user_properties.append(("cpu_s", round(_cpu_s() - item.stash.get(_CPU_START, _cpu_s()), 2)))
+
+
+def _cpu_s() -> float:
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+_CPU_START = pytest.StashKey[float]()
+
+
+def pytest_runtest_logreport(report):
+    if report.when != "teardown":
+        return
+    for key, value in report.user_properties:
+        if key == "cpu_s":
+            _cpu_by_test[report.nodeid] = value
+
+
+_cpu_by_test: dict[str, float] = {}
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    n = config.getoption("--cpu-report")
+    if not n or not _cpu_by_test:
+        return
+    total = sum(_cpu_by_test.values())
+    terminalreporter.section(f"most CPU: {n} of {len(_cpu_by_test)} tests, {total:.0f} CPU s in all")
+    for nodeid, cpu_s in sorted(_cpu_by_test.items(), key=lambda kv: -kv[1])[:n]:
+        terminalreporter.write_line(f"{cpu_s:8.2f}s cpu  {nodeid}")
