@@ -3,6 +3,8 @@
 The suite mostly waits on real processes, so pyproject runs it in several workers
 (`-n`, `--dist loadgroup`). Three rules keep that honest (docs/testing.md):
 
+- **Sharing.** The tests of a module that uses a module-scoped fixture form one xdist
+  group, so that the fixture is built once, not once per worker.
 - **Order.** Tests marked `slow` are handed out first, so that the longest ones do not
   start last and leave one worker running alone at the end. `serial` tests come last.
 - **The serial phase.** A test marked `serial` asserts a latency or a period (crash →
@@ -46,8 +48,20 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if _is(item, "serial"):
             item.add_marker(pytest.mark.xdist_group(SERIAL_GROUP))
+        elif _shares_a_module_fixture(item) and not _is(item, "xdist_group"):
+            item.add_marker(pytest.mark.xdist_group(f"module:{item.module.__name__}"))
     # a stable sort: slow first, serial last, the collection's order kept within each
     items.sort(key=lambda item: 2 if _is(item, "serial") else 0 if _is(item, "slow") else 1)
+
+
+def _shares_a_module_fixture(item) -> bool:
+    """A module-scoped fixture (a built wheelhouse, a precomputed stream, a shared daemon) is made once per
+    worker that runs a test of its module: the module's tests go to one worker, so it is made once."""
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return False
+    return any(defs and defs[-1].scope == "module" for name, defs in info.name2fixturedefs.items()
+               if name in info.names_closure)
 
 
 def _lock_path(name: str) -> Path:

@@ -13,6 +13,7 @@ from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for, write_config
 
 
+@pytest.mark.xdist_group("demo")  # the built-in demo scouts by multicast: a second demo at once refuses its name
 def test_demo_prints_a_summary_line_per_second_and_exits(tmp_path):
     p = subprocess.run(CMD + ["run", "--seconds", "4"], capture_output=True, text=True, timeout=60)
     assert p.returncode == 0, p.stderr
@@ -85,6 +86,7 @@ def test_bad_config_exits_78_naming_the_key(tmp_path):
     assert "torque_limt_nm" in p.stderr and "Traceback" not in p.stderr
 
 
+@pytest.mark.xdist_group("demo")  # the built-in demo scouts by multicast: a second demo at once refuses its name
 def test_demo_on_a_terminal_refreshes_one_line(tmp_path):
     import os
     import select
