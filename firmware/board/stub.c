@@ -3,7 +3,47 @@
  * a board that implements the hardware interface, and nothing else from a C library but string.h.
  * The ms_hw_* bodies here do nothing; a real board's are in docs/firmware.md ("A worked example").
  */
+#include <string.h>
+
 #include "msfw.h"
+
+/* string.h, the only library the core uses: a board takes its C library's (newlib's); the stub brings its own
+ * so that the link check needs no C library installed (built with -fno-tree-loop-distribute-patterns, so
+ * that the loops are not turned back into calls to themselves) */
+void *memcpy(void *dst, const void *src, size_t n)
+{
+    uint8_t *d = dst;
+    const uint8_t *s = src;
+    while (n--) {
+        *d++ = *s++;
+    }
+    return dst;
+}
+
+void *memmove(void *dst, const void *src, size_t n)
+{
+    uint8_t *d = dst;
+    const uint8_t *s = src;
+    if (d < s) {
+        while (n--) {
+            *d++ = *s++;
+        }
+    } else {
+        while (n--) {
+            d[n] = s[n];
+        }
+    }
+    return dst;
+}
+
+void *memset(void *dst, int c, size_t n)
+{
+    uint8_t *d = dst;
+    while (n--) {
+        *d++ = (uint8_t)c;
+    }
+    return dst;
+}
 
 static ms_device dev; /* no heap: the whole device is one static object (see arm-none-eabi-size's bss) */
 static volatile uint32_t millis;
