@@ -8,11 +8,15 @@ own log (monotonic clock), never from the test's sleeps.
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
+import termios
+import tty
 
 import pytest
 
+from tests.e2e.helpers import read_jsonl, wait_for
 from tests.firmware import frames
 from tests.firmware.conftest import ramp_counts
 from tests.firmware.device import Firmware, Link
@@ -220,3 +224,35 @@ def test_a_restart_sends_a_descriptor_first_counts_from_0_and_puts_the_outputs_s
         assert fw.wait_event("feed_override", lambda e: e["cause"] == "restart" and e["mono"] > 0)["value"] == 1000
         link.close()
         _stop_clean(fw)
+
+
+def test_the_stream_on_a_pty_carries_the_same_frames_and_commands(plain_build, ramp_capture, tmp_path):
+    link = tmp_path / "daq-link"
+    fw_proc = subprocess.Popen([str(plain_build / "msfw-host"), "--capture", str(ramp_capture), "--pty", str(link),
+                                "--log", str(tmp_path / "fw.jsonl")], stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(lambda: link.is_symlink() or fw_proc.poll() is not None, 20.0, "the pty link")
+        fd = os.open(link, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        tty.setraw(fd)
+        termios.tcflush(fd, termios.TCIFLUSH)          # what queued before we opened: a serial line's past
+        os.write(fd, frames.send_descriptor() + frames.heartbeat(42) + frames.set_outputs(0x01))
+        dec = frames.Decoder()
+        got: list[frames.Frame] = []
+
+        def read() -> bool:
+            try:
+                got.extend(dec.feed(os.read(fd, 65536)))
+            except BlockingIOError:
+                pass
+            return any(f.type == T_STATUS and f.status()["heartbeat"] == 42 and f.status()["outputs"] & 1 for f in got)
+
+        wait_for(read, 20.0, "a STATUS with heartbeat 42 and the feed held")
+        wait_for(lambda: read() or any(f.type == T_DESCRIPTOR for f in got), 20.0, "a DESCRIPTOR")
+        samples = [f.samples() for f in got if f.type == T_SAMPLES]
+        assert samples and all(s[3] == [ramp_counts((s[0] + k) % 3000) for k in range(s[2])] for s in samples)
+        assert any(e["event"] == "outputs" and e["feed_hold"] for e in read_jsonl(tmp_path / "fw.jsonl"))
+        os.close(fd)
+    finally:
+        fw_proc.terminate()
+        assert fw_proc.wait(10) == 0, fw_proc.stderr.read()
+    assert not link.exists(), "the link is removed when the firmware stops"
