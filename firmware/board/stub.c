@@ -47,6 +47,8 @@ void *memset(void *dst, int c, size_t n)
 
 static ms_device dev; /* no heap: the whole device is one static object (see arm-none-eabi-size's bss) */
 static volatile uint32_t millis;
+static uint8_t modbus_frame[MS_MODBUS_MAX_ADU], modbus_reply[MS_MODBUS_MAX_ADU];
+static volatile size_t modbus_len, modbus_reply_len;
 
 void ms_hw_read_sample(int16_t *counts) { (void)counts; }
 void ms_hw_write_outputs(uint8_t outputs) { (void)outputs; }
@@ -80,5 +82,9 @@ void Reset_Handler(void)
     }
     for (;;) {
         ms_poll(&dev);
+        if (modbus_len != 0u) { /* a Modbus RTU board's UART hands over one frame at a 3.5-character silence */
+            modbus_reply_len = ms_modbus_rtu(&dev, 1, modbus_frame, modbus_len, modbus_reply, sizeof modbus_reply);
+            modbus_len = 0;
+        }
     }
 }

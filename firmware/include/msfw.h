@@ -83,7 +83,10 @@ typedef struct {
     char name[8]; /* ASCII letters, digits or '_', padded with zeros */
 } ms_channel;
 
+typedef enum { MS_LINK_STREAM = 0, MS_LINK_MODBUS = 1 } ms_link;
+
 typedef struct {
+    ms_link link;                     /* the framed stream (ms_poll sends and receives), or Modbus (ms_modbus_*) */
     uint16_t sample_rate_hz;
     uint8_t channel_count;            /* 1 .. MS_MAX_CHANNELS */
     ms_channel channels[MS_MAX_CHANNELS];
@@ -186,6 +189,18 @@ void ms_poll(ms_device *dev);
 void ms_link_reset(ms_device *dev);
 /* whether the watchdog holds the feed now */
 static inline bool ms_watchdog_tripped(const ms_device *dev) { return (dev->flags & MS_FLAG_WATCHDOG) != 0u; }
+
+/* -- Modbus (src/ms_modbus.c): the register map of docs/protocol.md over the same device ------------
+ * For cfg.link = MS_LINK_MODBUS: the board's Modbus transport hands each request to one of these, from the
+ * main loop (the context of ms_poll), and sends back what they write to `out` (0 bytes: no reply). */
+#define MS_MODBUS_MAX_ADU 260u
+/* A PDU (function code and data) to its response PDU; the response's length. */
+size_t ms_modbus_pdu(ms_device *dev, const uint8_t *req, size_t len, uint8_t *out, size_t cap);
+/* Modbus TCP: one whole ADU (MBAP header + PDU); another unit id gets exception 0x0B. */
+size_t ms_modbus_tcp(ms_device *dev, uint8_t unit, const uint8_t *adu, size_t len, uint8_t *out, size_t cap);
+/* Modbus RTU: one frame (unit, PDU, CRC) as the board's 3.5-character silence delimits it; a bad CRC or
+ * another unit id: no reply (the bus may hold other devices). */
+size_t ms_modbus_rtu(ms_device *dev, uint8_t unit, const uint8_t *frame, size_t len, uint8_t *out, size_t cap);
 
 /* -- the hardware interface: the board implements these -------------------- */
 /* One sample set at the tick that is happening now: cfg.channel_count raw counts, as the ADC gives them. */

@@ -2,6 +2,7 @@
 #include <string.h>
 
 #include "msfw.h"
+#include "ms_internal.h"
 
 /* ms_tick may run in an interrupt: the ring slot must be written before head moves on, and ms_poll
  * must read head again after copying slots. A compiler barrier is enough on a single core. */
@@ -34,7 +35,7 @@ static bool valid_name_char(char c)
 
 static bool config_ok(const ms_config *cfg)
 {
-    if (cfg->sample_rate_hz == 0u || cfg->channel_count == 0u || cfg->channel_count > MS_MAX_CHANNELS) {
+    if ((cfg->link != MS_LINK_STREAM && cfg->link != MS_LINK_MODBUS) || cfg->sample_rate_hz == 0u || cfg->channel_count == 0u || cfg->channel_count > MS_MAX_CHANNELS) {
         return false;
     }
     uint16_t d = cfg->ring_samples;
@@ -101,7 +102,7 @@ static void set_override(ms_device *dev, uint16_t tenths, ms_cause cause)
 
 /* -- watchdog ------------------------------------------------------------- */
 
-static void watchdog_check(ms_device *dev, uint32_t now)
+void ms__watchdog_check(ms_device *dev, uint32_t now)
 {
     if (dev->cfg.watchdog_ms == 0u || !dev->heard || (dev->flags & MS_FLAG_WATCHDOG) != 0u) {
         return; /* armed by the first heartbeat (docs/protocol.md "Restarts, watchdog") */
@@ -134,6 +135,55 @@ static void refuse_override(ms_device *dev, uint16_t value, ms_refusal why)
     ms_hw_event(MS_EV_OVERRIDE_REFUSED, value, (uint32_t)why);
 }
 
+void ms__set_outputs(ms_device *dev, uint8_t bits, uint32_t now)
+{
+    dev->commanded = (uint8_t)(bits & (MS_OUT_FEED_HOLD | MS_OUT_ALARM_LAMP));
+    if ((dev->commanded & MS_OUT_FEED_HOLD) == 0u) {
+        /* the host's clear: releases a watchdog hold, which re-arms from the last heartbeat heard
+         * (at once if that is more than a period ago: watchdog_check below) */
+        dev->flags &= (uint8_t)~MS_FLAG_WATCHDOG;
+    }
+    apply_outputs(dev, MS_CAUSE_COMMAND);
+    ms__watchdog_check(dev, now);
+}
+
+void ms__heartbeat(ms_device *dev, uint16_t counter, uint32_t now)
+{
+    if (dev->heard && counter == dev->last_heartbeat) {
+        return; /* only a changed counter proves a live host */
+    }
+    dev->heard = true;
+    dev->last_heartbeat = counter;
+    dev->last_heartbeat_ms = now;
+    ms_hw_event(MS_EV_HEARTBEAT, counter, now);
+    apply_outputs(dev, MS_CAUSE_HEARTBEAT); /* hold_until_heartbeat: released by the first one */
+}
+
+bool ms__set_override(ms_device *dev, uint16_t tenths)
+{
+    if ((dev->cfg.capabilities & MS_CAP_OVERRIDE) == 0u) {
+        refuse_override(dev, tenths, MS_REFUSE_NO_OUTPUT);
+    } else if (tenths > MS_OVERRIDE_MAX) {
+        refuse_override(dev, tenths, MS_REFUSE_RANGE); /* the device bounds it too, whatever the host sends */
+    } else if ((dev->flags & MS_FLAG_WATCHDOG) != 0u && tenths > MS_OVERRIDE_NEUTRAL) {
+        refuse_override(dev, tenths, MS_REFUSE_WATCHDOG); /* tripped: slower only, until the host's clear */
+    } else {
+        set_override(dev, tenths, MS_CAUSE_COMMAND);
+        return true;
+    }
+    return false;
+}
+
+void ms__set_watchdog_ms(ms_device *dev, uint16_t ms, uint32_t now)
+{
+    if (ms != dev->cfg.watchdog_ms) {
+        dev->cfg.watchdog_ms = ms;
+        if (dev->heard) {
+            dev->last_heartbeat_ms = now; /* a new period counts from now, not from a heartbeat it never judged */
+        }
+    }
+}
+
 static void on_command(ms_device *dev, const uint8_t *p, uint16_t len, uint32_t now)
 {
     uint8_t cmd = p[0];
@@ -147,14 +197,7 @@ static void on_command(ms_device *dev, const uint8_t *p, uint16_t len, uint32_t 
         }
         arg = (uint16_t)(p[1] & (MS_OUT_FEED_HOLD | MS_OUT_ALARM_LAMP));
         ms_hw_event(MS_EV_COMMAND, cmd, arg);
-        dev->commanded = (uint8_t)arg;
-        if ((arg & MS_OUT_FEED_HOLD) == 0u) {
-            /* the host's clear: releases a watchdog hold, which re-arms from the last heartbeat heard
-             * (at once if that is more than a period ago: watchdog_check below, in this poll) */
-            dev->flags &= (uint8_t)~MS_FLAG_WATCHDOG;
-        }
-        apply_outputs(dev, MS_CAUSE_COMMAND);
-        watchdog_check(dev, now);
+        ms__set_outputs(dev, (uint8_t)arg, now);
         break;
     case MS_CMD_HEARTBEAT:
         if (len != 3u) {
@@ -163,14 +206,7 @@ static void on_command(ms_device *dev, const uint8_t *p, uint16_t len, uint32_t 
         }
         arg = get16(&p[1]);
         ms_hw_event(MS_EV_COMMAND, cmd, arg);
-        if (dev->heard && arg == dev->last_heartbeat) {
-            break; /* only a changed counter proves a live host */
-        }
-        dev->heard = true;
-        dev->last_heartbeat = arg;
-        dev->last_heartbeat_ms = now;
-        ms_hw_event(MS_EV_HEARTBEAT, arg, now);
-        apply_outputs(dev, MS_CAUSE_HEARTBEAT); /* hold_until_heartbeat: released by the first one */
+        ms__heartbeat(dev, arg, now);
         break;
     case MS_CMD_SEND_DESCRIPTOR:
         if (len != 1u) {
@@ -187,15 +223,7 @@ static void on_command(ms_device *dev, const uint8_t *p, uint16_t len, uint32_t 
         }
         arg = get16(&p[1]);
         ms_hw_event(MS_EV_COMMAND, cmd, arg);
-        if ((dev->cfg.capabilities & MS_CAP_OVERRIDE) == 0u) {
-            refuse_override(dev, arg, MS_REFUSE_NO_OUTPUT);
-        } else if (arg > MS_OVERRIDE_MAX) {
-            refuse_override(dev, arg, MS_REFUSE_RANGE); /* the device bounds it too, whatever the host sends */
-        } else if ((dev->flags & MS_FLAG_WATCHDOG) != 0u && arg > MS_OVERRIDE_NEUTRAL) {
-            refuse_override(dev, arg, MS_REFUSE_WATCHDOG); /* tripped: slower only, until the host's clear */
-        } else {
-            set_override(dev, arg, MS_CAUSE_COMMAND);
-        }
+        (void)ms__set_override(dev, arg);
         break;
     default:
         bad_command(dev, cmd);
@@ -520,7 +548,11 @@ void ms_link_reset(ms_device *dev)
 void ms_poll(ms_device *dev)
 {
     uint32_t now = ms_hw_millis();
-    watchdog_check(dev, now); /* first: a heartbeat that comes after the deadline finds it tripped */
+    ms__watchdog_check(dev, now); /* first: a heartbeat that comes after the deadline finds it tripped */
+    if (dev->cfg.link == MS_LINK_MODBUS) {
+        read_cnc(dev); /* the host reads the registers (ms_modbus.c): no frames, no stream to pump */
+        return;
+    }
     receive(dev, now);
     read_cnc(dev);
     ring_check(dev);
