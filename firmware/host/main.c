@@ -29,8 +29,9 @@
 #include "msfw.h"
 
 /* ---- options ------------------------------------------------------------ */
-static const char *opt_capture, *opt_tcp, *opt_pty, *opt_log;
-static long opt_watchdog_ms, opt_ring = 256, opt_per_frame = 10, opt_skip, opt_start_index;
+static const char *opt_capture, *opt_tcp, *opt_pty, *opt_log, *opt_modbus_tcp;
+static long opt_unit = 1;
+static long opt_watchdog_ms, opt_ring = 1024, opt_per_frame = 10, opt_skip, opt_start_index;
 static long opt_sndbuf, opt_cnc_hold_lag_ms = 30;
 static int opt_wait_client, opt_hold_until_heartbeat, opt_once;
 
@@ -59,6 +60,8 @@ static struct timespec t0;
 static uint64_t ticks;
 static int started;
 static double last_heartbeat_mono = -1.0;
+static uint8_t mb_buf[MS_MODBUS_MAX_ADU];
+static size_t mb_len;
 static ms_counters logged_counters;
 static double counters_logged_at;
 
@@ -260,6 +263,9 @@ void ms_hw_event(ms_event ev, uint32_t a, uint32_t b)
             log_counters("counters");
         }
         break;
+    case MS_EV_WATCHDOG_PERIOD:
+        logj("watchdog_period", "\"watchdog_ms\": %u", a);
+        break;
     case MS_EV_CONTEXT:
         logj("context", "\"from_index\": %u, \"flags\": %u", a, b);
         break;
@@ -421,6 +427,7 @@ static void accept_client(void)
         setsockopt(fd, SOL_SOCKET, SO_SNDBUF, &sz, sizeof sz);
     }
     client_fd = fd;
+    mb_len = 0;
     ms_link_reset(&dev); /* each client gets the stream from its connect on, a DESCRIPTOR first */
     logj("client", "\"state\": \"connected\"");
     if (!started) {
@@ -454,6 +461,48 @@ static int open_pty(const char *link)
     return 0;
 }
 
+/* Modbus TCP: whole ADUs out of the client's bytes, each answered by the core's register map. */
+static void serve_modbus(void)
+{
+    if (client_fd < 0) {
+        return;
+    }
+    for (;;) {
+        ssize_t r = recv(client_fd, &mb_buf[mb_len], sizeof mb_buf - mb_len, MSG_DONTWAIT);
+        if (r == 0) {
+            close_client("eof");
+            return;
+        }
+        if (r < 0) {
+            if (errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR) {
+                close_client(strerror(errno));
+            }
+            return;
+        }
+        mb_len += (size_t)r;
+        while (mb_len >= 7) {
+            size_t len = ((size_t)mb_buf[4] << 8) | mb_buf[5];
+            if (len < 2 || len > sizeof mb_buf - 6) {
+                close_client("not Modbus TCP");
+                mb_len = 0;
+                return;
+            }
+            if (mb_len < 6 + len) {
+                break;
+            }
+            uint8_t out[MS_MODBUS_MAX_ADU];
+            size_t n = ms_modbus_tcp(&dev, (uint8_t)opt_unit, mb_buf, 6 + len, out, sizeof out);
+            if (n > 0 && send(client_fd, out, n, MSG_NOSIGNAL) != (ssize_t)n) {
+                close_client("send");
+                mb_len = 0;
+                return;
+            }
+            memmove(mb_buf, &mb_buf[6 + len], mb_len - (6 + len));
+            mb_len -= 6 + len;
+        }
+    }
+}
+
 /* ---- main ---------------------------------------------------------------------------- */
 
 static void on_signal(int sig)
@@ -468,7 +517,8 @@ static void on_signal(int sig)
 static void usage(void)
 {
     fprintf(stderr,
-            "usage: msfw-host --capture FILE (--tcp HOST:PORT | --pty LINK) [--log FILE] [--watchdog-ms MS]\n"
+            "usage: msfw-host --capture FILE (--tcp HOST:PORT | --pty LINK | --modbus-tcp HOST:PORT [--unit N])\n"
+            "       [--log FILE] [--watchdog-ms MS]\n"
             "       [--ring SAMPLES] [--per-frame N] [--skip SAMPLES] [--start-index N] [--wait-client] [--once]\n"
             "       [--hold-until-heartbeat] [--cnc-hold-lag-ms MS] [--sndbuf BYTES]\n"
             "SIGUSR1 restarts the firmware core (as a board reset would); SIGTERM stops.\n");
@@ -489,6 +539,7 @@ static int parse_long(const char *s, long lo, long hi, long *out, const char *wh
 
 static int configure(void)
 {
+    cfg.link = opt_modbus_tcp ? MS_LINK_MODBUS : MS_LINK_STREAM;
     cfg.capabilities = (uint8_t)(MS_CAP_OVERRIDE | (cap_has_context ? MS_CAP_CONTEXT : 0u));
     cfg.ring_samples = (uint16_t)opt_ring;
     cfg.samples_per_frame = (uint8_t)opt_per_frame;
@@ -513,6 +564,8 @@ int main(int argc, char **argv)
         if (!strcmp(a, "--capture")) { VAL(); opt_capture = v; }
         else if (!strcmp(a, "--tcp")) { VAL(); opt_tcp = v; }
         else if (!strcmp(a, "--pty")) { VAL(); opt_pty = v; }
+        else if (!strcmp(a, "--modbus-tcp")) { VAL(); opt_modbus_tcp = v; }
+        else if (!strcmp(a, "--unit")) { VAL(); if (parse_long(v, 1, 247, &opt_unit, a)) return 2; }
         else if (!strcmp(a, "--log")) { VAL(); opt_log = v; }
         else if (!strcmp(a, "--watchdog-ms")) { VAL(); if (parse_long(v, 0, 65535, &opt_watchdog_ms, a)) return 2; }
         else if (!strcmp(a, "--ring")) { VAL(); if (parse_long(v, 2, MS_RING_SAMPLES, &opt_ring, a)) return 2; }
@@ -528,8 +581,8 @@ int main(int argc, char **argv)
         else { fprintf(stderr, "msfw-host: error: unknown option %s\n", a); usage(); return 2; }
 #undef VAL
     }
-    if (opt_capture == NULL || (opt_tcp == NULL) == (opt_pty == NULL)) {
-        fprintf(stderr, "msfw-host: error: give --capture and one of --tcp, --pty\n");
+    if (opt_capture == NULL || (opt_tcp != NULL) + (opt_pty != NULL) + (opt_modbus_tcp != NULL) != 1) {
+        fprintf(stderr, "msfw-host: error: give --capture and one of --tcp, --pty, --modbus-tcp\n");
         usage();
         return 2;
     }
@@ -547,7 +600,8 @@ int main(int argc, char **argv)
     if (configure() != 0) {
         return 2;
     }
-    if ((opt_tcp && open_tcp(opt_tcp) != 0) || (opt_pty && open_pty(opt_pty) != 0)) {
+    if ((opt_tcp && open_tcp(opt_tcp) != 0) || (opt_modbus_tcp && open_tcp(opt_modbus_tcp) != 0) ||
+        (opt_pty && open_pty(opt_pty) != 0)) {
         return 1;
     }
     struct sigaction sa;
@@ -558,7 +612,8 @@ int main(int argc, char **argv)
     sigaction(SIGUSR1, &sa, NULL);
     signal(SIGPIPE, SIG_IGN);
     fprintf(stderr, "msfw-host: serving %ld samples of %u channels at %u Hz on %s %s\n", cap_n, cfg.channel_count,
-            cfg.sample_rate_hz, opt_tcp ? "tcp" : "pty", opt_tcp ? opt_tcp : opt_pty);
+            cfg.sample_rate_hz, opt_tcp ? "tcp" : opt_pty ? "pty" : "modbus-tcp",
+            opt_tcp ? opt_tcp : opt_pty ? opt_pty : opt_modbus_tcp);
     if (!opt_wait_client || opt_pty) {
         start_clock();
     }
@@ -588,6 +643,9 @@ int main(int argc, char **argv)
             }
         }
         ms_poll(&dev);
+        if (opt_modbus_tcp) {
+            serve_modbus();
+        }
         ms_counters moved = dev.n;
         moved.frames_sent = logged_counters.frames_sent; /* a change of what is counted, not of the traffic */
         if (memcmp(&logged_counters, &moved, sizeof moved) != 0 && mono_s() - counters_logged_at >= 0.1) {

@@ -121,6 +121,7 @@ typedef enum {
     MS_EV_BAD_COMMAND,       /* a = bad commands so far, b = the command byte */
     MS_EV_OVERRUN,           /* a = samples lost now, b = samples lost so far */
     MS_EV_CONTEXT,           /* a = index from which the new context holds, b = its flags */
+    MS_EV_WATCHDOG_PERIOD,   /* the host set the watchdog period (Modbus holding 101): a = ms */
 } ms_event;
 
 typedef enum { MS_CAUSE_INIT = 0, MS_CAUSE_COMMAND, MS_CAUSE_WATCHDOG, MS_CAUSE_HEARTBEAT } ms_cause;

@@ -97,6 +97,10 @@ static void set_override(ms_device *dev, uint16_t tenths, ms_cause cause)
         dev->override_cmd = tenths;
         ms_hw_write_override(tenths);
         ms_hw_event(MS_EV_OVERRIDE, tenths, (uint32_t)cause);
+        if (dev->cnc.override_applied == MS_OVERRIDE_NO_READBACK) {
+            dev->override_applied = tenths; /* nothing reads it back: what is written is what applies, now */
+            dev->status_due = true;
+        }
     }
 }
 
@@ -178,6 +182,7 @@ void ms__set_watchdog_ms(ms_device *dev, uint16_t ms, uint32_t now)
 {
     if (ms != dev->cfg.watchdog_ms) {
         dev->cfg.watchdog_ms = ms;
+        ms_hw_event(MS_EV_WATCHDOG_PERIOD, ms, 0);
         if (dev->heard) {
             dev->last_heartbeat_ms = now; /* a new period counts from now, not from a heartbeat it never judged */
         }

@@ -125,7 +125,7 @@ static uint8_t write_register(ms_device *dev, uint32_t a, uint16_t v, uint32_t n
 
 size_t ms_modbus_pdu(ms_device *dev, const uint8_t *req, size_t len, uint8_t *out, size_t cap)
 {
-    if (len < 1u || cap < 5u + 2u * MAX_REGS) {
+    if (len < 1u || cap < 2u + 2u * MAX_REGS) { /* the longest answer: 125 registers */
         return 0;
     }
     uint8_t fc = req[0];

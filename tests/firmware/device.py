@@ -18,11 +18,12 @@ from tests.firmware.frames import Decoder, Frame
 class Firmware:
     """`msfw-host` serving a capture; its JSON-lines log is the device's own record of what it did."""
 
-    def __init__(self, binary: Path, tmp_path: Path, capture: Path, port: int, *args: str, name: str = "fw") -> None:
+    def __init__(self, binary: Path, tmp_path: Path, capture: Path, port: int, *args: str, name: str = "fw",
+                 transport: str = "--tcp") -> None:
         self.log_path = tmp_path / f"{name}.jsonl"
         self.err_path = tmp_path / f"{name}.err"
         self.port = port
-        self.cmd = [str(binary), "--capture", str(capture), "--tcp", f"127.0.0.1:{port}", "--log", str(self.log_path),
+        self.cmd = [str(binary), "--capture", str(capture), transport, f"127.0.0.1:{port}", "--log", str(self.log_path),
                     *args]
         self.proc: subprocess.Popen | None = None
 
