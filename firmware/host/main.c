@@ -29,7 +29,7 @@
 #include "msfw.h"
 
 /* ---- options ------------------------------------------------------------ */
-static const char *opt_capture, *opt_tcp, *opt_pty, *opt_log, *opt_modbus_tcp;
+static const char *opt_capture, *opt_tcp, *opt_pty, *opt_log, *opt_modbus_tcp, *opt_modbus_rtu;
 static long opt_unit = 1;
 static long opt_watchdog_ms, opt_ring = 1024, opt_per_frame = 10, opt_skip, opt_start_index;
 static long opt_sndbuf, opt_cnc_hold_lag_ms = 30;
@@ -503,6 +503,61 @@ static void serve_modbus(void)
     }
 }
 
+/* Modbus RTU on a pty: a pty has no character timing, so a request is delimited by its length, which its
+ * function code gives (8 bytes for 1-6; 9 + the byte count for 15 and 16). A frame whose CRC fails drops one
+ * byte and the next is tried, as a receiver that lost the silence would. The core answers or stays silent. */
+static uint8_t rtu_buf[2 * MS_MODBUS_MAX_ADU];
+static size_t rtu_len;
+
+static size_t rtu_frame_length(const uint8_t *b, size_t n)
+{
+    if (n < 2) {
+        return 0;
+    }
+    if (b[1] >= 1 && b[1] <= 6) {
+        return 8;
+    }
+    if (b[1] == 15 || b[1] == 16) {
+        return n < 7 ? 0 : 9u + b[6];
+    }
+    return 1; /* no request this board knows: resynchronise */
+}
+
+static void serve_modbus_rtu(void)
+{
+    for (;;) {
+        ssize_t r = read(pty_master, &rtu_buf[rtu_len], sizeof rtu_buf - rtu_len);
+        if (r <= 0) {
+            return;
+        }
+        rtu_len += (size_t)r;
+        for (;;) {
+            size_t need = rtu_frame_length(rtu_buf, rtu_len);
+            if (need == 0 || rtu_len < need) {
+                break;
+            }
+            size_t used = need;
+            if (need >= 4) {
+                uint16_t crc = ms_crc16(MS_CRC_INIT, rtu_buf, need - 2);
+                if ((crc & 0xFF) != rtu_buf[need - 2] || (crc >> 8) != rtu_buf[need - 1]) {
+                    used = 1;
+                } else {
+                    uint8_t out[MS_MODBUS_MAX_ADU];
+                    size_t n = ms_modbus_rtu(&dev, (uint8_t)opt_unit, rtu_buf, need, out, sizeof out);
+                    if (n > 0 && write(pty_master, out, n) != (ssize_t)n) {
+                        logj("modbus_rtu", "\"dropped_reply\": %zu", n);
+                    }
+                }
+            }
+            memmove(rtu_buf, &rtu_buf[used], rtu_len - used);
+            rtu_len -= used;
+        }
+        if (rtu_len == sizeof rtu_buf) {
+            rtu_len = 0; /* cannot happen with whole requests; never stall on garbage */
+        }
+    }
+}
+
 /* ---- main ---------------------------------------------------------------------------- */
 
 static void on_signal(int sig)
@@ -517,7 +572,8 @@ static void on_signal(int sig)
 static void usage(void)
 {
     fprintf(stderr,
-            "usage: msfw-host --capture FILE (--tcp HOST:PORT | --pty LINK | --modbus-tcp HOST:PORT [--unit N])\n"
+            "usage: msfw-host --capture FILE (--tcp HOST:PORT | --pty LINK | --modbus-tcp HOST:PORT | --modbus-rtu LINK)\n"
+            "       [--unit N]\n"
             "       [--log FILE] [--watchdog-ms MS]\n"
             "       [--ring SAMPLES] [--per-frame N] [--skip SAMPLES] [--start-index N] [--wait-client] [--once]\n"
             "       [--hold-until-heartbeat] [--cnc-hold-lag-ms MS] [--sndbuf BYTES]\n"
@@ -539,7 +595,7 @@ static int parse_long(const char *s, long lo, long hi, long *out, const char *wh
 
 static int configure(void)
 {
-    cfg.link = opt_modbus_tcp ? MS_LINK_MODBUS : MS_LINK_STREAM;
+    cfg.link = (opt_modbus_tcp || opt_modbus_rtu) ? MS_LINK_MODBUS : MS_LINK_STREAM;
     cfg.capabilities = (uint8_t)(MS_CAP_OVERRIDE | (cap_has_context ? MS_CAP_CONTEXT : 0u));
     cfg.ring_samples = (uint16_t)opt_ring;
     cfg.samples_per_frame = (uint8_t)opt_per_frame;
@@ -565,6 +621,7 @@ int main(int argc, char **argv)
         else if (!strcmp(a, "--tcp")) { VAL(); opt_tcp = v; }
         else if (!strcmp(a, "--pty")) { VAL(); opt_pty = v; }
         else if (!strcmp(a, "--modbus-tcp")) { VAL(); opt_modbus_tcp = v; }
+        else if (!strcmp(a, "--modbus-rtu")) { VAL(); opt_modbus_rtu = v; }
         else if (!strcmp(a, "--unit")) { VAL(); if (parse_long(v, 1, 247, &opt_unit, a)) return 2; }
         else if (!strcmp(a, "--log")) { VAL(); opt_log = v; }
         else if (!strcmp(a, "--watchdog-ms")) { VAL(); if (parse_long(v, 0, 65535, &opt_watchdog_ms, a)) return 2; }
@@ -581,8 +638,9 @@ int main(int argc, char **argv)
         else { fprintf(stderr, "msfw-host: error: unknown option %s\n", a); usage(); return 2; }
 #undef VAL
     }
-    if (opt_capture == NULL || (opt_tcp != NULL) + (opt_pty != NULL) + (opt_modbus_tcp != NULL) != 1) {
-        fprintf(stderr, "msfw-host: error: give --capture and one of --tcp, --pty, --modbus-tcp\n");
+    if (opt_capture == NULL ||
+        (opt_tcp != NULL) + (opt_pty != NULL) + (opt_modbus_tcp != NULL) + (opt_modbus_rtu != NULL) != 1) {
+        fprintf(stderr, "msfw-host: error: give --capture and one of --tcp, --pty, --modbus-tcp, --modbus-rtu\n");
         usage();
         return 2;
     }
@@ -601,7 +659,7 @@ int main(int argc, char **argv)
         return 2;
     }
     if ((opt_tcp && open_tcp(opt_tcp) != 0) || (opt_modbus_tcp && open_tcp(opt_modbus_tcp) != 0) ||
-        (opt_pty && open_pty(opt_pty) != 0)) {
+        (opt_pty && open_pty(opt_pty) != 0) || (opt_modbus_rtu && open_pty(opt_modbus_rtu) != 0)) {
         return 1;
     }
     struct sigaction sa;
@@ -612,9 +670,9 @@ int main(int argc, char **argv)
     sigaction(SIGUSR1, &sa, NULL);
     signal(SIGPIPE, SIG_IGN);
     fprintf(stderr, "msfw-host: serving %ld samples of %u channels at %u Hz on %s %s\n", cap_n, cfg.channel_count,
-            cfg.sample_rate_hz, opt_tcp ? "tcp" : opt_pty ? "pty" : "modbus-tcp",
-            opt_tcp ? opt_tcp : opt_pty ? opt_pty : opt_modbus_tcp);
-    if (!opt_wait_client || opt_pty) {
+            cfg.sample_rate_hz, opt_tcp ? "tcp" : opt_pty ? "pty" : opt_modbus_tcp ? "modbus-tcp" : "modbus-rtu",
+            opt_tcp ? opt_tcp : opt_pty ? opt_pty : opt_modbus_tcp ? opt_modbus_tcp : opt_modbus_rtu);
+    if (!opt_wait_client || opt_pty || opt_modbus_rtu) {
         start_clock();
     }
     const double period_s = 1.0 / (double)cfg.sample_rate_hz;
@@ -645,6 +703,8 @@ int main(int argc, char **argv)
         ms_poll(&dev);
         if (opt_modbus_tcp) {
             serve_modbus();
+        } else if (opt_modbus_rtu) {
+            serve_modbus_rtu();
         }
         ms_counters moved = dev.n;
         moved.frames_sent = logged_counters.frames_sent; /* a change of what is counted, not of the traffic */
@@ -680,8 +740,8 @@ int main(int argc, char **argv)
     ms_poll(&dev);
     log_counters("stop");
     close_client("stop");
-    if (opt_pty) {
-        unlink(opt_pty);
+    if (opt_pty || opt_modbus_rtu) {
+        unlink(opt_pty ? opt_pty : opt_modbus_rtu);
     }
     free(cap_samples);
     free(cap_ctxs);

@@ -19,12 +19,13 @@ class Firmware:
     """`msfw-host` serving a capture; its JSON-lines log is the device's own record of what it did."""
 
     def __init__(self, binary: Path, tmp_path: Path, capture: Path, port: int, *args: str, name: str = "fw",
-                 transport: str = "--tcp") -> None:
+                 transport: str = "--tcp", address: str | None = None) -> None:
+        """Serves on 127.0.0.1:`port` (`--tcp`, `--modbus-tcp`), or at `address` (a pty link)."""
         self.log_path = tmp_path / f"{name}.jsonl"
         self.err_path = tmp_path / f"{name}.err"
         self.port = port
-        self.cmd = [str(binary), "--capture", str(capture), transport, f"127.0.0.1:{port}", "--log", str(self.log_path),
-                    *args]
+        where = address if address is not None else f"127.0.0.1:{port}"
+        self.cmd = [str(binary), "--capture", str(capture), transport, where, "--log", str(self.log_path), *args]
         self.proc: subprocess.Popen | None = None
 
     def __enter__(self) -> Firmware:

@@ -16,7 +16,7 @@ import tty
 
 import pytest
 
-from tests.e2e.helpers import read_jsonl, wait_for
+from tests.e2e.helpers import wait_for
 from tests.firmware import frames
 from tests.firmware.conftest import ramp_counts
 from tests.firmware.device import Firmware, Link
@@ -228,10 +228,7 @@ def test_a_restart_sends_a_descriptor_first_counts_from_0_and_puts_the_outputs_s
 
 def test_the_stream_on_a_pty_carries_the_same_frames_and_commands(plain_build, ramp_capture, tmp_path):
     link = tmp_path / "daq-link"
-    fw_proc = subprocess.Popen([str(plain_build / "msfw-host"), "--capture", str(ramp_capture), "--pty", str(link),
-                                "--log", str(tmp_path / "fw.jsonl")], stderr=subprocess.PIPE, text=True)
-    try:
-        wait_for(lambda: link.is_symlink() or fw_proc.poll() is not None, 20.0, "the pty link")
+    with Firmware(plain_build / "msfw-host", tmp_path, ramp_capture, 0, transport="--pty", address=str(link)) as fw:
         fd = os.open(link, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
         tty.setraw(fd)
         termios.tcflush(fd, termios.TCIFLUSH)          # what queued before we opened: a serial line's past
@@ -250,9 +247,7 @@ def test_the_stream_on_a_pty_carries_the_same_frames_and_commands(plain_build, r
         wait_for(lambda: read() or any(f.type == T_DESCRIPTOR for f in got), 20.0, "a DESCRIPTOR")
         samples = [f.samples() for f in got if f.type == T_SAMPLES]
         assert samples and all(s[3] == [ramp_counts((s[0] + k) % 3000) for k in range(s[2])] for s in samples)
-        assert any(e["event"] == "outputs" and e["feed_hold"] for e in read_jsonl(tmp_path / "fw.jsonl"))
+        assert any(e["feed_hold"] for e in fw.events("outputs"))
         os.close(fd)
-    finally:
-        fw_proc.terminate()
-        assert fw_proc.wait(10) == 0, fw_proc.stderr.read()
+        _stop_clean(fw)
     assert not link.exists(), "the link is removed when the firmware stops"

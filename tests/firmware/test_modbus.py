@@ -4,9 +4,11 @@ emulator), and under the real daemon (`transport = "modbus-tcp"`)."""
 
 from __future__ import annotations
 
+import os
 import signal
 import socket
 import struct
+import tty
 
 import pytest
 
@@ -121,15 +123,22 @@ SKIP = 4000        # the capture from 4 s on: the cut, steady from 5 s
 
 
 @pytest.mark.serial
-def test_the_daemon_over_modbus_tcp_estimates_and_a_killed_one_is_held_within_its_watchdog_time(
-        plain_build, step_capture, tmp_path):
+@pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu"])
+def test_the_daemon_over_modbus_estimates_and_a_killed_one_is_held_within_its_watchdog_time(
+        plain_build, step_capture, tmp_path, transport):
     cap, truth = step_capture
     daq_port, z_port = free_tcp_port(), free_tcp_port()
-    daq = f'transport = "modbus-tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}\nunit = 1\npoll_ms = 20'
+    link = tmp_path / "rtu-link"
+    if transport == "modbus-tcp":
+        daq = f'transport = "modbus-tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}\nunit = 1\npoll_ms = 20'
+        served = ("--modbus-tcp", f"127.0.0.1:{daq_port}")
+    else:
+        daq = f'transport = "modbus-rtu"\nport = "{link}"\nbaudrate = 921600\nunit = 1\npoll_ms = 20'
+        served = ("--modbus-rtu", str(link))
     cfg = write_config(tmp_path / "d.toml", machine="fw-mb", daq=daq, zenoh_listen=[tcp(z_port)],
                        interlock=f"enabled = true\nheartbeat_ms = 50\nwatchdog_ms = {WATCHDOG_MS}")
     with Firmware(plain_build / "msfw-host", tmp_path, cap, daq_port, "--skip", str(SKIP), "--ring", "2048",
-                  transport="--modbus-tcp") as fw, Procs(tmp_path) as procs:
+                  transport=served[0], address=served[1]) as fw, Procs(tmp_path) as procs:
         daemon = procs.start("daemon", ["run", "--config", str(cfg)])
         sub = Subscriber([tcp(z_port)], "fw-mb")
         try:
@@ -164,3 +173,38 @@ def test_the_daemon_over_modbus_tcp_estimates_and_a_killed_one_is_held_within_it
     bad = [(e["rev"], e["torque_nm"], r["torque_nm"]) for e, r in steady
            if e["torque_nm"] is None or abs(e["torque_nm"] - r["torque_nm"]) > 0.02 * abs(r["torque_nm"]) + 0.03]
     assert not bad, bad[:8]
+
+
+def _rtu(frame: bytes) -> bytes:
+    return frame + frames.crc16(frame).to_bytes(2, "little")
+
+
+def test_modbus_rtu_answers_its_unit_and_is_silent_to_others_and_to_bad_crcs(any_build, ramp_capture, tmp_path):
+    link = tmp_path / "rtu-link"
+    with Firmware(any_build / "msfw-host", tmp_path, ramp_capture, 0, "--unit", "7", transport="--modbus-rtu",
+                  address=str(link)) as fw:
+        fd = os.open(link, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        tty.setraw(fd)
+        read_inputs = struct.pack(">BHH", 4, 0, 4)
+        bad = bytearray(_rtu(b"\x07" + read_inputs))
+        bad[-1] ^= 0x55
+        # another unit's request, a damaged one for ours, then a good one: one answer, to the good one
+        os.write(fd, _rtu(b"\x08" + read_inputs) + bytes(bad) + _rtu(b"\x07" + read_inputs))
+        expected = _rtu(b"\x07\x04\x08" + struct.pack(">4H", 2, 8, 1000, 1024))
+        got = bytearray()
+
+        def answered() -> bool:
+            try:
+                got.extend(os.read(fd, 4096))
+            except BlockingIOError:
+                pass
+            return len(got) >= len(expected)
+
+        wait_for(answered, 20.0, "the RTU answer")
+        # then a write whose answer is its echo: the bytes so far are exactly one answer, nothing for the others
+        os.write(fd, _rtu(b"\x07" + struct.pack(">BHH", 6, 102, 900)))
+        wait_for(lambda: answered() and len(got) >= len(expected) + 8, 20.0, "the write's echo")
+        assert bytes(got) == expected + _rtu(b"\x07" + struct.pack(">BHH", 6, 102, 900))
+        assert fw.wait_event("feed_override", lambda e: e["cause"] == "command")["value"] == 900
+        os.close(fd)
+        assert fw.stop() == 0, fw.stderr()
