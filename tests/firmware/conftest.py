@@ -71,5 +71,16 @@ def ramp_capture(tmp_path_factory) -> Path:
     return cap
 
 
+@pytest.fixture(scope="session")
+def ramp_capture_v2(tmp_path_factory) -> Path:
+    """The ramp from a protocol-2 emulator whose CNC runs program 1234, tool 12, operation 3 (its CONTEXT)."""
+    cap = tmp_path_factory.mktemp("ramp2") / "ramp2.cap"
+    p = subprocess.run(CMD + ["sim", "--scenario", "ramp", "--protocol", "2", "--program", "1234", "--tool", "12",
+                              "--operation", "3", "--capture", str(cap), "--duration-s", "3"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    return cap
+
+
 def ramp_counts(index: int, channels: int = 8) -> tuple[int, ...]:
     return tuple(((index + 1000 * c) % 65536 ^ 0x8000) - 0x8000 for c in range(channels))

@@ -226,6 +226,58 @@ def test_a_restart_sends_a_descriptor_first_counts_from_0_and_puts_the_outputs_s
         _stop_clean(fw)
 
 
+T_CONTEXT = 0x04
+CYCLE, MONITOR, FEED_HELD = 0x01, 0x02, 0x08
+
+
+def test_context_goes_out_with_each_descriptor_and_on_every_change(any_build, ramp_capture_v2, tmp_path, port):
+    with Firmware(any_build / "msfw-host", tmp_path, ramp_capture_v2, port, "--cnc-hold-lag-ms", "30") as fw:
+        link = Link(port)
+        # version 2 with both capabilities; the CNC's context right after the DESCRIPTOR, and again a second later
+        link.wait(lambda f: f.type == T_DESCRIPTOR)
+        assert link.of_type(T_DESCRIPTOR)[0].descriptor()["capabilities"] == 0x03
+        first = link.wait(lambda f: f.type == T_CONTEXT).context()
+        assert (first["program"], first["tool"], first["operation"], first["flags"]) == (1234, 12, 3, CYCLE | MONITOR)
+        link.wait(lambda f: f.type == T_DESCRIPTOR, start=link.frames.index(link.of_type(T_DESCRIPTOR)[0]) + 1)
+        kinds = [f.type for f in link.frames]
+        assert all(kinds[i + 1] == T_CONTEXT for i, k in enumerate(kinds[:-1]) if k == T_DESCRIPTOR)
+        # the CNC reports the feed held (the host board's CNC, 30 ms after the output): a CONTEXT at once, whose
+        # index is the first sample at which it holds, with nothing else changed
+        n = len(link.frames)
+        link.send(frames.set_outputs(0x01))
+        held_frame = link.wait(lambda f: f.type == T_CONTEXT and f.context()["flags"] & FEED_HELD, start=n)
+        held = held_frame.context()
+        i = link.frames.index(held_frame)
+        link.wait(lambda f: True, start=i + 1)
+        # on the change, not with the next once-a-second DESCRIPTOR: alone, or (when that DESCRIPTOR went out
+        # just then) the change first and the repeat after it
+        assert link.frames[i - 1].type != T_DESCRIPTOR or link.frames[i + 1].type == T_CONTEXT, kinds
+        cnc = fw.wait_event("cnc_feed_held", lambda e: e["feed_held"])
+        assert held["index"] == fw.wait_event("context", lambda e: e["flags"] & FEED_HELD)["from_index"]
+        assert cnc["index"] <= held["index"] <= cnc["index"] + 1
+        assert (held["program"], held["tool"], held["operation"]) == (1234, 12, 3)
+        n = len(link.frames)
+        link.send(frames.set_outputs(0x00))
+        link.wait(lambda f: f.type == T_CONTEXT and not f.context()["flags"] & FEED_HELD, start=n)
+        link.close()
+        _stop_clean(fw)
+
+
+def test_a_board_for_a_machine_holds_the_feed_from_power_up_until_the_first_heartbeat(any_build, ramp_capture,
+                                                                                       tmp_path, port):
+    with Firmware(any_build / "msfw-host", tmp_path, ramp_capture, port, "--hold-until-heartbeat") as fw:
+        link = Link(port)
+        assert link.wait(lambda f: f.type == T_STATUS).status()["outputs"] == 0x01
+        assert fw.events("outputs")[0]["feed_hold"] and fw.events("outputs")[0]["cause"] == "restart"
+        n = len(link.frames)
+        link.send(frames.heartbeat(1))
+        released = fw.wait_event("outputs", lambda e: not e["feed_hold"])
+        assert released["cause"] == "heartbeat"
+        assert link.wait(lambda f: f.type == T_STATUS, start=n).status()["outputs"] == 0
+        link.close()
+        _stop_clean(fw)
+
+
 def test_the_stream_on_a_pty_carries_the_same_frames_and_commands(plain_build, ramp_capture, tmp_path):
     link = tmp_path / "daq-link"
     with Firmware(plain_build / "msfw-host", tmp_path, ramp_capture, 0, transport="--pty", address=str(link)) as fw:
@@ -244,7 +296,8 @@ def test_the_stream_on_a_pty_carries_the_same_frames_and_commands(plain_build, r
             return any(f.type == T_STATUS and f.status()["heartbeat"] == 42 and f.status()["outputs"] & 1 for f in got)
 
         wait_for(read, 20.0, "a STATUS with heartbeat 42 and the feed held")
-        wait_for(lambda: read() or any(f.type == T_DESCRIPTOR for f in got), 20.0, "a DESCRIPTOR")
+        wait_for(lambda: read() is not None and any(f.type == T_DESCRIPTOR for f in got), 20.0,
+                 "the DESCRIPTOR asked for")
         samples = [f.samples() for f in got if f.type == T_SAMPLES]
         assert samples and all(s[3] == [ramp_counts((s[0] + k) % 3000) for k in range(s[2])] for s in samples)
         assert any(e["feed_hold"] for e in fw.events("outputs"))
