@@ -186,7 +186,8 @@ typedef struct {
 int ms_init(ms_device *dev, const ms_config *cfg);
 void ms_tick(ms_device *dev);
 void ms_poll(ms_device *dev);
-/* the link was (re)connected: drop a half-sent frame, send the DESCRIPTOR (and CONTEXT) first */
+/* the link was (re)connected: drop a half-sent frame and the samples kept for the host before, send the
+ * DESCRIPTOR (and CONTEXT) and a STATUS first, then the samples from now on */
 void ms_link_reset(ms_device *dev);
 /* whether the watchdog holds the feed now */
 static inline bool ms_watchdog_tripped(const ms_device *dev) { return (dev->flags & MS_FLAG_WATCHDOG) != 0u; }

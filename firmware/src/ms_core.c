@@ -543,6 +543,9 @@ void ms_tick(ms_device *dev)
 
 void ms_link_reset(ms_device *dev)
 {
+    /* a new host gets the stream from its connection on, as from a serial line: not the backlog the ring held
+     * for a host that is gone (a burst of old samples would look to it like a DAQ running fast) */
+    dev->tail = dev->head;
     dev->tx_len = 0;
     dev->tx_off = 0;
     dev->rx_len = 0;

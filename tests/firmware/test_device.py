@@ -298,6 +298,8 @@ def test_the_stream_on_a_pty_carries_the_same_frames_and_commands(plain_build, r
         wait_for(read, 20.0, "a STATUS with heartbeat 42 and the feed held")
         wait_for(lambda: read() is not None and any(f.type == T_DESCRIPTOR for f in got), 20.0,
                  "the DESCRIPTOR asked for")
+        n = len(got)
+        wait_for(lambda: read() is not None and any(f.type == T_SAMPLES for f in got[n:]), 20.0, "samples")
         samples = [f.samples() for f in got if f.type == T_SAMPLES]
         assert samples and all(s[3] == [ramp_counts((s[0] + k) % 3000) for k in range(s[2])] for s in samples)
         assert any(e["feed_hold"] for e in fw.events("outputs"))
