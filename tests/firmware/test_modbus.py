@@ -82,8 +82,8 @@ def test_the_register_map_and_its_exceptions(any_build, ramp_capture, tmp_path, 
         assert regs[:4] == [2, C, 1000, RING] and regs[6] == 1000 and regs[7] == 0x01, regs
         # the channel table: kind, then the name's 8 bytes two a register, the first byte high
         table = mb.read(4, 16, 5 * C)
-        names = [(table[5 * i], b"".join(w.to_bytes(2, "big") for w in table[5 * i + 1:5 * i + 5]).rstrip(b"\0").decode())
-                 for i in range(C)]
+        names = [(table[5 * i], b"".join(w.to_bytes(2, "big") for w in table[5 * i + 1:5 * i + 5])
+                  .rstrip(b"\0").decode()) for i in range(C)]
         assert names == capture_descriptor.descriptor()["channels"]
         # the ring: samples H-D < k < H at 1000 + (k mod D)*C + c, read whole, H read again after
         wait_for(lambda: _s32(mb.read(4, 0, 16), 4) > RING, 20.0, "a full ring")
