@@ -150,8 +150,13 @@ def test_silence_trips_the_watchdog_which_holds_and_sets_100_percent_until_the_h
         for counter in range(1, 4):
             link.send(frames.heartbeat(counter))
             fw.wait_event("heartbeat", lambda e, c=counter: e["counter"] == c)
+        # a counter that does not change proves nothing: it is taken as a command, not as a heartbeat
+        n_commands = len(link.of_type(T_STATUS))
+        link.send(frames.heartbeat(3))
+        link.wait(lambda f: f.type == T_STATUS and len(link.of_type(T_STATUS)) > n_commands)
         # the host falls silent
         trip = fw.wait_event("watchdog")
+        assert [e["counter"] for e in fw.events("heartbeat")] == [1, 2, 3]
         late_s = trip["mono"] - trip["last_heartbeat_mono"]
         assert _in_watchdog_time(late_s), f"tripped {late_s * 1e3:.1f} ms after the last heartbeat"
         held = fw.wait_event("outputs", lambda e: e["cause"] == "watchdog")
