@@ -69,6 +69,21 @@ def test_stream_frames_are_laid_out_as_the_doc_says(any_build, ramp_capture, tmp
         _stop_clean(fw)
 
 
+def test_the_index_wraps_at_2_32_without_a_gap(any_build, ramp_capture, tmp_path, port):
+    start = 2**32 - 250
+    with Firmware(any_build / "msfw-host", tmp_path, ramp_capture, port, "--wait-client", "--start-index",
+                  str(start)) as fw:
+        link = Link(port)
+        link.wait(lambda f: f.type == T_SAMPLES and f.samples()[0] < start and f.samples()[0] >= 200)
+        samples = [f.samples() for f in link.of_type(T_SAMPLES)]
+        firsts = [s[0] for s in samples]
+        assert firsts == [(start + 10 * k) % 2**32 for k in range(len(firsts))]
+        # sample k of the device is the capture's sample (k - start) mod 2^32: the ramp's values
+        assert all(s[3] == [ramp_counts(((s[0] - start) % 2**32 + j) % 3000) for j in range(10)] for s in samples)
+        link.close()
+        _stop_clean(fw)
+
+
 @pytest.mark.serial
 def test_a_feed_hold_command_is_on_the_output_within_one_tick(any_build, ramp_capture, tmp_path, port):
     with Firmware(any_build / "msfw-host", tmp_path, ramp_capture, port) as fw:
