@@ -1,0 +1,1 @@
+"""Tests of the reference DAQ firmware (firmware/), through its host build."""

@@ -1,0 +1,86 @@
+"""Fixtures of the firmware tests: the host build (plain, and under ASan + UBSan), made with the system's
+`cc` into this session's tmp dir, and the captures it plays."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import REPO
+from tests.e2e.conftest import step_capture  # noqa: F401 - the e2e tests' capture of the step scenario, reused
+from tests.e2e.helpers import CMD
+
+FIRMWARE = REPO / "firmware"
+BUILDS = {"plain": "host", "san": "host-san"}
+
+
+def pytest_configure(config):
+    # until pyproject registers them (issue 37): latency bounds run alone, cheap checks in the quick set
+    config.addinivalue_line("markers", "serial: asserts a bound in ms; run apart from the parallel workers")
+    config.addinivalue_line("markers", "quick: a cheap check for the quick set")
+
+
+def _missing(what: str) -> None:
+    """No compiler: a skip with its reason on a developer's box, a failure in CI (which must build it)."""
+    message = f"the firmware tests need {what} (Debian: build-essential)"
+    if os.environ.get("CI") == "true":
+        pytest.fail(message)
+    pytest.skip(message)
+
+
+def _build(kind: str, out: Path) -> Path:
+    for tool in ("cc", "make"):
+        if shutil.which(tool) is None:
+            _missing(tool)
+    p = subprocess.run(["make", "-C", str(FIRMWARE), f"BUILD={out}", BUILDS[kind]], capture_output=True, text=True,
+                       timeout=300)
+    assert p.returncode == 0, f"make {BUILDS[kind]} failed:\n{p.stdout[-3000:]}\n{p.stderr[-3000:]}"
+    return out / "san" if kind == "san" else out
+
+
+@pytest.fixture(scope="session")
+def fw_build_dir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("fwbuild")
+
+
+@pytest.fixture(scope="session")
+def plain_build(fw_build_dir) -> Path:
+    """The directory of the plain host build: msfw-host, msfw-selftest."""
+    return _build("plain", fw_build_dir)
+
+
+@pytest.fixture(scope="session", params=["plain", "san"])
+def any_build(request, fw_build_dir) -> Path:
+    """Each host build in turn: the plain one and the one under AddressSanitizer and UBSan."""
+    if request.param == "plain":
+        return _build("plain", fw_build_dir)
+    return _build("san", fw_build_dir)
+
+
+@pytest.fixture(scope="session")
+def ramp_capture(tmp_path_factory) -> Path:
+    """Three seconds of the emulator's ramp: channel c of sample k is (k + 1000 c) mod 2^16."""
+    cap = tmp_path_factory.mktemp("ramp") / "ramp.cap"
+    p = subprocess.run(CMD + ["sim", "--scenario", "ramp", "--capture", str(cap), "--duration-s", "3"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    return cap
+
+
+@pytest.fixture(scope="session")
+def ramp_capture_v2(tmp_path_factory) -> Path:
+    """The ramp from a protocol-2 emulator whose CNC runs program 1234, tool 12, operation 3 (its CONTEXT)."""
+    cap = tmp_path_factory.mktemp("ramp2") / "ramp2.cap"
+    p = subprocess.run(CMD + ["sim", "--scenario", "ramp", "--protocol", "2", "--program", "1234", "--tool", "12",
+                              "--operation", "3", "--capture", str(cap), "--duration-s", "3"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    return cap
+
+
+def ramp_counts(index: int, channels: int = 8) -> tuple[int, ...]:
+    return tuple(((index + 1000 * c) % 65536 ^ 0x8000) - 0x8000 for c in range(channels))
