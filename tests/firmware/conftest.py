@@ -18,12 +18,6 @@ FIRMWARE = REPO / "firmware"
 BUILDS = {"plain": "host", "san": "host-san"}
 
 
-def pytest_configure(config):
-    # until pyproject registers them (issue 37): latency bounds run alone, cheap checks in the quick set
-    config.addinivalue_line("markers", "serial: asserts a bound in ms; run apart from the parallel workers")
-    config.addinivalue_line("markers", "quick: a cheap check for the quick set")
-
-
 def _missing(what: str) -> None:
     """No compiler: a skip with its reason on a developer's box, a failure in CI (which must build it)."""
     message = f"the firmware tests need {what} (Debian: build-essential)"

@@ -85,7 +85,7 @@ def test_estimates_through_the_firmware_equal_those_of_the_emulators_capture(pla
     assert not bad, bad[:8]
 
 
-WATCHDOG_MS = 300
+WATCHDOG_MS = 1000  # the daemons of the other live tests keep 1000: a loaded box delays a heartbeat by 300 ms
 
 
 @pytest.mark.serial
