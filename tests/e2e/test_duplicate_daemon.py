@@ -81,8 +81,14 @@ def test_two_daemons_with_one_name_on_networks_joined_later_say_so(tmp_path):
         # clients: a peer session would listen and introduce the two daemons to each other at once
         sub_a, sub_b = (_client(port, machine) for port in (port_a, port_b))
         try:
-            for sub in (sub_a, sub_b):
-                wait_for(lambda sub=sub: status(sub, machine)["state"] == "running", 60.0, "both daemons running")
+            for name, sub in (("a", sub_a), ("b", sub_b)):
+                seen: list[dict] = []
+                try:
+                    wait_for(lambda sub=sub, seen=seen: seen.append(status(sub, machine)) or seen[-1]["state"] == "running",
+                             60.0, "both daemons running")
+                except AssertionError:   # say what it was doing instead, and what it logged
+                    last = {k: seen[-1].get(k) for k in ("state", "daq_link", "faults", "samples_received")} if seen else None
+                    raise AssertionError(f"daemon {name} not running in 60 s: {last}\n{procs.text(name)[-3000:]}") from None
             assert all("machine" not in status(sub, machine)["faults"] for sub in (sub_a, sub_b))
             bridge = Subscriber([tcp(port_a), tcp(port_b)], machine, read=False)   # the segments joined
             try:
