@@ -13,7 +13,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 def _browser_tests_without_a_browser(tmp_path, ci: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, PATH=str(tmp_path), CI=ci)  # an empty folder: no chromium, no chromedriver
-    return subprocess.run([sys.executable, "-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider",
+    return subprocess.run([sys.executable, "-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider", "-n", "0",
                            "tests/dashboard/test_browser.py"], cwd=REPO, env=env, capture_output=True, text=True,
                           timeout=120)
 
