@@ -7,6 +7,7 @@ import signal
 import subprocess
 import time
 
+import pytest
 import zenoh
 
 from tests.conftest import free_tcp_port
@@ -26,6 +27,7 @@ def test_demo_prints_a_summary_line_per_second_and_exits(tmp_path):
     assert [d["detail"] for d in downs] == ["the driver is closing, as asked (the daemon is stopping)"], p.stderr
 
 
+@pytest.mark.serial
 def test_client_mode_daemon_reaches_subscribers_through_a_router(tmp_path):
     router_port = free_tcp_port()
     conf = zenoh.Config()

@@ -382,6 +382,7 @@ def test_a_frame_reaching_the_predicted_close_of_a_revolution_wakes_the_estimato
     assert not runner.interlock.latched
 
 
+@pytest.mark.serial
 def test_the_trip_time_ends_when_the_hold_is_written(live):
     """`last_trip_ms` (status) is the daemon's share of the crash trip: frame decoded → feed hold written. What the
     tripping thread does after the write (the log line, the AFC override to 100 %, which waits for the AFC lock while
