@@ -27,6 +27,8 @@ from millsense.daemon.physics.milling import (
     force_ratio_fxt,
 )
 
+pytestmark = pytest.mark.quick
+
 M = SB40_TABLE2
 RADIUS_MM, FLUTES = 8.0, 4
 feeds = st.floats(0.01, 0.7)

@@ -35,6 +35,8 @@ from millsense.drivers.tcp_driver import TcpDriver
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import write_config
 
+pytestmark = pytest.mark.quick
+
 # counts: 300 V line voltages (0.02 V/count), 30 A / 60 A line currents (0.002 A/count), each set summing
 # to zero, not rotating: ~26 kW of air-gap power against crash_power_w 12 kW, crossed at the 3rd sample
 PULSE = np.array([15000, 15000, -30000, 15000, 15000, -30000, 0, 0], dtype=np.int16)
