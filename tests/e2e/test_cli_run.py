@@ -14,6 +14,7 @@ from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for, write_config
 
 
+@pytest.mark.xdist_group("demo")  # one demo at a time: two (mch10-demo, scouting on) find each other and one exits 78
 def test_demo_prints_a_summary_line_per_second_and_exits(tmp_path):
     p = subprocess.run(CMD + ["run", "--seconds", "4"], capture_output=True, text=True, timeout=60)
     assert p.returncode == 0, p.stderr
@@ -87,6 +88,7 @@ def test_bad_config_exits_78_naming_the_key(tmp_path):
     assert "torque_limt_nm" in p.stderr and "Traceback" not in p.stderr
 
 
+@pytest.mark.xdist_group("demo")  # one demo at a time: two (mch10-demo, scouting on) find each other and one exits 78
 def test_demo_on_a_terminal_refreshes_one_line(tmp_path):
     import os
     import select

@@ -146,6 +146,7 @@ def test_memory_deny_write_execute_does_not_break_the_libraries():
     assert p.stdout.split("\n")[:2] == ["W+X refused", "True (33,)"]  # MDWE was really on, and everything ran
 
 
+@pytest.mark.xdist_group("demo")  # one demo at a time: two (mch10-demo, scouting on) find each other and one exits 78
 @pytest.mark.skipif(not _mdwe_supported(), reason="kernel without PR_SET_MDWE (Linux < 6.3)")
 def test_the_demo_daemon_runs_under_mdwe(tmp_path):
     """The whole daemon (sim DAQ, pipeline, Zenoh) for a few seconds with W+X refused."""
