@@ -297,6 +297,7 @@ def test_the_emulators_wiring_faults_refuse_a_channel_it_does_not_send(fault, sa
     assert p.stderr.count("\n") == 1
 
 
+@pytest.mark.quick
 def test_a_descriptor_that_does_not_fit_fails_first_and_the_signals_are_not_judged(tmp_path, meter):
     port = free_tcp_port()
     with Procs(tmp_path) as procs:
