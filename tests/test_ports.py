@@ -9,7 +9,11 @@ from __future__ import annotations
 
 import socket
 
+import pytest
+
 from tests.conftest import LOWEST_PORT, ephemeral_range, free_tcp_port
+
+pytestmark = pytest.mark.quick
 
 
 def test_picked_ports_lie_below_the_ephemeral_range_and_are_never_handed_out_twice():

@@ -16,6 +16,8 @@ from millsense.daemon.config_warnings import config_warnings
 from millsense.daemon.pipeline.feed_control import FeedController
 from tests.config.helpers import base, dumps, write
 
+pytestmark = pytest.mark.quick
+
 SHAPE = re.compile(r"^[^\s:][^:]*: .+\(.+\)$")
 
 

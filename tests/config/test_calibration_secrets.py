@@ -9,6 +9,8 @@ import pytest
 from millsense.daemon.config import ConfigError, effective_config_dict, load_config, load_config_text
 from tests.config.helpers import base, dumps, write
 
+pytestmark = pytest.mark.quick
+
 # What `millsense calibrate` writes (daemon/commands/calibrate.py `_write_toml`).
 CALIBRATION = """# written by `millsense calibrate`
 [[gears]]

@@ -16,6 +16,8 @@ import zenoh
 
 from tests.config.helpers import REPO, base, write
 
+pytestmark = pytest.mark.quick
+
 SUMMARY_ZENOH = "zenoh "
 
 

@@ -15,6 +15,8 @@ from millsense.daemon.config import ConfigError, effective_config_dict, load_con
 from millsense.daemon.config_warnings import config_warnings
 from tests.config.helpers import base, dumps, write
 
+pytestmark = pytest.mark.quick
+
 KEY = "adapter-key-of-at-least-32-characters-0123456789"
 TOKEN = "reset-token-of-at-least-32-characters-0123456789"
 

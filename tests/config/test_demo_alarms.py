@@ -11,7 +11,11 @@ from __future__ import annotations
 
 import math
 
+import pytest
+
 from millsense.daemon.config import demo_config
+
+pytestmark = pytest.mark.quick
 
 SPINDLE_RPM = 600.0
 DEPTHS_MM = (1.0, 2.0, 3.0)

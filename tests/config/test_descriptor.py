@@ -8,6 +8,8 @@ from millsense.daemon.config import ConfigError, check_against_descriptor, demo_
 from millsense.drivers.protocol import Channel, ChannelKind, Descriptor
 from tests.config.helpers import base, dumps
 
+pytestmark = pytest.mark.quick
+
 K = ChannelKind
 SIM = [("v_uv", K.VOLTAGE), ("v_vw", K.VOLTAGE), ("v_wu", K.VOLTAGE), ("i_u", K.CURRENT), ("i_v", K.CURRENT),
        ("i_w", K.CURRENT), ("sp_rpm", K.SPEED), ("sp_enc", K.ENCODER)]

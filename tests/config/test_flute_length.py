@@ -11,6 +11,8 @@ from millsense.daemon.physics import validity
 from millsense.daemon.pipeline.per_revolution import tool_geometries
 from tests.config.helpers import base, dumps
 
+pytestmark = pytest.mark.quick
+
 
 def _doc(**tool_extra) -> dict:
     doc = base()

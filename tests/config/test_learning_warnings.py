@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import pytest
+
 from millsense.daemon.config import load_config_text
 from millsense.daemon.config_warnings import config_warnings
 from tests.config.helpers import base, dumps
+
+pytestmark = pytest.mark.quick
 
 
 def warnings_of(doc: dict) -> list[str]:

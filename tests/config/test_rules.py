@@ -9,6 +9,8 @@ import pytest
 from millsense.daemon.config import ConfigError, load_config, load_config_text
 from tests.config.helpers import base, dumps, write
 
+pytestmark = pytest.mark.quick
+
 SHAPE = re.compile(r"^[^\s:][^:]*: .+\(.+\)$")
 
 

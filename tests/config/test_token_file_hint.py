@@ -16,6 +16,8 @@ import pytest
 
 from tests.config.helpers import base, write
 
+pytestmark = pytest.mark.quick
+
 HINT = re.compile(r"\(.*make one with `(millsense token new --out [^`]+)`\)$")
 
 

@@ -18,6 +18,8 @@ from millsense.daemon.config import ConfigError, load_config, load_config_text
 from millsense.daemon.pipeline.per_revolution import tool_geometries
 from tests.config.helpers import base, dumps, write
 
+pytestmark = pytest.mark.quick
+
 SHAPE = re.compile(r"^[^\s:][^:]*: .+\(.+\)$")
 
 

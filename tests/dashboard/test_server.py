@@ -21,6 +21,8 @@ from millsense.daemon.dashboard.zenoh_side import ZenohSide
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import tcp, wait_for
 
+pytestmark = pytest.mark.quick
+
 
 def _session(listen=None, connect=None):
     conf = zenoh.Config()

@@ -90,6 +90,7 @@ def check_every_sample_once(blocks: list[SampleBlock]) -> int:
     return expected_seq - blocks[0].seq
 
 
+@pytest.mark.serial
 @pytest.mark.parametrize("transport, ring", [("pty", ()), ("tcp", ()), ("modbus-tcp", ()), ("modbus-rtu", ()),
                                              # a ring depth that does not divide 2**32: the index wrap is not at
                                              # a ring wrap (before stop 28 a read across it handed over samples a

@@ -11,6 +11,8 @@ from hypothesis import strategies as st
 from millsense.drivers import protocol
 from millsense.drivers.protocol import GATHER_BELOW_ROWS, crc16_modbus, crc16_modbus_rows
 
+pytestmark = pytest.mark.quick
+
 
 def crc_bitwise(data: bytes) -> int:
     """daq-protocol.md: reflected polynomial 0xA001, initial 0xFFFF, one bit at a time."""

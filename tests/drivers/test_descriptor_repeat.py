@@ -16,6 +16,8 @@ from millsense.drivers.protocol import (
     encode_sample_frames,
 )
 
+pytestmark = pytest.mark.quick
+
 A = Descriptor(1000, tuple(Channel(ChannelKind.CURRENT, f"ch{i}") for i in range(4)))
 B = Descriptor(1000, tuple(Channel(ChannelKind.VOLTAGE, f"v{i}") for i in range(4)))   # same shape, other channels
 

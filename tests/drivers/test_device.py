@@ -15,6 +15,8 @@ from millsense.drivers.emulator.ramp import RampPlant
 from millsense.drivers.protocol import CMD_HEARTBEAT, CMD_SET_OUTPUTS, Command
 from tests.drivers.emulator_proc import ramp
 
+pytestmark = pytest.mark.quick
+
 
 def test_index_tracker_gap_wrap_and_restart():
     t = IndexTracker()

@@ -6,6 +6,7 @@ import subprocess
 import time
 
 import numpy as np
+import pytest
 
 from millsense.drivers import create_driver
 from millsense.drivers.base import SampleBlock
@@ -15,6 +16,7 @@ from tests.drivers.emulator_proc import SIM_CMD, Emulator, ramp
 from tests.drivers.test_contract import Collector, check_every_sample_once
 
 
+@pytest.mark.quick
 def test_capture_fast_is_exact_and_repeats_the_descriptor(tmp_path):
     out = tmp_path / "ramp.cap"
     res = subprocess.run(
@@ -99,6 +101,7 @@ def test_pty_survives_the_reader_closing_and_reopening(tmp_path):
         assert emu.stop() == 0
 
 
+@pytest.mark.quick
 def test_serial_driver_takes_a_socket_url(tmp_path, port):
     emu = Emulator(tmp_path, "--tcp", f"127.0.0.1:{port}")
     drv = create_driver("serial", port=f"socket://127.0.0.1:{port}")
@@ -114,6 +117,7 @@ def test_serial_driver_takes_a_socket_url(tmp_path, port):
         emu.stop()
 
 
+@pytest.mark.quick
 def test_full_queue_drops_newest_and_carries_the_count():
     drv = SimDriver("ramp", queue_size=5)
     drv.start()
@@ -137,6 +141,7 @@ def test_full_queue_drops_newest_and_carries_the_count():
         drv.close()
 
 
+@pytest.mark.quick
 def test_modbus_register_map_is_the_spec(tmp_path, port):
     """Read the map with a plain pymodbus client, decoding by daq-protocol.md alone."""
     from pymodbus.client import ModbusTcpClient

@@ -29,6 +29,8 @@ from millsense.drivers.protocol import (
     encode_status,
 )
 
+pytestmark = pytest.mark.quick
+
 DESC = Descriptor(1000, tuple(Channel(ChannelKind.CURRENT, f"ch{i}") for i in range(4)))
 
 

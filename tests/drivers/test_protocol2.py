@@ -30,6 +30,8 @@ from millsense.drivers.protocol import (
     encode_status,
 )
 
+pytestmark = pytest.mark.quick
+
 CHANNELS = tuple(Channel(ChannelKind.CURRENT, f"ch{i}") for i in range(4))
 DESC1 = Descriptor(1000, CHANNELS)
 DESC2 = Descriptor(1000, CHANNELS, protocol_version=2, capabilities=3)

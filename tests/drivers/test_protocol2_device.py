@@ -20,6 +20,8 @@ from millsense.drivers.protocol import (
 )
 from millsense.drivers.sim_driver import SimDriver
 
+pytestmark = pytest.mark.quick
+
 
 def _device(**kw) -> DeviceModel:
     return DeviceModel(RampPlant(), protocol=2, program=7, tool=70001, operation=3, **kw)

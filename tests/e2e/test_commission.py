@@ -189,6 +189,7 @@ def test_the_prompts_on_a_terminal(tmp_path, meter):
     assert steps["speed"]["figures"]["commanded_rpm"] == RPM
 
 
+@pytest.mark.quick
 def test_refused_beside_a_daemon_of_this_machine(tmp_path):
     from millsense.daemon.pipeline.latch_store import claim_state_dir, state_dir
 
@@ -205,6 +206,7 @@ def test_refused_beside_a_daemon_of_this_machine(tmp_path):
     assert p.stderr.count("\n") == 1 and f"pid {os.getpid()}" in p.stderr and "two masters" in p.stderr
 
 
+@pytest.mark.quick
 def test_a_bad_config_names_section_and_key_and_exits_78(tmp_path):
     cfg = _config(tmp_path, free_tcp_port(), replace=("watchdog_ms = 300", "watchdog_ms = 10"))
     p = subprocess.run(CMD + ["commission", "--config", str(cfg)], capture_output=True, text=True, timeout=60)
@@ -273,6 +275,7 @@ def test_ctrl_c_mid_step_leaves_the_hold_asserted_and_latched(tmp_path, meter):
         assert not [c for c in _holds(tmp_path) if not c[0]], _holds(tmp_path)   # never released
 
 
+@pytest.mark.quick
 @pytest.mark.parametrize("readings, said", [("i_u=abc", "i_u=abc: expected a positive number"),
                                             ("i_u=inf", "i_u=inf: expected a positive number"),
                                             ("i_x=3", "i_x: no such reading")])
@@ -294,6 +297,7 @@ def test_the_emulators_wiring_faults_refuse_a_channel_it_does_not_send(fault, sa
     assert p.stderr.count("\n") == 1
 
 
+@pytest.mark.quick
 def test_a_descriptor_that_does_not_fit_fails_first_and_the_signals_are_not_judged(tmp_path, meter):
     port = free_tcp_port()
     with Procs(tmp_path) as procs:

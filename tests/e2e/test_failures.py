@@ -16,6 +16,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 import zenoh
 
 from tests.conftest import free_tcp_port
@@ -31,6 +32,7 @@ def _outputs(log):
     return [e for e in log if e.get("event") == "outputs"]
 
 
+@pytest.mark.serial
 def test_hang_dead_daq_restart_and_stuck_subscriber(tmp_path):
     daq_port, z_port = free_tcp_port(), free_tcp_port()
     machine = "fail-01"

@@ -62,6 +62,7 @@ def _run_live(tmp_path, transport: str):
     return estimates, status, read_jsonl(truth_path), read_jsonl(log_path), stop_s, alive, procs.text("daemon")
 
 
+@pytest.mark.serial
 @pytest.mark.parametrize("transport", ["tcp", "modbus-tcp"])
 def test_every_revolution_estimated_and_torque_matches_truth(tmp_path, transport):
     estimates, status, truth, log, stop_s, alive, daemon_log = _run_live(tmp_path, transport)

@@ -13,6 +13,8 @@ import re
 import signal
 import subprocess
 
+import pytest
+
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, read_jsonl, wait_for, write_config
 
@@ -83,6 +85,7 @@ def test_test_trip_fails_without_a_daemon(tmp_path):
     assert p.returncode == 1 and "no daemon" in p.stderr and "Traceback" not in p.stderr
 
 
+@pytest.mark.quick
 def test_test_trip_on_a_protocol_2_daq_measures_the_cnc_feed_held(tmp_path):
     lag_ms = 40.0
     machine = "tt-v2"

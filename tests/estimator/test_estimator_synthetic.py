@@ -14,6 +14,8 @@ from millsense.drivers.base import SampleBlock
 from . import configs, synthetic
 from .synthetic import Machine
 
+pytestmark = pytest.mark.quick
+
 
 def _blocks(raw: np.ndarray, size: int = 10, seq0: int = 0):
     for a in range(0, len(raw), size):

@@ -26,6 +26,8 @@ from millsense.drivers.sim.plant import Plant
 
 from . import simcase
 
+pytestmark = pytest.mark.quick
+
 SCENARIO = "afc-step"
 OVERRIDE_PCT = 120.0
 DURATION_S = 16.0   # the 2 mm step (25 mm at 240 mm/min: 6.25 s) and most of the 3 mm one

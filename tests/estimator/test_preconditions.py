@@ -23,6 +23,8 @@ from millsense.daemon.pipeline.per_revolution import RevolutionMeans, Revolution
 from tests.estimator import configs
 from tests.estimator.test_one_revolution import _columns, _differences
 
+pytestmark = pytest.mark.quick
+
 HAIR = 1e-6          # relative step either side of a boundary
 LOW_GEAR = (2.6629, 0.0400)    # T_f' N·m, B' N·m·s/rad of configs.GEARS, up to 900 rpm
 HIGH_GEAR = (1.6160, 0.0022)   # up to 4500 rpm

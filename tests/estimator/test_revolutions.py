@@ -9,6 +9,8 @@ from hypothesis import strategies as st
 
 from millsense.daemon.pipeline.revolutions import EncoderAngle, RevolutionSplitter, SpeedAngle
 
+pytestmark = pytest.mark.quick
+
 
 def _split_points(n: int, cuts: list[int]) -> list[tuple[int, int]]:
     edges = sorted({0, n, *[c % n for c in cuts]})

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.quick
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
 
 import skew_tolerance as bench  # noqa: E402

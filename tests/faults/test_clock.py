@@ -17,6 +17,8 @@ import signal
 import time
 from pathlib import Path
 
+import pytest
+
 from millsense.daemon.pipeline.status import SeqClock
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
@@ -48,6 +50,7 @@ def test_seq_clock_follows_a_small_forward_step_at_once():
     assert abs(c.time_of(509) - (wall0 + 2.0 + 0.510)) < 1e-6
 
 
+@pytest.mark.serial
 def test_wall_clock_steps_do_not_touch_pacing_or_revolutions(tmp_path):
     daq_port, z_port = free_tcp_port(), free_tcp_port()
     machine = "clock-01"

@@ -14,6 +14,8 @@ import os
 import signal
 import time
 
+import pytest
+
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
 from tests.faults.helpers import (
@@ -41,6 +43,7 @@ CONNECT_WINDOW = ["--connect-timeout", "120"]
 INDEX_MOD = 1 << 32
 
 
+@pytest.mark.serial
 def test_link_flapping_every_2_s_every_sample_delivered_or_counted(tmp_path):
     daq_port, z_port = free_tcp_port(), free_tcp_port()
     machine = "flap-01"
@@ -147,6 +150,7 @@ def test_link_flapping_every_2_s_every_sample_delivered_or_counted(tmp_path):
     assert_clean_exit(procs, "daemon")
 
 
+@pytest.mark.serial
 def test_pty_closed_under_the_reader_then_the_device_restarts_at_index_0(tmp_path):
     link = tmp_path / "ttyDAQ"
     z_port = free_tcp_port()

@@ -10,6 +10,7 @@ from __future__ import annotations
 import random
 import re
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -96,6 +97,7 @@ def _encoder_only_at(claimed_hz: int):
     return edit
 
 
+@pytest.mark.serial
 def test_a_rate_stated_wrong_everywhere_is_blind_and_holds_the_feed(tmp_path):
     machine = "rate-01"
     with live_daemon(tmp_path, machine, ["--descriptor-rate", "2000"], edit_config=_encoder_only_at(2000)) as \

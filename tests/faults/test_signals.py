@@ -17,6 +17,8 @@ import signal
 import subprocess
 import time
 
+import pytest
+
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
 from tests.faults.helpers import assert_clean_exit, log_events, outputs, status, wait_status
@@ -35,6 +37,7 @@ SCHEDULING_S = 1.0
 TOKEN = "Zq7-unguessable-reset-token-41c9"
 
 
+@pytest.mark.serial
 def test_sigterm_in_the_middle_of_a_revolution(tmp_path):
     daq_port, z_port = free_tcp_port(), free_tcp_port()
     machine = "term-01"
@@ -107,6 +110,7 @@ def _reset(z_port: int, machine: str, *token_args: str) -> subprocess.CompletedP
     )
 
 
+@pytest.mark.serial
 def test_sigstop_over_modbus_the_daq_holds_the_feed_and_only_the_right_token_clears_it(tmp_path):
     mb_port, z_port = free_tcp_port(), free_tcp_port()
     machine = "stop-01"

@@ -22,6 +22,7 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -102,6 +103,7 @@ def _gaps_s(timed: list[tuple[float, dict]], after: float, before: float) -> flo
     return max((b - a for a, b in zip(t, t[1:])), default=float("inf"))
 
 
+@pytest.mark.serial
 def test_peers_vanish_and_return_alarms_still_reach_everyone(tmp_path):
     daq_port, z_port = free_tcp_port(), free_tcp_port()
     machine = "zp-01"
@@ -243,6 +245,7 @@ payloads = st.one_of(
 )
 
 
+@pytest.mark.serial
 def test_cmd_reset_fuzzed_on_a_real_daemon_holds_the_feed_and_stays_small(tmp_path):
     z_port = free_tcp_port()
     machine = "zf-01"

@@ -5,11 +5,15 @@ from __future__ import annotations
 import sqlite3
 from pathlib import Path
 
+import pytest
+
 from millsense.daemon.history import HistoryStore
 from millsense.daemon.history.bounds import CAP_LOW_WATER
 from millsense.daemon.history.store import MAINTENANCE_S, OTHER_RETENTION_FACTOR
 
 from .helpers import T0, Events, count, estimate, process
+
+pytestmark = pytest.mark.quick
 
 DAY = 86400.0
 

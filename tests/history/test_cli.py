@@ -45,6 +45,7 @@ def _run(millsense_cmd, *args, **kw):
     return subprocess.run([*millsense_cmd, "history", *args], capture_output=True, text=True, timeout=60, **kw)
 
 
+@pytest.mark.quick
 def test_csv_by_tool_and_time(millsense_cmd, state):
     r = _run(millsense_cmd, "--config", str(state), "--tool", "12", "--from", _iso(T0 + 50), "--to", str(T0 + 250))
     assert r.returncode == 0, r.stderr

@@ -19,6 +19,8 @@ from millsense.daemon.history import HistoryStore
 
 from .helpers import T0, Events, count, estimate, integrity, wait_until
 
+pytestmark = pytest.mark.quick
+
 WRITER = Path(__file__).with_name("writer.py")
 FRAME_BYTES = 24 + 4096  # a WAL frame: its header and one page (the default page size)
 

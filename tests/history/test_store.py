@@ -7,10 +7,14 @@ import os
 import sqlite3
 from pathlib import Path
 
+import pytest
+
 from millsense.daemon.history import SCHEMA_VERSION, HistoryStore
 from millsense.daemon.history.schema import migrate, version_of
 
 from .helpers import T0, Events, count, estimate, process, wait_until
+
+pytestmark = pytest.mark.quick
 
 
 def _store(path: Path, events: Events | None = None, **kw) -> HistoryStore:

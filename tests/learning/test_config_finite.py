@@ -14,6 +14,8 @@ from millsense.daemon.config import ConfigError, load_config_text
 from millsense.daemon.config_models import AlarmSettings, LearningSettings
 from tests.config.helpers import base, dumps
 
+pytestmark = pytest.mark.quick
+
 
 def _float_keys(model) -> list[str]:
     return [name for name, f in model.model_fields.items()

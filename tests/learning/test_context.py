@@ -7,6 +7,8 @@ import pytest
 from millsense.daemon.learning.context import KEEP_PASSED, MAX_HELD, ContextTrack
 from millsense.drivers.protocol import Context
 
+pytestmark = pytest.mark.quick
+
 CYCLE, MONITOR, AFC, HELD = 0x01, 0x02, 0x04, 0x08
 
 

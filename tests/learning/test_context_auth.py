@@ -17,6 +17,8 @@ from millsense.daemon.learning.context_auth import UNTRUSTED, ContextAuth, mac_h
 from millsense.drivers.protocol import Context
 from tests.learning.doc_signer import signer, vector
 
+pytestmark = pytest.mark.quick
+
 KEY = "adapter-key-of-at-least-32-characters-0123456789"
 MACHINE, RUN = "mch10-01", "0123456789abcdef"
 CTX = {"program": 1234, "tool": 12, "operation": 3, "afc_allowed": True}

@@ -8,8 +8,12 @@ two against the envelope and raised `envelope_low` on a good part.
 
 from __future__ import annotations
 
+import pytest
+
 from millsense.daemon.learning.monitor import ProcessMonitor
 from tests.learning.synth import CUTTING_NM, Shape, Shop, learning
+
+pytestmark = pytest.mark.quick
 
 
 def blip_before_entry(k_blip: int = 4) -> Shape:

@@ -12,6 +12,8 @@ import pytest
 from millsense.daemon.learning.envelope import Envelope, Taught, learn
 from tests.learning.synth import learning
 
+pytestmark = pytest.mark.quick
+
 SETTINGS = learning()
 SIGMA, PCT, LOW_PCT, FLOOR_NM, FLOOR_N = 4.0, 25.0, 12.5, 0.5, 50.0
 

@@ -20,6 +20,8 @@ from millsense.daemon.learning.monitor import ProcessMonitor
 from millsense.daemon.publish.limits_args import ACTIONS, check_args
 from tests.learning.synth import LEVELS_NM, Shape, Shop, learning
 
+pytestmark = pytest.mark.quick
+
 KEY = "1001/12/1"
 
 

@@ -14,6 +14,8 @@ from millsense.daemon.learning.monitor import ProcessMonitor
 from millsense.daemon.pipeline.alarms import AlarmEvent
 from tests.learning.synth import LEVELS_NM, Shape, Shop, ctx, learning
 
+pytestmark = pytest.mark.quick
+
 KEY = "1001/12/1"
 
 

@@ -22,6 +22,8 @@ from millsense.daemon.learning.monitor import ProcessMonitor
 from millsense.daemon.pipeline.alarms import AlarmEngine
 from tests.learning.synth import CUTTING_NM, FORCE_PER_NM, SAMPLES_PER_REV, ctx, learning
 
+pytestmark = pytest.mark.quick
+
 GAIN = 1.0 - 0.4362          # 1 + ks_exp of SM45C ([D] Table 2), as the daemon derives it
 KEY = "1001/12/1"
 AIR_NM = 0.03

@@ -8,6 +8,8 @@ import pytest
 
 from millsense.daemon.learning.wear import ToolWear
 
+pytestmark = pytest.mark.quick
+
 
 def test_wear_is_the_mean_rise_of_the_last_window():
     w = ToolWear()

@@ -165,6 +165,7 @@ def _status(t, interlock, **detail):
     return {"t": t, "interlock": interlock, "interlock_detail": {"interlock": interlock, **detail}}
 
 
+@pytest.mark.quick
 def test_the_track_fires_once_per_transition_and_never_on_a_status_from_before_the_trip():
     track = FeedHeldTrack(SEVERITY)
     assert track.on_status(_status(100.0, "armed", daq_feed_hold=False)) is None
@@ -189,6 +190,7 @@ def test_the_track_fires_once_per_transition_and_never_on_a_status_from_before_t
     assert FeedHeldTrack(SEVERITY).on_alarm({"t": 1.0, "level": "warning", "interlock": "feed_hold"}) is None
 
 
+@pytest.mark.quick
 def test_a_hold_whose_cause_ranks_below_an_overload_is_still_an_overloads_severity():
     """An envelope alarm (600) or envelope_low stops the machine as surely as an overload: FeedHeld is at least
     800 whatever its cause ranks (`MIN_SEVERITY`), more only for a graver one."""
@@ -199,6 +201,7 @@ def test_a_hold_whose_cause_ranks_below_an_overload_is_still_an_overloads_severi
         assert on.active and on.severity == 800 and on.reason == f"{level} torque_nm 4.2 {side} 3.9"
 
 
+@pytest.mark.quick
 def test_a_status_built_within_a_second_of_the_tripping_sample_does_not_release_the_hold():
     """Alarms and statuses travel on different keys: a status built 0.5 s after the tripping sample may still
     be from before the trip was decided. Only one built `NOT_BEFORE_S` (1 s) after it can release."""

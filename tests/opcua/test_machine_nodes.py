@@ -63,6 +63,7 @@ def test_tool_life_per_tool_number_from_process_summaries():
     asyncio.run(scenario())
 
 
+@pytest.mark.quick
 def test_value_conversion_never_writes_a_wrong_type():
     field = {f.name: f for f in F.FIELDS}
     assert F.value_at({"torque_nm": "12"}, field["torque_nm"]) is None
@@ -72,6 +73,7 @@ def test_value_conversion_never_writes_a_wrong_type():
     assert F.value_at({"afc": None}, next(f for f in F.FIELDS if f.path == ("afc", "state"))) is F.ABSENT
 
 
+@pytest.mark.quick
 def test_inbox_keeps_the_newest_value_and_bounds_the_events():
     inbox = Inbox()
     for rev in range(1000):

@@ -10,6 +10,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.quick
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
 
 from doc_section import stale_figures, with_marked_sections, write_section  # noqa: E402

@@ -71,6 +71,7 @@ def test_auto_picks_console_on_a_tty_and_json_under_systemd_or_a_pipe():
     assert resolve_format("console", io.StringIO(), env={"INVOCATION_ID": "abc"}) == "console"
 
 
+@pytest.mark.serial
 def test_a_blocked_sink_does_not_block_the_logger():
     """A pipe nobody reads (a stalled journald): log calls return at once, excess lines are dropped."""
     r, w = os.pipe()

@@ -11,6 +11,8 @@ import pytest
 
 from millsense.daemon import sdnotify
 
+pytestmark = pytest.mark.quick
+
 
 @pytest.fixture
 def listener(tmp_path, monkeypatch):

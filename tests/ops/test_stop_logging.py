@@ -7,10 +7,13 @@ import socket
 import threading
 import types
 
+import pytest
 from structlog.testing import capture_logs
 
 from millsense.daemon.pipeline.interlock import Interlock
 from millsense.drivers.tcp_driver import TcpDriver
+
+pytestmark = pytest.mark.quick
 
 
 def _events(logs: list[dict], name: str) -> list[dict]:

@@ -1,6 +1,10 @@
 """The one rate limit of refusal lines (audit log, refused queries): nothing lost, nothing flooded."""
 
+import pytest
+
 from millsense.daemon.throttle import Throttle
+
+pytestmark = pytest.mark.quick
 
 
 def test_counts_everything_lets_one_through_a_period_and_keeps_the_rest_for_the_stop():

@@ -9,6 +9,8 @@ from hypothesis import strategies as st
 
 from millsense.daemon.physics.calibration import fit_cf, fit_friction
 
+pytestmark = pytest.mark.quick
+
 
 @settings(max_examples=50, deadline=None)
 @given(

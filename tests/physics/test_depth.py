@@ -27,6 +27,8 @@ from millsense.daemon.physics.milling import (
     force_ratio_fxt,
 )
 
+pytestmark = pytest.mark.quick
+
 M = SB40_TABLE2
 RADIUS_MM, FLUTES = 8.0, 4
 feeds = st.floats(0.01, 0.7)
@@ -190,6 +192,7 @@ def test_bad_arguments_raise_clear_errors():
         depths_from_forces(tangential_n=1.0, feed_n=1.0, feed_per_tooth_mm=0.1, tool_radius_mm=0.0, flutes=4, material=M, mode="down")
 
 
+@pytest.mark.serial
 def test_solve_is_fast_enough_for_every_revolution():
     """Generous sanity bound only (bench/physics_table3.py prints the real figure)."""
     depth._branches.cache_clear()

@@ -18,6 +18,8 @@ from millsense.daemon.physics.depth import (
 )
 from millsense.daemon.physics.milling import SB40_TABLE2
 
+pytestmark = pytest.mark.quick
+
 M = SB40_TABLE2
 RADIUS_MM, FLUTES = 8.0, 4
 

@@ -9,6 +9,8 @@ from millsense.daemon.physics.force import cf_model, resultant_force_n, slot_cf,
 from millsense.daemon.physics.milling import SB40_TABLE2, cutting_coefficients
 from tests.physics.instant_model import instantaneous_forces
 
+pytestmark = pytest.mark.quick
+
 M = SB40_TABLE2
 
 

@@ -18,6 +18,8 @@ from millsense.daemon.physics.milling import (
 )
 from tests.physics.instant_model import instantaneous_forces
 
+pytestmark = pytest.mark.quick
+
 M = SB40_TABLE2
 
 

@@ -20,6 +20,8 @@ from millsense.daemon.physics.power import (
     third_line_current_a,
 )
 
+pytestmark = pytest.mark.quick
+
 FS_HZ = 1000.0
 SHIFT = 2.0 * np.pi / 3.0
 

@@ -8,6 +8,8 @@ import pytest
 from millsense.daemon.physics.milling import SB40_TABLE2, force_ratio_fx
 from millsense.daemon.physics.table3 import radial_ratio_table3, table3_coefficients
 
+pytestmark = pytest.mark.quick
+
 FEEDS_MM = [0.05, 0.1042, 0.2083, 0.4167]
 R_R = np.linspace(0.125, 1.99, 300)
 

@@ -13,6 +13,8 @@ from millsense.daemon.physics.torque import (
     torque_sigma_nm,
 )
 
+pytestmark = pytest.mark.quick
+
 # [P] Table 2, "high ratio" gear (≤ 900 rpm, g = 4.81).
 T_F, B_V, G = 2.6629, 0.0400, 4.81
 

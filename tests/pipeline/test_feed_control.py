@@ -20,6 +20,8 @@ from millsense.daemon.config_models import AfcSettings, AfcTargetSettings, Mater
 from millsense.daemon.pipeline.feed_control import STATES, FeedController, tune
 from tests.pipeline.loop_model import Cut, run
 
+pytestmark = pytest.mark.quick
+
 SETTLE_BAND = 0.05        # issue 15: within ±5 % of the target ...
 OVERSHOOT_MAX = 0.15      # ... overshoot at most 15 %
 CNC_LAG_S = 0.04

@@ -8,8 +8,12 @@ limit: an unauthenticated put can never keep the feed raised, not even while it 
 
 from __future__ import annotations
 
+import pytest
+
 from millsense.daemon.learning.context_auth import UNTRUSTED
 from tests.pipeline.test_feed_control import controller, est
+
+pytestmark = pytest.mark.quick
 
 
 def test_an_untrusted_context_idles_the_controller_and_never_raises_the_feed():

@@ -24,6 +24,8 @@ from millsense.daemon.publish.sink import ZenohSink
 
 from .helpers import open_pair, wait_for
 
+pytestmark = pytest.mark.quick
+
 TOKEN = "afc-t0ken-" + "c" * 40
 
 

@@ -10,10 +10,13 @@ from __future__ import annotations
 
 import threading
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from millsense.daemon.publish.alarm_state import ActiveAlarms, ShownAlarms, catch_up, caught_up
+
+pytestmark = pytest.mark.quick
 
 
 def alarm(level: str, quantity: str = "torque_nm", value: float | None = 1.0) -> dict:

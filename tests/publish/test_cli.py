@@ -136,6 +136,7 @@ def _reset(millsense_cmd, port, *extra, timeout=30, token_env=None):
     )
 
 
+@pytest.mark.quick
 def test_reset_gets_the_daemons_verified_reply(millsense_cmd, port, daemon_session, tmp_path):
     controls = FakeInterlock(token=TOKEN)
     sink = ZenohSink(daemon_session, "mch10-01", controls)
@@ -156,6 +157,7 @@ def test_reset_gets_the_daemons_verified_reply(millsense_cmd, port, daemon_sessi
         sink.close()
 
 
+@pytest.mark.quick
 def test_reset_refused_exits_1_with_the_reason(millsense_cmd, port, daemon_session):
     controls = FakeInterlock(token=TOKEN)
     sink = ZenohSink(daemon_session, "mch10-01", controls)

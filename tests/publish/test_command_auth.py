@@ -19,6 +19,8 @@ from millsense.daemon.publish.sink import ZenohSink
 
 from .helpers import FakeInterlock, open_pair, wait_for
 
+pytestmark = pytest.mark.quick
+
 TOKEN = "Hk3vQ9xW2mPz7LcN5tRb8yFd4sGj6aUe1oKi0nVw_-E"  # 43 characters, as `millsense token new` makes
 
 

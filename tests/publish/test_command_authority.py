@@ -21,6 +21,8 @@ from tests.config.helpers import base, dumps
 
 from .helpers import KEY, Impostor, OperatorControls, open_pair
 
+pytestmark = pytest.mark.quick
+
 TOKEN = "Hk3vQ9xW2mPz7LcN5tRb8yFd4sGj6aUe1oKi0nVw_-E"
 
 

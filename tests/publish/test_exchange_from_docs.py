@@ -18,6 +18,7 @@ import secrets
 import time
 from pathlib import Path
 
+import pytest
 import zenoh
 
 from tests.conftest import REPO, free_tcp_port
@@ -78,6 +79,7 @@ def test_the_docs_worked_example_reproduces():
         == server_mac
 
 
+@pytest.mark.quick
 def test_a_third_party_requester_resets_a_real_daemon(tmp_path):
     z_port = free_tcp_port()
     machine = "docs-01"

@@ -10,6 +10,8 @@ import pytest
 
 from millsense.daemon.commands.limits import request_args
 
+pytestmark = pytest.mark.quick
+
 KEY = "1234/12/3"
 
 

@@ -21,6 +21,8 @@ from millsense.daemon.publish.sink import ZenohSink
 
 from .helpers import Collector, open_pair, wait_for
 
+pytestmark = pytest.mark.quick
+
 TOKEN = "t0ken-" + "a" * 40
 KEY = "1234/12/3"
 

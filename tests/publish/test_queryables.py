@@ -15,6 +15,8 @@ from millsense.daemon.publish.sink import ZenohSink
 
 from .helpers import FakeInterlock, open_pair, wait_for
 
+pytestmark = pytest.mark.quick
+
 
 @pytest.fixture
 def daemon(port):

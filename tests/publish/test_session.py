@@ -90,6 +90,7 @@ def test_invalid_json5_file_is_a_config_error(tmp_path):
         zenoh_config(zsettings(config_file=str(f)))
 
 
+@pytest.mark.serial
 def test_client_without_router_gives_up_with_one_waiting_event(port):
     events = []
     started = time.monotonic()
@@ -135,6 +136,7 @@ def test_client_retries_until_the_router_comes_up(port):
             router_box["s"].close()
 
 
+@pytest.mark.serial
 def test_stop_event_ends_the_wait(port):
     stop = threading.Event()
     threading.Timer(0.3, stop.set).start()

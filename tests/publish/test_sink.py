@@ -115,6 +115,7 @@ def test_queue_drops_oldest_and_accounts_for_every_estimate(pair):
         sub.undeclare()
 
 
+@pytest.mark.serial
 def test_slow_subscriber_does_not_slow_the_estimator_and_alarms_still_arrive(port, pair):
     a, b = pair
     slow_calls = []
@@ -173,6 +174,7 @@ def test_alarms_are_published_before_waiting_estimates(pair):
         sub.undeclare()
 
 
+@pytest.mark.serial
 def test_liveliness_token_while_open_and_delete_after_close(pair):
     a, b = pair
     events = []

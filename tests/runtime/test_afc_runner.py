@@ -23,6 +23,8 @@ from millsense.drivers.emulator.device import StatusLog
 from millsense.drivers.sim_driver import SimDriver
 from tests.runtime.test_runner import RecordingSink, ScriptedEstimator, wait_for
 
+pytestmark = pytest.mark.quick
+
 TARGET_NM = 20.0
 
 

@@ -5,10 +5,13 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from millsense.daemon.pipeline.alarms import AlarmEngine, alarm_payload
+
+pytestmark = pytest.mark.quick
 
 
 def cfg(**kw):

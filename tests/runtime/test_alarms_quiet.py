@@ -6,10 +6,13 @@ from __future__ import annotations
 import math
 from types import SimpleNamespace
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from millsense.daemon.pipeline.alarms import AlarmEngine, ThresholdTrack
+
+pytestmark = pytest.mark.quick
 
 # values around both levels and their hysteresis bands (warn 20, limit 30, 10 %: 18 and 27), None: saturated
 values = st.lists(st.one_of(st.sampled_from([0.0, 17.9, 18.0, 19.99, 20.0, 20.01, 26.9, 27.0, 30.0, 30.5, None]),

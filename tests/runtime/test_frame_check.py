@@ -35,6 +35,8 @@ from millsense.drivers.tcp_driver import TcpDriver
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import write_config
 
+pytestmark = pytest.mark.quick
+
 # counts: 300 V line voltages (0.02 V/count), 30 A / 60 A line currents (0.002 A/count), each set summing
 # to zero, not rotating: ~26 kW of air-gap power against crash_power_w 12 kW, crossed at the 3rd sample
 PULSE = np.array([15000, 15000, -30000, 15000, 15000, -30000, 0, 0], dtype=np.int16)
@@ -382,6 +384,7 @@ def test_a_frame_reaching_the_predicted_close_of_a_revolution_wakes_the_estimato
     assert not runner.interlock.latched
 
 
+@pytest.mark.serial
 def test_the_trip_time_ends_when_the_hold_is_written(live):
     """`last_trip_ms` (status) is the daemon's share of the crash trip: frame decoded → feed hold written. What the
     tripping thread does after the write (the log line, the AFC override to 100 %, which waits for the AFC lock while

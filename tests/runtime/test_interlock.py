@@ -16,6 +16,8 @@ import pytest
 
 from millsense.daemon.pipeline.interlock import TEST_TRIP, Interlock, ResetCheck
 
+pytestmark = pytest.mark.quick
+
 
 class Outputs:
     def __init__(self, fail: bool = False, hold: bool = False):

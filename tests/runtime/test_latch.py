@@ -21,6 +21,8 @@ from millsense.daemon.pipeline.runner import Runner
 from millsense.drivers.sim_driver import SimDriver
 from tests.runtime.test_runner import RecordingSink, ScriptedEstimator, settings, wait_for
 
+pytestmark = pytest.mark.quick
+
 
 # -- where the state lives ------------------------------------------------------------------
 def test_state_dir_prefers_systemd_then_xdg_then_home():

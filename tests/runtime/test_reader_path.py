@@ -8,6 +8,7 @@ import socket
 import threading
 
 import numpy as np
+import pytest
 
 from millsense.drivers.base import name_os_thread
 from millsense.drivers.protocol import (
@@ -21,6 +22,8 @@ from millsense.drivers.protocol import (
     encode_status,
 )
 from millsense.drivers.tcp_driver import TcpDriver
+
+pytestmark = pytest.mark.quick
 
 DESC = Descriptor(1000, tuple(Channel(ChannelKind.OTHER, f"c{k}") for k in range(4)))
 

@@ -223,6 +223,7 @@ def test_heartbeats_flow_while_healthy_and_stop_when_the_estimator_stalls(rig):
     assert runner.interlock.state == "held_by_device"  # not cleared by the daemon
 
 
+@pytest.mark.serial
 def test_status_and_stop(rig):
     runner, drv, sink = rig(ScriptedEstimator(lambda rev: 5.0))
     wait_for(lambda: len(sink.of("status")) >= 1, 3, "a status publication")

@@ -11,9 +11,12 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from millsense.daemon.pipeline.alarms import AlarmEngine
 from millsense.daemon.pipeline.safety_check import SafetyCheck
+
+pytestmark = pytest.mark.quick
 
 RATE = 1000.0
 BLOCK = 10

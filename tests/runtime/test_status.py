@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -19,6 +20,8 @@ from millsense.daemon.pipeline.status import (
     summary_line,
 )
 from millsense.drivers.protocol import OUT_FEED_HOLD, Status
+
+pytestmark = pytest.mark.quick
 
 
 def test_seq_clock_uses_the_least_delayed_block():

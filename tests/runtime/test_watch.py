@@ -3,7 +3,11 @@ a failing one is logged, never raised."""
 
 from __future__ import annotations
 
+import pytest
+
 from millsense.daemon.commands.run import _Watch
+
+pytestmark = pytest.mark.quick
 
 
 class _Log:

@@ -5,9 +5,12 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from millsense.drivers.protocol import Descriptor, Samples, StreamDecoder
 from millsense.drivers.sim import Plant, write_capture
+
+pytestmark = pytest.mark.quick
 
 
 def test_capture_round_trip(tmp_path):

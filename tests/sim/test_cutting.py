@@ -10,6 +10,8 @@ import pytest
 from millsense.drivers.sim.cutting import CutGeometry, cutting_forces, tooth_chip_factors
 from millsense.drivers.sim.machine import MATERIALS, Material, Tool
 
+pytestmark = pytest.mark.quick
+
 FLAT = Material("flat", 2000.0, 0.0, 0.3, 0.0, 0.2, 0.0)  # constant coefficients: K_s, r1, r2 exact
 
 

@@ -12,6 +12,8 @@ from millsense.drivers.sim import SCENARIOS, Plant
 from millsense.drivers.sim.program import PROGRAMS
 from millsense.drivers.sim.program_plant import ProgramPlant
 
+pytestmark = pytest.mark.quick
+
 
 def _settled(revs, pct):
     """Revolutions at ``pct`` throughout, the one before too, no hold: the feed has settled."""

@@ -13,6 +13,8 @@ from millsense.drivers.sim.motor import motor_waveforms
 
 from .helpers import airgap_power_w, butterworth2_gain, electrical_hz, physical, steady_cut_revs
 
+pytestmark = pytest.mark.quick
+
 MOTOR = MCH10.motor
 
 

@@ -12,6 +12,8 @@ from millsense.drivers.sim.sensors import quantise
 
 from .helpers import SCALES, physical
 
+pytestmark = pytest.mark.quick
+
 
 def test_scales_are_the_datasheet():
     """channel_scales() is the table of docs/architecture.md."""
