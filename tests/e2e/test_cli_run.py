@@ -7,13 +7,14 @@ import signal
 import subprocess
 import time
 
+import pytest
 import zenoh
 
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for, write_config
 
 
-@pytest.mark.xdist_group("demo")  # the built-in demo scouts by multicast: a second demo at once refuses its name
+@pytest.mark.xdist_group("demo")  # one demo at a time: two (mch10-demo, scouting on) find each other and one exits 78
 def test_demo_prints_a_summary_line_per_second_and_exits(tmp_path):
     p = subprocess.run(CMD + ["run", "--seconds", "4"], capture_output=True, text=True, timeout=60)
     assert p.returncode == 0, p.stderr
@@ -27,6 +28,7 @@ def test_demo_prints_a_summary_line_per_second_and_exits(tmp_path):
     assert [d["detail"] for d in downs] == ["the driver is closing, as asked (the daemon is stopping)"], p.stderr
 
 
+@pytest.mark.serial
 def test_client_mode_daemon_reaches_subscribers_through_a_router(tmp_path):
     router_port = free_tcp_port()
     conf = zenoh.Config()
@@ -86,7 +88,7 @@ def test_bad_config_exits_78_naming_the_key(tmp_path):
     assert "torque_limt_nm" in p.stderr and "Traceback" not in p.stderr
 
 
-@pytest.mark.xdist_group("demo")  # the built-in demo scouts by multicast: a second demo at once refuses its name
+@pytest.mark.xdist_group("demo")  # one demo at a time: two (mch10-demo, scouting on) find each other and one exits 78
 def test_demo_on_a_terminal_refreshes_one_line(tmp_path):
     import os
     import select
