@@ -22,6 +22,8 @@ import pytest
 from millsense.daemon import __version__
 from tests.conftest import REPO
 
+pytestmark = pytest.mark.slow  # over about 10 s each: handed out first (tests/parallel.py)
+
 WHEELHOUSE_SH = REPO / "systemd" / "wheelhouse.sh"
 INSTALL_OFFLINE = REPO / "systemd" / "install-offline.sh"
 PROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]

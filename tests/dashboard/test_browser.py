@@ -23,6 +23,8 @@ import re
 import signal
 from pathlib import Path
 
+import pytest
+
 from millsense.daemon.publish.command_auth import send_command
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
@@ -177,6 +179,7 @@ def test_page_shows_live_values_alarm_and_releases_a_held_feed(tmp_path, browser
             assert dash.wait(30) == 0, procs.text("dash")
 
 
+@pytest.mark.slow
 def test_an_overload_hold_stays_red_after_its_alarm_clears(tmp_path, browser):
     """Issue 36, finding 7: the hold takes the load off, the overload clears 0.2 s later; the machine is still
     held, so its tile stays red and says why and since when; the clear is listed as a clear."""

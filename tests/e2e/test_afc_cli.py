@@ -14,10 +14,14 @@ import os
 import signal
 import subprocess
 
+import pytest
+
 from millsense.daemon.commands.watch import _TtyView
 from millsense.daemon.pipeline.status import status_line
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for, write_config
+
+pytestmark = pytest.mark.slow  # over about 10 s each: handed out first (tests/parallel.py)
 
 TOKEN = "afc-token-of-at-least-32-characters-0123456789ab"
 SLOW_S = 60.0  # detects a hang; no budget

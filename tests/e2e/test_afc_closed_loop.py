@@ -15,6 +15,8 @@ import pytest
 from millsense.drivers.sim.scenarios import get_scenario
 from tests.e2e.afc_run import OVERSHOOT_MAX, cycle_s, peak, run_loop, step_outcomes, torque_at_depth
 
+pytestmark = pytest.mark.slow  # over about 10 s each: handed out first (tests/parallel.py)
+
 STEPS_MM = (3.0, 2.5)  # the depths beyond the steps of the afc-step scenarios (2 -> 3 -> 2.5 mm)
 
 

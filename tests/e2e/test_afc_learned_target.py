@@ -21,8 +21,12 @@ import statistics
 import subprocess
 from pathlib import Path
 
+import pytest
+
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for
+
+pytestmark = pytest.mark.slow  # over about 10 s each: handed out first (tests/parallel.py)
 
 REPO = Path(__file__).resolve().parents[2]
 FACTOR = 1.1

@@ -13,6 +13,7 @@ import json
 import os
 import subprocess
 
+import pytest
 import zenoh
 
 from tests.conftest import free_tcp_port
@@ -65,6 +66,7 @@ def test_a_second_daemon_with_the_same_name_on_the_network_is_refused(tmp_path):
             sub.close()
 
 
+@pytest.mark.slow
 def test_two_daemons_with_one_name_on_networks_joined_later_say_so(tmp_path):
     """Two machines with a copied configuration, each on its own network segment: neither saw the other at start.
     A router, or a laptop with a peer session, joins the segments later: from then on both names' keys carry two

@@ -12,6 +12,8 @@ import pytest
 
 from tests.e2e import learning_run as lr
 
+pytestmark = pytest.mark.slow  # over about 10 s each: handed out first (tests/parallel.py)
+
 
 @pytest.fixture(scope="module")
 def outcome(tmp_path_factory):

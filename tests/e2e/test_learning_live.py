@@ -17,6 +17,8 @@ import signal
 import subprocess
 import tomllib
 
+import pytest
+
 from tests.conftest import free_tcp_port
 from tests.config.helpers import dumps
 from tests.e2e.helpers import CMD, Procs, Subscriber, read_jsonl, tcp, wait_for
@@ -39,6 +41,7 @@ def _config(path, daq_port, z_port, machine):
     return path
 
 
+@pytest.mark.slow
 def test_an_envelope_learned_live_holds_the_feed_and_outlives_a_restart(tmp_path):
     daq_port, z_port = free_tcp_port(), free_tcp_port()
     machine = "learn-live"

@@ -116,6 +116,7 @@ def test_matching_feed_says_nothing(tmp_path, fig6):
     assert est.physics.feed_check.take() == []
 
 
+@pytest.mark.slow
 def test_daemon_logs_feed_mismatch_once(tmp_path):
     """`millsense run` on the simulated fig6 with fig5's feed configured: one `feed.mismatch` log line."""
     path = tmp_path / "d.toml"

@@ -13,6 +13,8 @@ import json
 import random
 import time
 
+import pytest
+
 from tests.e2e.helpers import read_jsonl, wait_for
 from tests.faults.flood import holds
 from tests.faults.helpers import live_daemon, status
@@ -20,6 +22,7 @@ from tests.faults.helpers import live_daemon, status
 MACHINE = "ctxflood-01"
 
 
+@pytest.mark.slow
 def test_a_new_context_every_few_milliseconds_makes_no_learned_key_and_no_hold(tmp_path):
     il = 'enabled = true\nheartbeat_ms = 100\nwatchdog_ms = 500\nreset = "open"'
     with live_daemon(tmp_path, MACHINE, ["--protocol", "1"], interlock=il, watchdog_ms=500) as (procs, daemon, sub, log):

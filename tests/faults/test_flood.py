@@ -20,6 +20,8 @@ import signal
 import threading
 import time
 
+import pytest
+
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
 from tests.faults.flood import Flooder, holds, rss_growth_through_local_peers
@@ -53,6 +55,7 @@ class Estimates:
             return list(self.items)
 
 
+@pytest.mark.slow
 def test_flood_raises_no_hold_loses_no_revolution_and_memory_stays_bounded(tmp_path):
     daq_port, z_port = free_tcp_port(), free_tcp_port()
     token_file = tmp_path / "reset-token"

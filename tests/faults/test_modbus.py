@@ -19,6 +19,7 @@ import signal
 import time
 
 import numpy as np
+import pytest
 
 from millsense.drivers import create_driver
 from tests.conftest import free_tcp_port
@@ -169,6 +170,7 @@ def test_a_device_slower_than_its_samples_hands_over_what_it_reads_and_counts_wh
     assert [e.up for e in col.links] == [True], "a slow device is not a lost one"
 
 
+@pytest.mark.slow
 def test_daemon_over_modbus_refused_writes_and_read_faults(tmp_path):
     """A refused feed-hold write is written again; refused heartbeats are reported; read faults lose nothing."""
     mb_port, z_port = free_tcp_port(), free_tcp_port()

@@ -12,6 +12,7 @@ fault proxy of tests/faults/netfault.py), the real driver here.
 
 from __future__ import annotations
 
+import pytest
 import structlog
 
 from millsense.drivers import create_driver
@@ -50,6 +51,7 @@ def _answers_once(driver, col: Collector) -> None:
     assert driver.descriptor is not None
 
 
+@pytest.mark.slow
 def test_rtu_a_unit_that_never_answers_is_no_link_up_and_one_that_starts_answering_is_one(tmp_path):
     link = str(tmp_path / "rtu-link")
     silent = Emulator(tmp_path, "--modbus-rtu", link, "--unit", "5", name="unit5")  # silent to unit 1 on the bus

@@ -97,7 +97,7 @@ def _encoder_only_at(claimed_hz: int):
     return edit
 
 
-@pytest.mark.serial
+@pytest.mark.slow  # not serial: the rate is the daemon's 10 s average on arrival, built to ride out a held-up reader
 def test_a_rate_stated_wrong_everywhere_is_blind_and_holds_the_feed(tmp_path):
     machine = "rate-01"
     with live_daemon(tmp_path, machine, ["--descriptor-rate", "2000"], edit_config=_encoder_only_at(2000)) as \
@@ -119,6 +119,7 @@ def test_a_rate_stated_wrong_everywhere_is_blind_and_holds_the_feed(tmp_path):
         assert st["state"] == "degraded" and st["interlock"] == "feed_hold"
 
 
+@pytest.mark.slow
 def test_the_right_rate_stated_is_not_a_fault(tmp_path):
     """The same installation with the rate right: judged over as long, nothing raised, revolutions valid."""
     machine = "rate-02"
@@ -129,6 +130,7 @@ def test_the_right_rate_stated_is_not_a_fault(tmp_path):
         assert not outputs(read_jsonl(sim_log), feed_hold=True, cause="command")
 
 
+@pytest.mark.slow
 def test_the_check_can_be_turned_off_for_a_stream_played_at_speed(tmp_path):
     """`[daq] check_sample_rate = false` (a test bench playing parts faster than real time): the same wrong rate
     is not judged."""

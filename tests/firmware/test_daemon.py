@@ -39,6 +39,7 @@ def _same(a, b) -> bool:
     return a == b
 
 
+@pytest.mark.slow
 def test_estimates_through_the_firmware_equal_those_of_the_emulators_capture(plain_build, step_capture, tmp_path):
     cap, truth = step_capture
     daq_port, z_port = free_tcp_port(), free_tcp_port()

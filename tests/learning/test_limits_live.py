@@ -20,6 +20,7 @@ import signal
 import sqlite3
 
 import numpy as np
+import pytest
 from types import SimpleNamespace
 
 from millsense.daemon.history.store import HistoryStore
@@ -72,6 +73,7 @@ def _seed(db, rows: dict[str, dict]) -> None:
                          [(NULLED, json.dumps(nulled, allow_nan=False)), (INFINITE, json.dumps(infinite))])
 
 
+@pytest.mark.slow
 def test_a_widen_storm_and_non_finite_rows_leave_a_daemon_that_runs_trips_and_restarts(tmp_path):
     rows = _stormed_rows()
     assert all(math.isfinite(v) for v in _numbers(rows[STORMED]))

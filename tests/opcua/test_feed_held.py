@@ -53,6 +53,7 @@ class _Events:
         return [e for e in self.all if getattr(e, "ConditionName", None) == name]
 
 
+@pytest.mark.slow
 def test_a_held_feed_is_one_retained_condition_from_the_trip_until_the_reset(tmp_path):
     pki = make_pki(tmp_path / "pki")
     z_port, ua_port = free_tcp_port(), free_tcp_port()

@@ -26,6 +26,7 @@ MACHINE = "late-01"
 TORQUE_LIMIT_NM = 0.8  # below the step scenario's cutting torque from its first millimetre
 
 
+@pytest.mark.slow
 def test_a_server_that_connects_after_the_alarm_shows_it_once(tmp_path):
     pki = make_pki(tmp_path / "pki")
     z_port, ua_port = free_tcp_port(), free_tcp_port()

@@ -52,6 +52,7 @@ def _start_daemon(rig):
         procs.start("daemon", ["run", "--config", str(rig["cfg"])])
 
 
+@pytest.mark.slow
 def test_browse_data_change_and_alarm_event_from_a_live_daemon(rig):
     pki, procs = rig["pki"], rig["procs"]
     sub = Subscriber([tcp(rig["z_port"])], MACHINE)  # what the daemon really published, to compare with
