@@ -149,3 +149,9 @@ def pytest_terminal_summary(terminalreporter, config):
     terminalreporter.section(f"most CPU: {n} of {len(_cpu_by_test)} tests, {total:.0f} CPU s in all")
     for nodeid, cpu_s in sorted(_cpu_by_test.items(), key=lambda kv: -kv[1])[:n]:
         terminalreporter.write_line(f"{cpu_s:8.2f}s cpu  {nodeid}")
+    by_folder: dict[str, float] = {}
+    for nodeid, cpu_s in _cpu_by_test.items():
+        folder = "/".join(nodeid.split("::")[0].split("/")[:2])
+        by_folder[folder] = by_folder.get(folder, 0.0) + cpu_s
+    terminalreporter.write_line("by folder: " + ", ".join(
+        f"{folder} {cpu_s:.0f} s" for folder, cpu_s in sorted(by_folder.items(), key=lambda kv: -kv[1])))
