@@ -4,7 +4,7 @@ Each mutant is one plausible bug a developer could write (a flipped comparison, 
 off-by-one, a forgotten call, a wrong default): a search string in one file, which
 must match exactly once, and its replacement. For each, the script runs
 
-    pytest -x -q -p no:cacheprovider <the mutant's target tests>
+    pytest -x -q -p no:cacheprovider -n 0 <the mutant's target tests>
 
 with the mutant applied and records `killed` (a test failed; the first failing
 test's node id), `survived` (every target test passed: a gap in the suite),
@@ -61,7 +61,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 SANDBOX_PREFIX = "millsense-mutants-"
 DEFAULT_TIMEOUT_S = 900.0
-PYTEST_ARGS = ("-x", "-q", "-p", "no:cacheprovider")
+# One process (`-n 0` overrides pyproject's xdist workers): the targets run in the table's order and `-x` stops at
+# the first failure with exit code 1. In workers `-x` ends the session "Interrupted", exit code 2: read as `error`.
+PYTEST_ARGS = ("-x", "-q", "-p", "no:cacheprovider", "-n", "0")
 
 
 @dataclasses.dataclass(frozen=True)
