@@ -4,7 +4,7 @@ Each mutant is one plausible bug a developer could write (a flipped comparison, 
 off-by-one, a forgotten call, a wrong default): a search string in one file, which
 must match exactly once, and its replacement. For each, the script runs
 
-    pytest -x -q -p no:cacheprovider <the mutant's target tests>
+    pytest -x -q -p no:cacheprovider -n 0 <the mutant's target tests>
 
 with the mutant applied and records `killed` (a test failed; the first failing
 test's node id), `survived` (every target test passed: a gap in the suite),
@@ -61,7 +61,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 SANDBOX_PREFIX = "millsense-mutants-"
 DEFAULT_TIMEOUT_S = 900.0
-PYTEST_ARGS = ("-x", "-q", "-p", "no:cacheprovider")
+# One process (`-n 0` overrides pyproject's xdist workers): the targets run in the table's order and `-x` stops at
+# the first failure with exit code 1. In workers `-x` ends the session "Interrupted", exit code 2: read as `error`.
+PYTEST_ARGS = ("-x", "-q", "-p", "no:cacheprovider", "-n", "0")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,8 +126,8 @@ MUTANTS: tuple[Mutant, ...] = (
            "daemon/pipeline/runner.py",
            "            self._safe(self.interlock.start)\n",
            "",
-           ("tests/runtime/test_interlock.py", "tests/runtime/test_runner.py", "tests/faults/test_watchdog_hold.py",
-            RUNTIME, E2E_FAILURES, "tests/faults/test_link.py")),
+           ("tests/faults/test_watchdog_rearm.py", "tests/runtime/test_interlock.py", "tests/runtime/test_runner.py",
+            "tests/faults/test_watchdog_hold.py", RUNTIME, E2E_FAILURES, "tests/faults/test_link.py")),
     Mutant("il-watchdog-never-armed", "interlock",
            "watchdog: the interlock's start no longer sets the DAQ's watchdog (a hung daemon leaves the feed running)",
            "daemon/pipeline/interlock.py",
@@ -138,8 +140,8 @@ MUTANTS: tuple[Mutant, ...] = (
            "daemon/pipeline/runner.py",
            "                if self.frame_check is not None:\n                    self.frame_check.rearm()\n",
            "                pass\n",
-           ("tests/runtime/test_frame_check.py", "tests/runtime/test_interlock.py", "tests/runtime/test_runner.py",
-            RUNTIME, STANDSTILL, E2E_CRASH, E2E_INTERLOCK)),
+           (STANDSTILL, "tests/runtime/test_frame_check.py", "tests/runtime/test_interlock.py",
+            "tests/runtime/test_runner.py", RUNTIME, E2E_CRASH, E2E_INTERLOCK)),
     # -- signal checks -----------------------------------------------------------------------------------------
     Mutant("sc-frame-check-clip-gate", "signal checks",
            "frame check: a frame is looked at only when a current passes crash_current_a (a clipped sensor, "
@@ -173,7 +175,8 @@ MUTANTS: tuple[Mutant, ...] = (
            "daemon/pipeline/phase_check.py",
            "if sum_ptp > KIRCHHOFF_SHARE * phase_ptp:",
            "if sum_ptp > phase_ptp:",
-           ("tests/faults/test_phase_order.py", "tests/faults/test_sensors.py", "tests/faults/test_signals.py")),
+           ("tests/faults/test_current_scale.py", "tests/faults/test_phase_order.py", "tests/faults/test_sensors.py",
+            "tests/faults/test_signals.py")),
     Mutant("sc-rate-one-sided", "signal checks",
            "rate check: only a stream slower than stated is caught (`abs` forgotten on the drift)",
            "daemon/pipeline/rate_check.py",

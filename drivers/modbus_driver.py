@@ -333,6 +333,9 @@ class ModbusDriver(Driver):
         behind = (head - self._next) % INDEX_MOD
         if behind >= INDEX_MOD // 2:  # head went backwards: the device restarted
             self._next = head
+            if self._watchdog_ms is not None:
+                # with the link up (a gateway answered for it): no reconnect writes the period it forgot
+                self._send_watchdog(self._watchdog_ms)
             return []
         just_connected, self._just_connected = self._just_connected, False
         if behind > depth:
@@ -401,7 +404,7 @@ class ModbusDriver(Driver):
         self._checked("feed override", self._client.write_register(HR_FEED_OVERRIDE, tenths, device_id=self.unit))
 
     def set_watchdog_ms(self, ms: int) -> None:
-        """Holding register 101; remembered and written again after every reconnect."""
+        """Holding register 101; remembered and written again after every reconnect and restart (`_read_ring`)."""
         self._watchdog_ms = int(ms)
         self._send(
             "watchdog",

@@ -70,3 +70,20 @@ def test_a_search_string_that_matches_twice_or_never_is_refused(tmp_path):
     with pytest.raises(ValueError):
         mutants.Planted(tmp_path, twice).__enter__()
     assert (tmp_path / "a.py").read_text() == "x = 1\nx = 1\n"
+
+
+def test_a_failing_target_under_the_projects_pytest_options_is_a_kill_in_the_tables_order(tmp_path):
+    """The script's own pytest run, under the project's options (pyproject's addopts: 4 xdist workers): a failing
+    test is `killed`, the first of the targets in their order. Run in workers, `-x` ends the session "Interrupted"
+    with exit code 2, which the script records as `error`, and the targets run in no set order: every kill of the
+    table read as an error once the suite went parallel (issue 37)."""
+    import subprocess
+
+    first, second = tmp_path / "test_a.py", tmp_path / "test_b.py"
+    first.write_text("def test_fails():\n    assert 1 == 2\n")
+    second.write_text("def test_fails_too():\n    assert 1 == 3\n\n\ndef test_passes():\n    pass\n")
+    p = subprocess.run([sys.executable, "-m", "pytest", *mutants.PYTEST_ARGS, "-c", str(REPO / "pyproject.toml"),
+                        "--rootdir", str(tmp_path), str(second), str(first)], cwd=tmp_path, capture_output=True,
+                       text=True, timeout=120)
+    assert mutants.classify(p.returncode, p.stdout) == ("killed", "test_b.py::test_fails_too"), p.stdout[-2000:]
+    assert "1 failed" in p.stdout and "passed" not in p.stdout.splitlines()[-1], p.stdout[-2000:]   # -x stopped there

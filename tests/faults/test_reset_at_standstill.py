@@ -125,3 +125,29 @@ def test_a_crash_the_reader_skipped_while_held_is_judged_after_a_reset(runner):
     feed.take(late)
     assert r.interlock.latched and r.interlock.reason.startswith("crash"), r.interlock.reason
     assert drv.device.feed_hold
+
+
+def test_after_a_reset_the_next_crash_is_held_by_the_readers_check_again(runner):
+    """The reset re-arms the reader thread's frame check: a second crash after it holds the feed from the frame
+    it lands in, before the estimator thread has taken that frame. Not re-armed (issue 37's planted bug
+    `il-frame-check-not-rearmed`), the check stays latched from the first crash and judges no frame; the
+    estimator's block check still holds the feed, but only when its thread gets to the block (up to a batch,
+    ~50 ms, later live: tests/runtime/test_frame_check.py), which no test told apart before."""
+    r, drv = runner("crash_power_w = 12000.0\ncrash_current_a = 55.0")
+    feed = Feed(r)
+    for _ in range(50):
+        feed.take(feed.land(still(10)))
+    first = feed.land(rows(PULSE, 10))
+    assert first.checked and r.interlock.latched and r.interlock.trips == 1   # held from the reader thread
+    feed.take(first)
+    for _ in range(10):
+        feed.take(feed.land(still(10)))                 # quiet, stopped: the condition is gone
+    assert r.reset("test")["ok"] and not drv.device.feed_hold
+    feed.take(feed.land(still(10)))
+    assert not r.interlock.latched
+    second = feed.land(rows(PULSE, 10))                 # landed; the estimator thread has not taken it
+    assert second.checked, "the reader's check judged no frame after the reset: still latched from the first crash"
+    assert r.interlock.latched and r.interlock.reason.startswith("crash"), r.interlock.reason
+    assert r.interlock.trips == 2 and drv.device.feed_hold
+    feed.take(second)                                   # the estimator publishes it; no second trip of its own
+    assert r.interlock.trips == 2
