@@ -45,7 +45,13 @@ def test_a_second_daemon_for_the_same_state_directory_is_refused(tmp_path):
             sub.close()
 
 
-def test_a_second_daemon_with_the_same_name_on_the_network_is_refused(tmp_path):
+def _other_host(tmp_path_factory) -> str:
+    """Another box's state directory. Short: a control socket's path must fit AF_UNIX's 108 bytes, and a test's
+    own tmp_path (its long name, and a parallel worker's folder) leaves no room for `millsense/<machine>/control.sock`."""
+    return str(tmp_path_factory.mktemp("oh"))
+
+
+def test_a_second_daemon_with_the_same_name_on_the_network_is_refused(tmp_path, tmp_path_factory):
     machine = "dup-02"
     port = free_tcp_port()
     first = write_config(tmp_path / "a.toml", machine=machine, daq=SIM, zenoh_listen=[tcp(port)])
@@ -55,7 +61,7 @@ def test_a_second_daemon_with_the_same_name_on_the_network_is_refused(tmp_path):
         sub = Subscriber([tcp(port)], machine)
         try:
             wait_for(lambda: status(sub, machine)["state"] == "running", 60.0, "the first daemon running")
-            other_state = {**os.environ, "XDG_STATE_HOME": str(tmp_path / "other-host")}   # another box
+            other_state = {**os.environ, "XDG_STATE_HOME": _other_host(tmp_path_factory)}   # another box
             p = subprocess.run([*CMD, "run", "--config", str(copied), "--seconds", "5"], capture_output=True,
                                text=True, timeout=60, env=other_state)
             assert p.returncode == 78, (p.returncode, p.stderr[-2000:])
@@ -67,7 +73,7 @@ def test_a_second_daemon_with_the_same_name_on_the_network_is_refused(tmp_path):
 
 
 @pytest.mark.slow
-def test_two_daemons_with_one_name_on_networks_joined_later_say_so(tmp_path):
+def test_two_daemons_with_one_name_on_networks_joined_later_say_so(tmp_path, tmp_path_factory):
     """Two machines with a copied configuration, each on its own network segment: neither saw the other at start.
     A router, or a laptop with a peer session, joins the segments later: from then on both names' keys carry two
     daemons (interleaved estimates, commands by name reaching both). Each daemon looks for another answering as its
@@ -79,7 +85,7 @@ def test_two_daemons_with_one_name_on_networks_joined_later_say_so(tmp_path):
     with Procs(tmp_path) as procs:
         procs.start("a", ["run", "--config", str(first)])
         other = procs.start("b", ["run", "--config", str(copied)],
-                            env_extra={"XDG_STATE_HOME": str(tmp_path / "other-host")})   # another box
+                            env_extra={"XDG_STATE_HOME": _other_host(tmp_path_factory)})   # another box
         # clients: a peer session would listen and introduce the two daemons to each other at once
         sub_a, sub_b = (_client(port, machine) for port in (port_a, port_b))
         try:

@@ -68,7 +68,11 @@ def test_estimates_through_the_firmware_equal_those_of_the_emulators_capture(pla
     assert status and status[0]["daq_link"] == "up" and status[0]["bad_frames"] == 0
     assert status[0]["lost_samples"] == 0
     revs = [e["rev"] for e in live]
-    assert revs == list(range(1, len(revs) + 1)), "every revolution from the first sample, none missing"
+    # The subscriber joins the daemon's session just after the daemon starts: on a loaded box the first revolution
+    # can go out before its subscription is matched (seen once under the parallel suite). None missing from the
+    # first one it saw; each equal to replay's revolution of the same number, and replay numbers them from the
+    # capture's first sample: equal estimates at equal numbers prove the firmware started there.
+    assert revs and revs == list(range(revs[0], revs[0] + len(revs))), "none missing"
     unequal = [(e["rev"], k, v, replayed[e["rev"]].get(k)) for e in live for k, v in e.items()
                if k not in NOT_COMPARED and not _same(v, replayed[e["rev"]].get(k))]
     assert not unequal, f"{len(unequal)} fields differ (rev, field, firmware, replay): {unequal[:8]}"
