@@ -22,9 +22,11 @@ The suite mostly waits on real processes, so pyproject runs it in several worker
 from __future__ import annotations
 
 import fcntl
+import json
 import os
 import resource
 import tempfile
+import uuid
 from pathlib import Path
 
 import pytest
@@ -52,6 +54,50 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.xdist_group(f"module:{item.module.__name__}"))
     # a stable sort: slow first, serial last, the collection's order kept within each
     items.sort(key=lambda item: 2 if _is(item, "serial") else 0 if _is(item, "slow") else 1)
+    _tell_the_controller_the_groups(items)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_configure(config):
+    """The controller names the run (xdist's --testrunuid), so that it finds the folder its workers write to."""
+    if not os.environ.get("PYTEST_XDIST_WORKER") and getattr(config.option, "testrunuid", "unset") is None:
+        config.option.testrunuid = uuid.uuid4().hex
+
+
+def pytest_xdist_make_scheduler(config, log):
+    from xdist.scheduler import LoadScopeScheduling
+
+    class GroupScheduling(LoadScopeScheduling):
+        """loadscope with the scopes the workers wrote: a group's tests go to one worker, back to back; every
+        other test is its own scope, handed out in the collection's order (slow first, serial last)."""
+
+        _groups: dict[str, str] | None = None
+
+        def _split_scope(self, nodeid: str) -> str:
+            if self._groups is None:
+                path = _lock_path("groups.json", config.option.testrunuid)
+                self._groups = json.loads(path.read_text()) if path.exists() else {}
+            return self._groups.get(nodeid, nodeid)
+
+    return GroupScheduling(config, log)
+
+
+def _tell_the_controller_the_groups(items) -> None:
+    """xdist 3.8's loadgroup tags a grouped test's node id (`id@group`), which pytest 9 no longer lets it change:
+    its groups are silently ignored. Each worker writes the groups of its collection (the same in every worker)
+    to the run's folder instead, and the controller's scheduler (`GroupScheduling`) reads them."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    groups = {}
+    for item in items:
+        names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+                        for m in item.iter_markers("xdist_group")})
+        if names:
+            groups[item.nodeid] = "_".join(names)
+    path = _lock_path("groups.json")
+    tmp = path.with_name(f"groups.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(groups))
+    os.replace(tmp, path)
 
 
 def _shares_a_module_fixture(item) -> bool:
@@ -64,8 +110,8 @@ def _shares_a_module_fixture(item) -> bool:
                if name in info.names_closure)
 
 
-def _lock_path(name: str) -> Path:
-    run = os.environ.get("PYTEST_XDIST_TESTRUNUID", "")
+def _lock_path(name: str, run: str | None = None) -> Path:
+    run = run or os.environ.get("PYTEST_XDIST_TESTRUNUID", "")
     d = Path(tempfile.gettempdir()) / f"millsense-pytest-{run}"
     d.mkdir(exist_ok=True)
     return d / name
@@ -155,3 +201,12 @@ def pytest_terminal_summary(terminalreporter, config):
         by_folder[folder] = by_folder.get(folder, 0.0) + cpu_s
     terminalreporter.write_line("by folder: " + ", ".join(
         f"{folder} {cpu_s:.0f} s" for folder, cpu_s in sorted(by_folder.items(), key=lambda kv: -kv[1])))
+
+
+def pytest_unconfigure(config):
+    """The controller removes the run's folder of locks and groups once its workers are gone."""
+    run = getattr(config.option, "testrunuid", None)
+    if run and not os.environ.get("PYTEST_XDIST_WORKER"):
+        import shutil
+
+        shutil.rmtree(Path(tempfile.gettempdir()) / f"millsense-pytest-{run}", ignore_errors=True)
