@@ -249,6 +249,7 @@ def test_a_hold_found_is_released_only_when_told_and_asserted_again(tmp_path, me
     assert changes[-1] == (True, "command"), changes   # asserted again by the command, not left to the watchdog
 
 
+@pytest.mark.serial  # its Ctrl-C must land within the step's 2 s wait for the CNC: a loaded box made it land after
 def test_ctrl_c_mid_step_leaves_the_hold_asserted_and_latched(tmp_path, meter):
     """A CNC that takes 5 s to confirm: the test-trip waits with the hold asserted; Ctrl-C comes then."""
     port = free_tcp_port()
