@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import subprocess
 import time
 from pathlib import Path
@@ -258,13 +259,16 @@ def test_ctrl_c_mid_step_leaves_the_hold_asserted_and_latched(tmp_path, meter):
         cfg = _config(tmp_path, port, machine="ctrl-c")
         out = tmp_path / "cc.out"
         with open(out, "w") as fh:
+            # Ctrl-C at a terminal reaches a foreground command whose SIGINT is as the shell found it: a test run
+            # started in the background (`cmd &` from a script) ignores SIGINT, and its children inherit that
             p = subprocess.Popen(CMD + ["commission", "--config", str(cfg), "--readings", _readings(meter),
                                         "--spindle-rpm", str(RPM)], stdout=fh, stderr=subprocess.STDOUT,
-                                 env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                 env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                                 preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
             procs.procs.append(p)
             wait_for(lambda: "asserting the feed hold (test-trip)" in out.read_text(), 60.0, "the test-trip")
             wait_for(lambda: _holds(tmp_path)[-1:] == [(True, "command")], 30.0, "the hold on the DAQ")
-            p.send_signal(2)
+            p.send_signal(signal.SIGINT)
             assert p.wait(30) == 130, out.read_text()
         text = out.read_text()
         assert "interrupted: the feed hold this command asserted stays asserted" in text
