@@ -10,18 +10,9 @@ from hypothesis import strategies as st
 
 from millsense.drivers import protocol
 from millsense.drivers.protocol import GATHER_BELOW_ROWS, crc16_modbus, crc16_modbus_rows
+from tests.firmware.frames import crc16
 
 pytestmark = pytest.mark.quick
-
-
-def crc_bitwise(data: bytes) -> int:
-    """daq-protocol.md: reflected polynomial 0xA001, initial 0xFFFF, one bit at a time."""
-    crc = 0xFFFF
-    for byte in data:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc
 
 
 def test_check_value_of_the_catalogue():
@@ -40,15 +31,15 @@ def test_the_one_body_crc_is_the_compiled_one():
 @pytest.mark.parametrize("n", [1, 2, 3, 159, 160, 161, 189, 4099])
 def test_one_body(n):
     data = np.random.default_rng(n).integers(0, 256, n, dtype=np.uint8).tobytes()
-    assert crc16_modbus(data) == crc_bitwise(data)
+    assert crc16_modbus(data) == crc16(data)
     # the decoder passes slices of its bytearray buffer, and views
-    assert crc16_modbus(bytearray(data)) == crc16_modbus(memoryview(data)) == crc_bitwise(data)
+    assert crc16_modbus(bytearray(data)) == crc16_modbus(memoryview(data)) == crc16(data)
 
 
 @settings(max_examples=300, deadline=None)
 @given(st.binary(min_size=0, max_size=700))
 def test_any_body(data):
-    assert crc16_modbus(data) == crc_bitwise(data)
+    assert crc16_modbus(data) == crc16(data)
 
 
 @pytest.mark.parametrize("rows, n", [(1, 7), (1, 189), (9, 33), (GATHER_BELOW_ROWS - 1, 23), (GATHER_BELOW_ROWS, 23),
@@ -57,7 +48,7 @@ def test_many_bodies_either_side_of_the_switch(rows, n):
     block = np.random.default_rng(rows * 7 + n).integers(0, 256, (rows, n), dtype=np.uint8)
     got = crc16_modbus_rows(block)
     for i in np.unique(np.linspace(0, rows - 1, 40).astype(int)):
-        assert int(got[i]) == crc_bitwise(block[i].tobytes()), i
+        assert int(got[i]) == crc16(block[i].tobytes()), i
 
 
 def test_no_rows():
@@ -68,6 +59,6 @@ def test_table_grows_for_a_longer_body_after_a_short_one():
     """The gather table is built to the longest body seen; a longer one must extend it, not wrap."""
     short = np.frombuffer(bytes(range(200)), np.uint8)[None, :]
     long = np.frombuffer(bytes(range(256)) * 12, np.uint8)[None, :]
-    assert int(crc16_modbus_rows(short)[0]) == crc_bitwise(short.tobytes())
-    assert int(crc16_modbus_rows(long)[0]) == crc_bitwise(long.tobytes())
+    assert int(crc16_modbus_rows(short)[0]) == crc16(short.tobytes())
+    assert int(crc16_modbus_rows(long)[0]) == crc16(long.tobytes())
     assert len(protocol._position[0]) >= long.shape[1]

@@ -28,20 +28,11 @@ from millsense.drivers.protocol import (
     encode_samples,
     encode_status,
 )
+from tests.firmware.frames import crc16  # CRC-16/MODBUS from its definition, written from the doc
 
 pytestmark = pytest.mark.quick
 
 DESC = Descriptor(1000, tuple(Channel(ChannelKind.CURRENT, f"ch{i}") for i in range(4)))
-
-
-def _bitwise_crc(data: bytes) -> int:
-    """CRC-16/MODBUS straight from its definition (no tables), to check the fast ones."""
-    crc = 0xFFFF
-    for b in data:
-        crc ^= b
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc
 
 
 def test_crc_check_value_and_a_modbus_request():
@@ -54,7 +45,7 @@ def test_crc_check_value_and_a_modbus_request():
 @settings(max_examples=60)
 def test_crc_scalar_and_vectorised_agree_with_the_definition(rows):
     arr = np.frombuffer(b"".join(rows), dtype=np.uint8).reshape(len(rows), len(rows[0]))
-    expected = [_bitwise_crc(r) for r in rows]
+    expected = [crc16(r) for r in rows]
     assert [crc16_modbus(r) for r in rows] == expected
     assert crc16_modbus_rows(arr).tolist() == expected
 
@@ -67,7 +58,7 @@ def test_samples_frame_layout_is_the_spec():
     assert length == 6 + 2 * 2 * 2 == len(frame) - 7
     assert frame[5:9] == bytes([4, 3, 2, 1]) and frame[9] == 2 and frame[10] == 2
     assert struct.unpack_from("<4h", frame, 11) == (1, -2, 3, -4)
-    assert struct.unpack_from("<H", frame, len(frame) - 2)[0] == _bitwise_crc(frame[2:-2])
+    assert struct.unpack_from("<H", frame, len(frame) - 2)[0] == crc16(frame[2:-2])
 
 
 def test_round_trip_of_every_frame_type():

@@ -16,7 +16,7 @@ import pytest
 
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
-from tests.e2e.truth import Timebase, match_estimates, truth_revs
+from tests.e2e.truth import Timebase, match_estimates, steady_torque_misses
 
 SCENARIO = "step"
 RUN_S = 14.0
@@ -75,7 +75,6 @@ def test_every_revolution_estimated_and_torque_matches_truth(tmp_path, transport
     tb = Timebase.from_status_log(log)
     matched = match_estimates(estimates, truth, tb)
     assert len(matched) >= 0.9 * len(estimates), f"only {len(matched)} of {len(estimates)} estimates matched a truth revolution"
-    by_rev = {int(r["rev"]): r for r in truth_revs(truth)}
     # Live t is the time of the revolution's last sample, taken from the sample index, not
     # from arrival: at constant speed the daemon's revolution ends sit at a fixed phase from
     # the truth's, so t − t_truth is constant to well under the 10 ms frame period.
@@ -83,19 +82,8 @@ def test_every_revolution_estimated_and_torque_matches_truth(tmp_path, transport
     spread_ms = (np.percentile(dts, 95) - np.percentile(dts, 5)) * 1e3
     assert spread_ms < 3.0, f"live t jitters by {spread_ms:.1f} ms against the sample clock"
 
-    # A daemon revolution overlaps truth revolutions k and k+1 (or k−1): both must be steady.
-    steady = [
-        (e, r)
-        for e, r, _ in matched
-        if r.get("cutting") and e.get("valid", True)
-        and all(by_rev.get(int(r["rev"]) + d, {}).get("steady") for d in (-1, 0, 1))
-    ]
+    steady, bad = steady_torque_misses(matched, truth)
     assert len(steady) >= 20, f"only {len(steady)} steady cutting revolutions in the window"
-    bad = [
-        (e["rev"], e["torque_nm"], round(r["torque_nm"], 4))
-        for e, r in steady
-        if e["torque_nm"] is None or abs(e["torque_nm"] - r["torque_nm"]) > 0.02 * abs(r["torque_nm"]) + 0.03
-    ]
     assert not bad, f"{len(bad)}/{len(steady)} steady revolutions off truth (rev, est, truth): {bad[:8]}"
 
     assert status and status[0]["state"] == "running" and status[0]["daq_link"] == "up"

@@ -79,3 +79,15 @@ def match_estimates(estimates: list[dict], truth: list[dict], tb: Timebase) -> l
         if r is not None:
             out.append((est, r, float(est["t"]) - tb.nominal_wall(int(r["index_end"]))))
     return out
+
+
+def steady_torque_misses(matched: list[tuple[dict, dict, float]], truth: list[dict]) -> tuple[list, list]:
+    """Live accuracy's check (2 % + 0.03 N·m of the plant's torque): the steady cutting revolutions a daemon
+    estimated, and those off the truth as (rev, estimate, truth). A daemon revolution overlaps truth
+    revolutions k and k±1: all three must be steady."""
+    by_rev = {int(r["rev"]): r for r in truth_revs(truth)}
+    steady = [(e, r) for e, r, _ in matched if r.get("cutting") and e.get("valid", True)
+              and all(by_rev.get(int(r["rev"]) + d, {}).get("steady") for d in (-1, 0, 1))]
+    bad = [(e["rev"], e["torque_nm"], round(r["torque_nm"], 4)) for e, r in steady
+           if e["torque_nm"] is None or abs(e["torque_nm"] - r["torque_nm"]) > 0.02 * abs(r["torque_nm"]) + 0.03]
+    return steady, bad

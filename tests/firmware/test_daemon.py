@@ -19,7 +19,7 @@ import pytest
 
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for, write_config
-from tests.e2e.truth import Timebase, match_estimates, truth_revs
+from tests.e2e.truth import Timebase, match_estimates, steady_torque_misses
 from tests.firmware.device import Firmware
 
 LIVE_REVOLUTIONS = 68   # 6.8 s at 600 rpm: the cut enters at 1.5 s and is steady from 5 s
@@ -81,12 +81,8 @@ def test_estimates_through_the_firmware_equal_those_of_the_emulators_capture(pla
     # and against the plant's truth, as the emulator's live accuracy test holds it
     tb = Timebase.from_status_log(fw_log)
     matched = match_estimates(live, truth, tb)
-    by_rev = {int(r["rev"]): r for r in truth_revs(truth)}
-    steady = [(e, r) for e, r, _ in matched if r.get("cutting") and e.get("valid", True)
-              and all(by_rev.get(int(r["rev"]) + d, {}).get("steady") for d in (-1, 0, 1))]
+    steady, bad = steady_torque_misses(matched, truth)
     assert len(steady) >= 12, f"only {len(steady)} steady cutting revolutions"
-    bad = [(e["rev"], e["torque_nm"], r["torque_nm"]) for e, r in steady
-           if e["torque_nm"] is None or abs(e["torque_nm"] - r["torque_nm"]) > 0.02 * abs(r["torque_nm"]) + 0.03]
     assert not bad, bad[:8]
 
 

@@ -5,7 +5,6 @@ emulator), and under the real daemon (`transport = "modbus-tcp"`)."""
 from __future__ import annotations
 
 import os
-import signal
 import socket
 import struct
 import tty
@@ -14,7 +13,7 @@ import pytest
 
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import Procs, Subscriber, tcp, wait_for, write_config
-from tests.e2e.truth import Timebase, match_estimates, truth_revs
+from tests.e2e.truth import Timebase, match_estimates, steady_torque_misses
 from tests.firmware import frames
 from tests.firmware.conftest import ramp_counts
 from tests.firmware.device import Firmware
@@ -166,12 +165,8 @@ def test_the_daemon_over_modbus_estimates_and_a_killed_one_is_held_within_its_wa
     assert revs == list(range(revs[0], revs[0] + len(revs)))
     tb = Timebase(float(start["mono"]), float(start["wall"]), int(start["capture_first"]))
     matched = match_estimates(live, truth, tb)
-    by_rev = {int(r["rev"]): r for r in truth_revs(truth)}
-    steady = [(e, r) for e, r, _ in matched if r.get("cutting") and e.get("valid", True)
-              and all(by_rev.get(int(r["rev"]) + d, {}).get("steady") for d in (-1, 0, 1))]
+    steady, bad = steady_torque_misses(matched, truth)
     assert len(steady) >= 15, f"only {len(steady)} steady cutting revolutions"
-    bad = [(e["rev"], e["torque_nm"], r["torque_nm"]) for e, r in steady
-           if e["torque_nm"] is None or abs(e["torque_nm"] - r["torque_nm"]) > 0.02 * abs(r["torque_nm"]) + 0.03]
     assert not bad, bad[:8]
 
 
