@@ -70,7 +70,7 @@ def role_decode(port: int) -> None:
 
 
 def role_driver(port: int, check: bool) -> None:
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
     from millsense.daemon.pipeline.safety_check import FrameCheck
     from millsense.drivers.tcp_driver import TcpDriver
 

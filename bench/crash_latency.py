@@ -54,11 +54,11 @@ sys.path.insert(0, str(REPO))
 
 from millsense.daemon.pipeline.latch_store import state_dir  # noqa: E402
 from millsense.daemon.pipeline.local_control import LocalControlError, local_command  # noqa: E402
-from millsense.drivers.emulator.device import DeviceModel, StatusLog  # noqa: E402
-from millsense.drivers.emulator.pacing import Pacer  # noqa: E402
-from millsense.drivers.emulator.ramp import RAMP_CHANNELS  # noqa: E402
-from millsense.drivers.emulator.stream_server import StreamServer  # noqa: E402
-from millsense.drivers.emulator.wire import WireEmitter  # noqa: E402
+from millsense.sim.emulator.device import DeviceModel, StatusLog  # noqa: E402
+from millsense.sim.emulator.pacing import Pacer  # noqa: E402
+from millsense.sim.emulator.ramp import RAMP_CHANNELS  # noqa: E402
+from millsense.sim.emulator.stream_server import StreamServer  # noqa: E402
+from millsense.sim.emulator.wire import WireEmitter  # noqa: E402
 from millsense.drivers.protocol import Descriptor  # noqa: E402
 from tests.conftest import free_tcp_port  # noqa: E402
 from tests.e2e.helpers import Procs, tcp, write_config  # noqa: E402

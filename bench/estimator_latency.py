@@ -34,7 +34,7 @@ CASES = (
 def bench(scenario: str, method: str, seconds: float, tmp: Path) -> tuple[np.ndarray, np.ndarray]:
     from millsense.daemon.pipeline.estimator import Estimator
     from millsense.drivers.base import SampleBlock
-    from millsense.drivers.sim import Plant
+    from millsense.sim import Plant
 
     plant = Plant(scenario, seed=1, extra_channels=True)
     settings = simcase.settings_for(scenario, tmp, method=method)

@@ -138,7 +138,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--blocks", type=int, default=200, help="blocks timed per case (default 200)")
     args = ap.parse_args()
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
 
     settings = load_config(REPO / "daemon" / "demo.toml")
     with tempfile.TemporaryDirectory() as tmp:

@@ -117,7 +117,7 @@ def main() -> int:
                         help="join consecutive runs into blocks of up to this many samples (0: as decoded)")
     parser.add_argument("--profile", action="store_true", help="also print a cProfile of one step run")
     args = parser.parse_args()
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
 
     with tempfile.TemporaryDirectory() as tmp:
         step_cap = Path(tmp) / "step.cap"

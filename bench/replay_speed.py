@@ -34,7 +34,7 @@ import sys
 {pre}
 import numpy as np
 import millsense.daemon.commands.run
-from millsense.daemon.config import demo_config
+from millsense.daemon.config.load import demo_config
 from millsense.daemon.pipeline.run_core import PipelineCore
 from millsense.drivers.base import SampleBlock
 from millsense.drivers.protocol import Channel, ChannelKind as K, Descriptor

@@ -17,7 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from millsense.drivers.sim import Plant, write_capture
+from millsense.sim import Plant, write_capture
 
 RATE_HZ = 1000
 STEP = 10

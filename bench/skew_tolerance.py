@@ -65,7 +65,7 @@ class Result:
 
 def load(scenario: str, tmp: Path, seed: int = 11, duration_s: float | None = None) -> Stream:
     from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
-    from millsense.drivers.sim import write_capture
+    from millsense.sim import write_capture
 
     cap, truth_path = tmp / f"{scenario}-{seed}-{duration_s}.bin", tmp / f"{scenario}-{seed}-{duration_s}.jsonl"
     write_capture(scenario, str(cap), str(truth_path), seed=seed, duration_s=duration_s)
@@ -128,7 +128,7 @@ def measure(stream: Stream, skew_us: float, scenario: str, tmp: Path) -> Result:
 
 def electrical_hz(scenario: str) -> float:
     """The motor's electrical frequency in the scenario's cut (spindle rpm × gear ratio × pole pairs / 60)."""
-    from millsense.drivers.sim.scenarios import SCENARIOS as ALL
+    from millsense.sim.scenarios import SCENARIOS as ALL
 
     sc = ALL[scenario]
     rpm = max(r for _, r in sc.spindle_schedule)

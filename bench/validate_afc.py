@@ -46,13 +46,13 @@ SATURATE_DURATION_S = 16.0
 
 
 def _feed(scenario: str) -> float:
-    from millsense.drivers.sim.scenarios import get_scenario
+    from millsense.sim.scenarios import get_scenario
 
     return float(get_scenario(scenario).feed_segments[0][1])
 
 
 def _rpm(scenario: str) -> float:
-    from millsense.drivers.sim.scenarios import get_scenario
+    from millsense.sim.scenarios import get_scenario
 
     return float(get_scenario(scenario).spindle_schedule[0][1])
 

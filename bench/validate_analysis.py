@@ -17,8 +17,8 @@ from millsense.daemon.physics import depth as depth_mod
 from millsense.daemon.physics.milling import SB40_TABLE2, force_ratio_fx
 from millsense.daemon.physics.table3 import radial_ratio_table3
 from millsense.daemon.pipeline.alarms import BreakageTrack
-from millsense.drivers.sim.machine import MCH10
-from millsense.drivers.sim.scenarios import SCENARIOS
+from millsense.sim.machine import MCH10
+from millsense.sim.scenarios import SCENARIOS
 
 FIG_DIR = "validation"
 HW_FILTER_HZ, HW_FILTER_ORDER = 200.0, 2          # the simulated DAQ's anti-alias filter

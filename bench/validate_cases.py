@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from validate_runs import Capture, Case
 
-from millsense.drivers.sim.scenarios import SCENARIOS, SWEEP_RPM
+from millsense.sim.scenarios import SCENARIOS, SWEEP_RPM
 
 P_SCENARIOS = ("step", "taper", "step-1200", "taper-1800", "diagonal-step", "diagonal-taper", "breakage")
 D_SCENARIOS = ("fig5", "fig6", "fig7")

@@ -149,7 +149,7 @@ def section(run: lr.Run, out: lr.Outcome, seed: int, elapsed_s: float) -> str:
 
 def lr_low() -> int:
     """`[learning] low_revolutions` of the acceptance config."""
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
 
     return int(load_config(lr.CONFIG).learning.low_revolutions)
 

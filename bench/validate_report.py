@@ -36,8 +36,8 @@ from validate_analysis import (
     within,
 )
 
-from millsense.drivers.sim.machine import MCH10
-from millsense.drivers.sim.scenarios import SCENARIOS
+from millsense.sim.machine import MCH10
+from millsense.sim.scenarios import SCENARIOS
 
 
 def summary_section(run: Run) -> str:
@@ -298,7 +298,7 @@ def header(meta: dict, elapsed: float, timings: dict) -> str:
             ["simulator seed", str(meta["seed"])],
         ]),
         "## How it was measured\n",
-        "- **Plant**: `millsense.drivers.sim` (independent of `daemon.physics`) writes each scenario as a capture "
+        "- **Plant**: `millsense.sim` (independent of `daemon.physics`) writes each scenario as a capture "
         "(the DAQ byte stream, as `millsense sim --capture`) and its per-revolution truth. Sensors, filter and "
         "machine as in docs/architecture.md.\n"
         "- **Estimates**: `millsense replay CAPTURE --config FILE`, a real subprocess; the JSON lines are the product's "

@@ -28,8 +28,8 @@ from validate_analysis import (
 )
 
 from millsense.daemon.physics.power import butterworth_power_gain
-from millsense.drivers.sim.machine import MCH10
-from millsense.drivers.sim.scenarios import SCENARIOS
+from millsense.sim.machine import MCH10
+from millsense.sim.scenarios import SCENARIOS
 
 
 ROW_HEAD = ["scenario", "configuration", "torque %", "force %", "d_r %", "d_a %"]

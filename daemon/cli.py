@@ -23,7 +23,7 @@ EXIT_CONFIG = 78
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("millsense.daemon.commands.run", "run the daemon (no --config: the built-in demo)"),
-    "sim": ("millsense.drivers.emulator.cli", "the DAQ emulator driven by the plant simulator"),
+    "sim": ("millsense.sim.emulator.cli", "the DAQ emulator driven by the plant simulator"),
     "replay": ("millsense.daemon.commands.replay", "run the pipeline on a capture, JSON lines out"),
     "record": ("millsense.daemon.commands.record", "save what the configured DAQ sends"),
     "watch": ("millsense.daemon.commands.watch", "show live estimates, alarms and status"),
@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser(only=_command_in(argv))
     args = parser.parse_args(argv)
-    from millsense.daemon.config import ConfigError
+    from millsense.daemon.config.errors import ConfigError
 
     try:
         return int(args._module.run(args) or 0)

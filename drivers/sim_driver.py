@@ -52,7 +52,7 @@ class SimDriver(Driver):
         self.cnc_override_lag_ms = float(cnc_override_lag_ms)
         self.cnc_override_rate_pct_s = float(cnc_override_rate_pct_s)
         self.afc_allowed = bool(afc_allowed)
-        from millsense.drivers.emulator.cnc_override import CncOverride
+        from millsense.sim.emulator.cnc_override import CncOverride
 
         CncOverride(self.cnc_override_lag_ms, self.cnc_override_rate_pct_s)  # a bad value: ValueError now, not later
         self._initial_watchdog_ms = int(watchdog_ms)
@@ -87,9 +87,9 @@ class SimDriver(Driver):
     def _connect(self) -> None:
         if self.device is not None:
             return
-        from millsense.drivers.emulator.device import DeviceModel
-        from millsense.drivers.emulator.pacing import Pacer
-        from millsense.drivers.emulator.source import SourceError, is_program, make_source
+        from millsense.sim.emulator.device import DeviceModel
+        from millsense.sim.emulator.pacing import Pacer
+        from millsense.sim.emulator.source import SourceError, is_program, make_source
 
         try:
             source = make_source(

@@ -115,7 +115,7 @@ def test_installed_cli_runs_from_its_own_venv(installed):
     assert Path(where.stdout.strip()).is_relative_to(installed["venv"]), where.stdout + where.stderr
     # with its package data: the demo configuration `millsense run` starts without --config
     demo = run([installed["venv"] / "bin" / "python", "-c",
-                "from millsense.daemon.config import demo_config; print(demo_config().machine)"], env=offline_env())
+                "from millsense.daemon.config.load import demo_config; print(demo_config().machine)"], env=offline_env())
     assert demo.returncode == 0 and demo.stdout.strip() == "mch10-demo", demo.stdout + demo.stderr
     # with the -OO bytecode the unit's PYTHONOPTIMIZE=2 reads (the service cannot write it), for
     # millsense's modules and for its libraries

@@ -173,7 +173,7 @@ def gear_ranges_rpm(gears) -> dict[str, tuple[float, float]]:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
     from millsense.daemon.physics.calibration import (
         fit_cf,
         fit_friction,
@@ -275,7 +275,7 @@ def _fit_inertia(runs, settings, fits, refusals: list) -> dict:
             j = fit_inertia(rows[:, 2], left_nm)
         except ValueError as exc:
             # No run-up in the captures: nothing says what J is, and nothing contradicts the friction fit.
-            # The friction is written; J is left as the config has it (config_warnings says when it has none).
+            # The friction is written; J is left as the config has it (config.warnings says when it has none).
             print(f"millsense calibrate: warning: gear {gear.name}: inertia not fitted ({exc}); friction is "
                   f"written without it; to fit J, add {RUN_UP_HINT}", file=sys.stderr)
             continue

@@ -2,7 +2,7 @@
 
 Exit 0 with a one-line summary when the file is valid, after one `warning:`
 line for each thing a valid file still does that its user should know
-(`config_warnings.py`); otherwise `ConfigError`
+(`config/warnings.py`); otherwise `ConfigError`
 propagates to the CLI front door, which prints every problem (one per line,
 `section.key: what is wrong (what is expected)`) and exits 78. Only pydantic,
 the config modules and command_auth (the standard library's hmac: the policy in
@@ -51,7 +51,7 @@ def _zenoh_mode(zs) -> str:
     JSON5 file is read by its own loader, as `run` reads it; one it cannot read is refused, as `run` does."""
     if not zs.config_file:
         return zs.mode
-    from millsense.daemon.config import ConfigError
+    from millsense.daemon.config.errors import ConfigError
     from millsense.daemon.publish.session import ZenohConfigError, mode_in_effect
 
     try:
@@ -69,9 +69,9 @@ def _command_policy(settings) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
 
-    from millsense.daemon.config_warnings import config_warnings
+    from millsense.daemon.config.warnings import config_warnings
 
     settings = load_config(args.file)  # ConfigError -> the CLI prints the problems, exit 78
     for warning in config_warnings(settings, args.file):

@@ -136,7 +136,8 @@ def _number(text: str, key: str) -> float | None:
 
 def run(args: argparse.Namespace) -> int:
     from millsense.daemon.commands.run import driver_options, positive_option
-    from millsense.daemon.config import ConfigError, load_config
+    from millsense.daemon.config.errors import ConfigError
+    from millsense.daemon.config.load import load_config
 
     problem = positive_option(args.seconds, "--seconds") or positive_option(args.connect_timeout, "--connect-timeout")
     if problem:
@@ -191,7 +192,7 @@ def _commission(args, settings, driver, ask: _Asker, directory: Path) -> int:
     from millsense.daemon import __version__
     from millsense.daemon.commission import proof, report, signals
     from millsense.daemon.commission.bench import Bench, BenchError
-    from millsense.daemon.config import descriptor_problems
+    from millsense.daemon.config.checks import descriptor_problems
 
     lines: list[str] = []
 

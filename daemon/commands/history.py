@@ -129,8 +129,8 @@ def find_database(config: Path) -> tuple[list[str], Path]:
 
     from pydantic import ValidationError
 
-    from millsense.daemon.config_errors import problems_from
-    from millsense.daemon.config_models import HistorySettings, Settings
+    from millsense.daemon.config.errors import problems_from
+    from millsense.daemon.config.models import HistorySettings, Settings
     from millsense.daemon.history import history_path
     from millsense.daemon.pipeline.latch_store import SYSTEMD_STATE_ROOT, state_dir
 

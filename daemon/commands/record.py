@@ -48,7 +48,7 @@ def _fail(message: str, code: int) -> int:
 
 def run(args: argparse.Namespace) -> int:
     from millsense.daemon.commands.run import _last_error, driver_options, positive_option
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
     from millsense.drivers import DriverError, create_driver
     from millsense.drivers.base import LinkEvent, SampleBlock
     from millsense.drivers.protocol import INDEX_MOD, Descriptor, encode_descriptor, encode_samples

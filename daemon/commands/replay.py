@@ -42,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
 
     settings = load_config(args.config)  # ConfigError -> exit 78 in the CLI
     from millsense.daemon.logging_setup import configure_logging

@@ -124,7 +124,8 @@ def _libc() -> Any:
 
 def run(args: argparse.Namespace) -> int:
     bound_native_memory()
-    from millsense.daemon.config import ConfigError, check_against_descriptor, demo_config, load_config
+    from millsense.daemon.config.errors import ConfigError
+    from millsense.daemon.config.load import check_against_descriptor, demo_config, load_config
 
     problem = positive_option(args.seconds, "--seconds") or positive_option(args.connect_timeout, "--connect-timeout")
     if problem:
@@ -138,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
     if not demo:
         import structlog
 
-        from millsense.daemon.config_warnings import config_warnings
+        from millsense.daemon.config.warnings import config_warnings
 
         for warning in config_warnings(settings, args.config):
             structlog.get_logger("millsense.run").warning("config.warning", detail=warning)
@@ -208,7 +209,7 @@ def _open_zenoh(settings: Any, stop: threading.Event) -> Any:
     """The Zenoh session, or None (after saying why) if a client found no router in time."""
     import structlog
 
-    from millsense.daemon.config import ConfigError
+    from millsense.daemon.config.errors import ConfigError
     from millsense.daemon.publish.session import ZenohConfigError, ZenohUnavailable, open_session
 
     log = structlog.get_logger("millsense.run")
@@ -262,7 +263,7 @@ class _Daemon:
         import structlog
 
         from millsense.daemon import __version__, sdnotify
-        from millsense.daemon.config import effective_config_dict
+        from millsense.daemon.config.load import effective_config_dict
         importlib.import_module("millsense.daemon.pipeline.estimator")  # numpy now, not on the first block
         from millsense.daemon.pipeline.runner import Runner
         from millsense.daemon.publish.sink import ZenohSink

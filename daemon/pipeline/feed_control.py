@@ -27,8 +27,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from millsense.daemon.config_models import AFC_MIN_GAIN as MIN_GAIN  # config_checks refuses a gain below it
-from millsense.daemon.config_models import AfcSettings
+from millsense.daemon.config.models import AFC_MIN_GAIN as MIN_GAIN  # config.checks refuses a gain below it
+from millsense.daemon.config.models import AfcSettings
 
 STATES = ("unavailable", "off", "idle", "air", "armed", "saturated", "safe")
 

@@ -87,7 +87,7 @@ class OverrideTrack:
 # --- the load at the programmed feed --------------------------------------------------------------
 # Torque and force follow the feed per tooth as t^(1+p) (K_s·t^p·t, [D] eq. 8; p = [material] ks_exp,
 # negative): the same static gain the controller assumes (`[afc] process_gain`, 0 = 1 + ks_exp).
-DEFAULT_KS_EXP = -0.4362   # [D] Table 2, as config_models' default
+DEFAULT_KS_EXP = -0.4362   # [D] Table 2, as config.models' default
 
 
 def load_gain(settings) -> float:

@@ -151,7 +151,7 @@ class PipelineCore:
             return False
         check = self._check
         if check is None:
-            from millsense.daemon.config import check_against_descriptor as check
+            from millsense.daemon.config.load import check_against_descriptor as check
         check(self.settings, descriptor)
         factory = self._factory
         if factory is None:

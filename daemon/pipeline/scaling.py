@@ -32,7 +32,7 @@ _LINES = ("uv", "vw", "wu")
 
 
 def _config_error(problems: list[str]) -> Exception:
-    from millsense.daemon.config import ConfigError  # imported on error only: it pulls in pydantic
+    from millsense.daemon.config.errors import ConfigError  # imported on error only: it pulls in pydantic
 
     return ConfigError(problems)
 

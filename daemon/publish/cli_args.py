@@ -63,7 +63,7 @@ def endpoint_problem(endpoint: str) -> str | None:
     Zenoh itself takes `tcp/garbage` and fails later, quietly for a peer, and
     what it says about `garbage` carries a Rust source path: so check first.
     """
-    from millsense.daemon.config_models import endpoint_problem as problem
+    from millsense.daemon.config.models import endpoint_problem as problem
 
     return problem(endpoint)
 

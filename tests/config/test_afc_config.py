@@ -11,8 +11,9 @@ import subprocess
 
 import pytest
 
-from millsense.daemon.config import ConfigError, load_config_text
-from millsense.daemon.config_warnings import config_warnings
+from millsense.daemon.config.errors import ConfigError
+from millsense.daemon.config.load import load_config_text
+from millsense.daemon.config.warnings import config_warnings
 from millsense.daemon.pipeline.feed_control import FeedController
 from tests.config.helpers import base, dumps, write
 

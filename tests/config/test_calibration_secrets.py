@@ -6,7 +6,8 @@ import json
 
 import pytest
 
-from millsense.daemon.config import ConfigError, effective_config_dict, load_config, load_config_text
+from millsense.daemon.config.errors import ConfigError
+from millsense.daemon.config.load import effective_config_dict, load_config, load_config_text
 from tests.config.helpers import base, dumps, write
 
 pytestmark = pytest.mark.quick

@@ -11,8 +11,9 @@ import subprocess
 
 import pytest
 
-from millsense.daemon.config import ConfigError, effective_config_dict, load_config, load_config_text
-from millsense.daemon.config_warnings import config_warnings
+from millsense.daemon.config.errors import ConfigError
+from millsense.daemon.config.load import effective_config_dict, load_config, load_config_text
+from millsense.daemon.config.warnings import config_warnings
 from tests.config.helpers import base, dumps, write
 
 pytestmark = pytest.mark.quick

@@ -13,7 +13,7 @@ import math
 
 import pytest
 
-from millsense.daemon.config import demo_config
+from millsense.daemon.config.load import demo_config
 
 pytestmark = pytest.mark.quick
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from millsense.daemon.config import ConfigError, check_against_descriptor, demo_config, load_config_text
+from millsense.daemon.config.errors import ConfigError
+from millsense.daemon.config.load import check_against_descriptor, demo_config, load_config_text
 from millsense.drivers.protocol import Channel, ChannelKind, Descriptor
 from tests.config.helpers import base, dumps
 

@@ -18,12 +18,12 @@ from pathlib import Path
 
 import pytest
 
-from millsense.daemon.config import demo_config, load_config
-from millsense.daemon.config_models import loopback_only
+from millsense.daemon.config.load import demo_config, load_config
+from millsense.daemon.config.models import loopback_only
 from tests.config.helpers import REPO, base, dumps, write
 
 EXAMPLES = sorted((REPO / "config").glob("*.toml"))
-# What `check-config` may print as warnings for each installed example (daemon/config_warnings.py):
+# What `check-config` may print as warnings for each installed example (daemon/config/warnings.py):
 # nothing. A shipped file that needs a warning is a shipped file to fix.
 EXPECTED_WARNINGS: dict[str, list[str]] = {p.name: [] for p in EXAMPLES}
 

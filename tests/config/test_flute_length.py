@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from millsense.daemon.config import ConfigError, load_config_text
+from millsense.daemon.config.errors import ConfigError
+from millsense.daemon.config.load import load_config_text
 from millsense.daemon.physics import validity
 from millsense.daemon.pipeline.per_revolution import tool_geometries
 from tests.config.helpers import base, dumps

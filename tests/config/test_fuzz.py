@@ -16,7 +16,9 @@ import sys
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from millsense.daemon.config import ConfigError, Settings, effective_config_dict, load_config_text
+from millsense.daemon.config.errors import ConfigError
+from millsense.daemon.config.load import effective_config_dict, load_config_text
+from millsense.daemon.config.models import Settings
 from tests.config.helpers import DEMO_TOML, base, dumps
 
 SHAPE = re.compile(r'^(?:"(?:[^"\\]|\\.)*"|[^\s:"])+: .+\(.+\)$', re.S)  # location: plain or "quoted" parts

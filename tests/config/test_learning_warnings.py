@@ -1,11 +1,11 @@
-"""check-config's warnings about context, tools by number and learned limits (daemon/config_warnings.py)."""
+"""check-config's warnings about context, tools by number and learned limits (daemon/config/warnings.py)."""
 
 from __future__ import annotations
 
 import pytest
 
-from millsense.daemon.config import load_config_text
-from millsense.daemon.config_warnings import config_warnings
+from millsense.daemon.config.load import load_config_text
+from millsense.daemon.config.warnings import config_warnings
 from tests.config.helpers import base, dumps
 
 pytestmark = pytest.mark.quick

@@ -6,7 +6,8 @@ import re
 
 import pytest
 
-from millsense.daemon.config import ConfigError, load_config, load_config_text
+from millsense.daemon.config.errors import ConfigError
+from millsense.daemon.config.load import load_config, load_config_text
 from tests.config.helpers import base, dumps, write
 
 pytestmark = pytest.mark.quick

@@ -14,7 +14,8 @@ import subprocess
 
 import pytest
 
-from millsense.daemon.config import ConfigError, load_config, load_config_text
+from millsense.daemon.config.errors import ConfigError
+from millsense.daemon.config.load import load_config, load_config_text
 from millsense.daemon.pipeline.per_revolution import tool_geometries
 from tests.config.helpers import base, dumps, write
 

@@ -14,11 +14,11 @@ import pytest
 
 from millsense.drivers import create_driver
 from millsense.drivers.base import SampleBlock
-from millsense.drivers.emulator.cnc_override import CncOverride
-from millsense.drivers.emulator.device import DeviceModel, StatusLog
-from millsense.drivers.emulator.ramp import RampPlant
+from millsense.sim.emulator.cnc_override import CncOverride
+from millsense.sim.emulator.device import DeviceModel, StatusLog
+from millsense.sim.emulator.ramp import RampPlant
 from millsense.drivers.protocol import CMD_HEARTBEAT, CMD_SET_FEED_OVERRIDE, Command, Status
-from millsense.drivers.sim import Plant
+from millsense.sim import Plant
 from tests.conftest import free_tcp_port
 from tests.drivers.emulator_proc import Emulator
 
@@ -144,7 +144,7 @@ def test_a_large_block_carries_a_status_where_the_override_moved(per_frame):
     """`--fast` makes a second of samples at once: the STATUS of the applied override goes after each frame in
     which it moved, carrying its value at that frame's last sample, so the host learns of a change where it
     happened (a frame late at most, as in real time), not a whole block late. On the wire and in process."""
-    from millsense.drivers.emulator.wire import WireEmitter
+    from millsense.sim.emulator.wire import WireEmitter
     from millsense.drivers.protocol import StreamDecoder
 
     plant = Plant("afc-step", seed=0, noise_scale=0)

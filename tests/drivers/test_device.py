@@ -9,9 +9,9 @@ import pytest
 
 from millsense.drivers import DriverError, create_driver
 from millsense.drivers.base import IndexTracker, SampleBlock
-from millsense.drivers.emulator.device import DeviceModel
-from millsense.drivers.emulator.pacing import Pacer
-from millsense.drivers.emulator.ramp import RampPlant
+from millsense.sim.emulator.device import DeviceModel
+from millsense.sim.emulator.pacing import Pacer
+from millsense.sim.emulator.ramp import RampPlant
 from millsense.drivers.protocol import CMD_HEARTBEAT, CMD_SET_OUTPUTS, Command
 from tests.drivers.emulator_proc import ramp
 

@@ -15,10 +15,10 @@ from __future__ import annotations
 import asyncio
 import threading
 
-from millsense.drivers.emulator.device import DeviceModel
-from millsense.drivers.emulator.modbus_server import ModbusDeviceServer
-from millsense.drivers.emulator.pacing import Pacer
-from millsense.drivers.emulator.source import make_source
+from millsense.sim.emulator.device import DeviceModel
+from millsense.sim.emulator.modbus_server import ModbusDeviceServer
+from millsense.sim.emulator.pacing import Pacer
+from millsense.sim.emulator.source import make_source
 from millsense.drivers.modbus_driver import ModbusTcpDriver
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import wait_for

@@ -1,7 +1,7 @@
 """The part program behind the real emulator: CONTEXT frames over TCP and in a capture, Modbus registers 8-15.
 
 The expected context comes from the plant itself, run in-process with the same options
-(drivers/sim/program.py ProgramPlant): the emulator must deliver exactly the CNC's changes,
+(sim/program.py ProgramPlant): the emulator must deliver exactly the CNC's changes,
 each with the index of the first sample it holds for, in stream order.
 """
 
@@ -12,7 +12,7 @@ import subprocess
 import time
 
 from millsense.drivers.protocol import CAP_CONTEXT, Context, Descriptor, Samples, StreamDecoder
-from millsense.drivers.sim.program_plant import ProgramPlant
+from millsense.sim.program_plant import ProgramPlant
 from tests.drivers.emulator_proc import SIM_CMD, Emulator
 
 PROGRAM = ["--scenario", "part-program", "--parts", "2"]
@@ -163,7 +163,7 @@ def test_the_in_process_sim_driver_passes_each_context_before_its_samples():
 
 
 def test_write_capture_writes_a_part_program_as_the_emulator_does(tmp_path):
-    from millsense.drivers.sim import write_capture
+    from millsense.sim import write_capture
 
     ours, theirs = tmp_path / "w.cap", tmp_path / "s.cap"
     n = write_capture("part-program", ours, parts=1, seed=3, per_frame=7)

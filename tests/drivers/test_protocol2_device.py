@@ -8,8 +8,8 @@ import time
 import pytest
 
 from millsense.drivers.base import SampleBlock
-from millsense.drivers.emulator.device import DeviceModel
-from millsense.drivers.emulator.ramp import RampPlant
+from millsense.sim.emulator.device import DeviceModel
+from millsense.sim.emulator.ramp import RampPlant
 from millsense.drivers.protocol import (
     CMD_HEARTBEAT,
     CMD_SET_FEED_OVERRIDE,

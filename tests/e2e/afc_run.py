@@ -125,8 +125,8 @@ class StepOutcome:
 
 def walls(scenario: str) -> tuple[list[tuple[float, float]], float, float, float]:
     """The scenario's depth steps as (x of the wall, depth beyond it), the part's end, the tool's radius, and
-    where the tool's centre starts (the plant's own geometry, drivers/sim/scenarios.py)."""
-    from millsense.drivers.sim.scenarios import get_scenario
+    where the tool's centre starts (the plant's own geometry, sim/scenarios.py)."""
+    from millsense.sim.scenarios import get_scenario
 
     sc = get_scenario(scenario)
     pts = list(sc.axial_profile)
@@ -209,7 +209,7 @@ def level_ratios(loop: Loop, target: float, quantity: str = "torque_nm") -> list
 
 def depth_before(scenario: str, wall: float) -> float:
     """The scenario's programmed depth just before `wall`."""
-    from millsense.drivers.sim.scenarios import get_scenario
+    from millsense.sim.scenarios import get_scenario
 
     return [d for x, d in get_scenario(scenario).axial_profile if x < wall][-1]
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import pytest
 
-from millsense.drivers.sim.scenarios import get_scenario
+from millsense.sim.scenarios import get_scenario
 from tests.e2e.afc_run import OVERSHOOT_MAX, cycle_s, peak, run_loop, step_outcomes, torque_at_depth
 
 pytestmark = pytest.mark.slow  # over about 10 s each: handed out first (tests/parallel.py)

@@ -17,7 +17,7 @@ import subprocess
 import pytest
 
 from millsense.drivers.protocol import Samples, StreamDecoder
-from millsense.drivers.sim import SCENARIOS
+from millsense.sim import SCENARIOS
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, tcp, wait_for, write_config
 

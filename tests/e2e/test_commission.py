@@ -43,7 +43,7 @@ def _config(tmp_path: Path, port: int, machine: str = "comm", replace: tuple[str
 @pytest.fixture(scope="module")
 def meter(tmp_path_factory) -> dict[str, float]:
     """Each current and voltage channel's true RMS, from a capture of the sound emulator."""
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
     from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
 
     tmp = tmp_path_factory.mktemp("meter")

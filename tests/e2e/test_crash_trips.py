@@ -30,12 +30,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from millsense.daemon.config import load_config
-from millsense.daemon.config_models import AlarmSettings
+from millsense.daemon.config.load import load_config
+from millsense.daemon.config.models import AlarmSettings
 from millsense.daemon.pipeline.alarms import AlarmEngine
 from millsense.daemon.pipeline.estimator import Estimator
 from millsense.drivers.base import SampleBlock
-from millsense.drivers.sim import Plant
+from millsense.sim import Plant
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, Subscriber, read_jsonl, tcp, wait_for
 from tests.estimator import simcase

@@ -17,7 +17,7 @@ import bisect
 import json
 import subprocess
 
-from millsense.daemon.config import load_config
+from millsense.daemon.config.load import load_config
 from millsense.daemon.physics import validity
 from tests.e2e.helpers import CMD
 from tests.e2e.learning_run import CONFIG, RATE_HZ

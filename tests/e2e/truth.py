@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass
 
 RATE_HZ = 1000.0
-BATCH = 10  # samples per pacer batch of the emulator (drivers/emulator/pacing.py, batch_s = 0.01)
+BATCH = 10  # samples per pacer batch of the emulator (sim/emulator/pacing.py, batch_s = 0.01)
 
 
 @dataclass

@@ -44,7 +44,7 @@ viscous_nms = 0.0022
 """
 
 # The simulated machine's rotating masses referred to the spindle (machine data, like the friction
-# above: drivers/sim/machine.py, rotor_inertia·ratio² + spindle_inertia).
+# above: sim/machine.py, rotor_inertia·ratio² + spindle_inertia).
 PLANT_INERTIA_KGM2 = {"low-speed": 0.06 * 4.81**2 + 0.08, "high-speed": 0.06 * 1.157**2 + 0.08}
 GEARS_WITH_INERTIA = (GEARS.replace("viscous_nms = 0.0400\n", f"viscous_nms = 0.0400\ninertia_kgm2 = {PLANT_INERTIA_KGM2['low-speed']}\n")
                       .replace("viscous_nms = 0.0022\n", f"viscous_nms = 0.0022\ninertia_kgm2 = {PLANT_INERTIA_KGM2['high-speed']}\n"))
@@ -123,7 +123,7 @@ min_torque_nm = {min_torque_nm}
 
 
 def load(tmp_path: Path, name: str = "test.toml", **kwargs):
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
 
     path = tmp_path / name
     path.write_text(toml_text(**kwargs))

@@ -32,7 +32,7 @@ FEED_FORCE = "ix_feed = { newton_per_amp = 950.0, friction_n = 120.0 }"
 def capture(tmp: Path, scenario: str, *, seed: int = 1, filter_cutoff_hz: float | None = None,
             noise_scale: float = 1.0, extra_channels: bool | None = None) -> tuple[Path, Path]:
     """Write (or reuse) a capture and its truth file for the scenario."""
-    from millsense.drivers.sim import write_capture
+    from millsense.sim import write_capture
 
     tag = f"{scenario}-s{seed}-f{filter_cutoff_hz}-n{noise_scale}-x{extra_channels}"
     cap, truth = tmp / f"{tag}.bin", tmp / f"{tag}.truth.jsonl"
@@ -62,7 +62,7 @@ def settings_for(scenario: str, tmp: Path, *, method: str = "auto", filter_cutof
 
     `ix_offset_counts`: the feed-current sensor's zero (see `zero_feed_current`).
     """
-    from millsense.drivers.sim.scenarios import SCENARIOS
+    from millsense.sim.scenarios import SCENARIOS
 
     sc = SCENARIOS[scenario]
     m = sc.material
@@ -192,7 +192,7 @@ def zero_feed_current(capture_path: Path, scenario: str, tmp: Path) -> float:
 def transit_revs(scenario: str, feed_per_tooth_mm: float) -> int:
     """Revolutions for the tool to travel its own diameter: how long a step in the
     part takes to reach the whole engagement."""
-    from millsense.drivers.sim.scenarios import SCENARIOS
+    from millsense.sim.scenarios import SCENARIOS
 
     tool = SCENARIOS[scenario].tool
     return int(tool.diameter_mm / (feed_per_tooth_mm * tool.flutes)) + 1

@@ -22,8 +22,8 @@ import pytest
 from millsense.daemon.pipeline.alarms import AlarmEngine
 from millsense.daemon.pipeline.estimator import Estimator
 from millsense.drivers.base import SampleBlock
-from millsense.drivers.sim import Plant
-from millsense.drivers.sim.scenarios import get_scenario
+from millsense.sim import Plant
+from millsense.sim.scenarios import get_scenario
 from tests.estimator import configs, simcase
 
 

@@ -50,7 +50,7 @@ def test_calibration_recovers_table2_friction(tmp_path, aircuts, millsense_cmd):
         assert g["inertia_kgm2"] == pytest.approx(configs.PLANT_INERTIA_KGM2[name], rel=0.05), name
     assert "J =" in out
     # the file is a calibration the daemon loads: J reaches the gears
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
 
     cfg.write_text(cfg.read_text().replace("machine =", f'calibration = "{out_file}"\nmachine =', 1))
     assert {g.name: g.inertia_kgm2 for g in load_config(cfg).gears} == {
@@ -61,8 +61,8 @@ def _steady_air(tmp_path, rpms):
     """Air cuts each at one held speed (no run-up between): `aircut-low` cut into separate captures."""
     import dataclasses
 
-    from millsense.drivers.sim import write_capture
-    from millsense.drivers.sim.scenarios import get_scenario
+    from millsense.sim import write_capture
+    from millsense.sim.scenarios import get_scenario
 
     caps = []
     for rpm in rpms:
@@ -98,7 +98,7 @@ def test_no_speed_change_friction_written_without_inertia(tmp_path, millsense_cm
     written = tomllib.loads(out_file.read_text())
     assert written["gears"] and all("inertia_kgm2" not in g and g["friction_torque_nm"] > 0 for g in written["gears"])
     cfg.write_text(cfg.read_text().replace("machine =", f'calibration = "{out_file}"\nmachine =', 1))
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
 
     assert load_config(cfg).gears  # the file loads
 

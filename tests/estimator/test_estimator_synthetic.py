@@ -192,7 +192,7 @@ def test_sample_level_air_gap_power(tmp_path):
 
 
 def test_missing_channel_is_a_config_error_naming_it(tmp_path):
-    from millsense.daemon.config import ConfigError
+    from millsense.daemon.config.errors import ConfigError
 
     chans = tuple(c for c in synthetic.CHANNELS if c[1] != "v_wu")
     settings = configs.load(tmp_path)

@@ -20,7 +20,7 @@ from . import configs, simcase
 
 def _d_config(feed_mm_min, scenario="fig6"):
     """[D]'s set-up (tool, SB40, down milling), feed-rate channel fx_rate, configured feed as given."""
-    from millsense.drivers.sim.scenarios import get_scenario
+    from millsense.sim.scenarios import get_scenario
 
     sc = get_scenario(scenario)
     m = sc.material
@@ -87,7 +87,7 @@ def fig6(tmp_path_factory):
 
 
 def test_fig6_with_fig5s_feed_warns_and_uses_the_measured_feed(tmp_path, fig6):
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
 
     cap, truth_path = fig6
     path = tmp_path / "d.toml"
@@ -95,7 +95,7 @@ def test_fig6_with_fig5s_feed_warns_and_uses_the_measured_feed(tmp_path, fig6):
     estimates, est = simcase.run(cap, load_config(path))
     (event,) = est.physics.feed_check.take()
     assert event[0] == "feed.mismatch" and event[1]["configured_mm_min"] == 250
-    from millsense.drivers.sim.scenarios import get_scenario
+    from millsense.sim.scenarios import get_scenario
 
     programmed = get_scenario("fig6").feed_segments[0][1]
     assert event[1]["measured_mm_min"] == pytest.approx(programmed, rel=0.01)
@@ -107,7 +107,7 @@ def test_fig6_with_fig5s_feed_warns_and_uses_the_measured_feed(tmp_path, fig6):
 
 
 def test_matching_feed_says_nothing(tmp_path, fig6):
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
 
     cap, _ = fig6
     path = tmp_path / "d.toml"
@@ -146,8 +146,8 @@ def test_each_example_config_names_the_scenario_it_fits_and_fits_it():
     import tomllib
     from pathlib import Path
 
-    from millsense.drivers.sim import PROGRAMS
-    from millsense.drivers.sim.scenarios import get_scenario
+    from millsense.sim import PROGRAMS
+    from millsense.sim.scenarios import get_scenario
 
     examples = sorted((Path(__file__).resolve().parents[2] / "config").glob("*.toml"))
     assert examples

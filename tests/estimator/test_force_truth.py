@@ -53,7 +53,7 @@ def _steady_cut(tmp, scenario, seed, cf):
 
 
 def _tool(scenario):
-    from millsense.drivers.sim.scenarios import SCENARIOS
+    from millsense.sim.scenarios import SCENARIOS
 
     return SCENARIOS[scenario].tool
 

@@ -51,7 +51,7 @@ def _settings(tmp_path: Path, name: str):
     extra = kwargs.pop("extra_toml", "")
     path = tmp_path / "one.toml"
     path.write_text(configs.toml_text(**kwargs) + extra)
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
 
     return load_config(path)
 

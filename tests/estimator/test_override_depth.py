@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from millsense.daemon.commands.replay import Replay
 from millsense.daemon.pipeline.override_track import OverrideTrack
 from millsense.drivers.protocol import CAP_FEED_OVERRIDE, Status, encode_descriptor, encode_sample_frames, encode_status
-from millsense.drivers.sim.plant import Plant
+from millsense.sim.plant import Plant
 
 from . import simcase
 

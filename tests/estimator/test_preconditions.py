@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from millsense.daemon.config import load_config
+from millsense.daemon.config.load import load_config
 from millsense.daemon.physics import validity
 from millsense.daemon.pipeline.per_revolution import RevolutionMeans, RevolutionPhysics
 from tests.estimator import configs

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from millsense.daemon.commands.replay import Replay
-from millsense.daemon.config import load_config
+from millsense.daemon.config.load import load_config
 from tests.e2e.helpers import CMD
 from tests.estimator.test_vectorised import assert_same_lines
 

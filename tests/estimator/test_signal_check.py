@@ -1,7 +1,7 @@
 """Issue 10, findings 2 and 3: stuck, clipped and lying signals are never published as measurements.
 
 Every capture here is made by the real plant through `millsense sim --capture`
-with its sensor-fault flags (drivers/sim/sensors.py, which knows nothing of the
+with its sensor-fault flags (sim/sensors.py, which knows nothing of the
 daemon), then read through `PipelineCore` exactly as `run` and `replay` read a
 stream: a descriptor the configuration refuses drops the estimator (the
 runner's fault `descriptor`), every block goes through estimator, signal and
@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from millsense.daemon.config import ConfigError, load_config
+from millsense.daemon.config.errors import ConfigError
+from millsense.daemon.config.load import load_config
 from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
 from millsense.daemon.pipeline.run_core import PipelineCore
 from tests.estimator import configs
@@ -223,7 +224,7 @@ NORMAL = ("step", "fig5", "fig6", "crash", "aircut-low", "aircut-high", "breakag
 @pytest.mark.parametrize("seed", [1, 2, 3])
 @pytest.mark.parametrize("scenario", NORMAL)
 def test_normal_scenarios_raise_no_signal_fault(tmp_path, scenario, seed):
-    from millsense.drivers.sim.scenarios import SCENARIOS
+    from millsense.sim.scenarios import SCENARIOS
 
     cap = capture(tmp_path, scenario, SCENARIOS[scenario].duration_s, seed=seed)
     # the air cuts have no feed; fig5/fig6's extra channels are left unconfigured (the DAQ may send more)
@@ -246,8 +247,8 @@ def test_a_sensor_that_fails_mid_run_spoils_only_the_samples_from_then_on():
     """`millsense sim --faults-from-s`: the pin begins at its sample, wherever the blocks fall."""
     import numpy as np
 
-    from millsense.drivers.sim.plant import Plant
-    from millsense.drivers.sim.sensors import SensorFaults
+    from millsense.sim.plant import Plant
+    from millsense.sim.sensors import SensorFaults
 
     sound = Plant("step", seed=3).step(1000)
     faulty = SensorFaults(Plant("step", seed=3), pin={"i_u": 7}, from_s=0.45)
@@ -278,7 +279,7 @@ def _newest_pinned_per_frame(cfg, cap: Path, frame: int = 10) -> list[tuple[int,
 def test_no_healthy_channel_reads_as_stopped_in_the_newest_samples(tmp_path, scenario):
     """The feed controller raises no feed while a channel has not moved over the newest 5 samples: on sound
     signals (speed changes down to the slowest air cut, a cut, the spindle starting) that never holds."""
-    from millsense.drivers.sim.scenarios import SCENARIOS
+    from millsense.sim.scenarios import SCENARIOS
 
     cap = capture(tmp_path, scenario, SCENARIOS[scenario].duration_s)
     cfg = settings(tmp_path, feed_mm_min=None if scenario.startswith("aircut") else 200.0)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from millsense.daemon.config import load_config
+from millsense.daemon.config.load import load_config
 from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
 from millsense.daemon.pipeline.estimator import Estimator
 from millsense.drivers.base import SampleBlock
@@ -32,8 +32,8 @@ DEPTH_REL = 0.05                          # docs/accuracy.md: depths within 5 %
 
 
 def _scenario_tools():
-    from millsense.drivers.sim.machine import TOOL_P
-    from millsense.drivers.sim.scenarios import SCENARIOS
+    from millsense.sim.machine import TOOL_P
+    from millsense.sim.scenarios import SCENARIOS
 
     return SCENARIOS["fig5"], TOOL_P
 

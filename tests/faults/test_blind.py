@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from millsense.daemon.config import load_config
+from millsense.daemon.config.load import load_config
 from millsense.daemon.pipeline.runner import Runner
 from millsense.drivers.sim_driver import SimDriver
 from tests.e2e.helpers import write_config
@@ -120,7 +120,7 @@ def test_a_blind_spell_raised_and_cleared_inside_one_block_still_holds_the_feed(
     as it is when the blocks are small. The stuck sensor is the plant's own samples with i_u at its rail from
     1.0 s to 1.5 s."""
     from millsense.drivers.base import SampleBlock
-    from millsense.drivers.emulator.source import make_source
+    from millsense.sim.emulator.source import make_source
 
     il = 'enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 10000\nreset = "open"'
     cfg = write_config(tmp_path / "spell.toml", machine="spell-01", daq='transport = "sim"\nscenario = "step"',

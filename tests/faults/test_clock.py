@@ -3,7 +3,7 @@
 You cannot step the system clock in a test, so the emulator and the daemon run
 with a shim (tests/faults/clockshim/sitecustomize.py) that steps their
 `time.time()` at given CLOCK_MONOTONIC instants — the one mock in this folder,
-a clock, as the standards allow. The emulator's pacing (drivers/emulator/
+a clock, as the standards allow. The emulator's pacing (sim/emulator/
 pacing.py), the daemon's revolution timing (sample indices), its health and
 heartbeat timers and the DAQ watchdog all run on `time.monotonic()`, so a step
 of +2 s (a typical NTP step), then −1 h, then +1 h changes nothing there; the

@@ -15,10 +15,10 @@ import time
 import numpy as np
 import pytest
 
-from millsense.daemon.config import load_config
+from millsense.daemon.config.load import load_config
 from millsense.daemon.pipeline.phase_check import PhaseCheck
 from millsense.drivers.base import SampleBlock
-from millsense.drivers.emulator.source import make_source
+from millsense.sim.emulator.source import make_source
 from tests.e2e.helpers import write_config
 from tests.faults.helpers import INTERLOCK_OPEN, runner_on_the_sim
 

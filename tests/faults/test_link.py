@@ -243,7 +243,7 @@ def test_samples_flowing_again_clear_the_link_faults_even_from_a_daq_that_does_n
 
     import numpy as np
 
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
     from millsense.daemon.pipeline.runner import DAQ_STALL_S
     from millsense.drivers.base import LinkEvent, SampleBlock
     from tests.faults.helpers import runner_on_the_sim
@@ -278,7 +278,7 @@ def test_a_link_back_up_is_not_a_stall_before_its_event_is_handled(tmp_path):
     The check now goes by the link events the estimator thread handled."""
     import numpy as np
 
-    from millsense.daemon.config import load_config
+    from millsense.daemon.config.load import load_config
     from millsense.daemon.pipeline.runner import DAQ_STALL_S
     from millsense.drivers.base import LinkEvent, SampleBlock
     from tests.faults.helpers import runner_on_the_sim

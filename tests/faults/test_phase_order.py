@@ -14,10 +14,10 @@ import time
 import numpy as np
 import pytest
 
-from millsense.daemon.config import load_config
+from millsense.daemon.config.load import load_config
 from millsense.daemon.pipeline.phase_check import WINDOWS, PhaseCheck
 from millsense.drivers.base import SampleBlock
-from millsense.drivers.emulator.source import make_source
+from millsense.sim.emulator.source import make_source
 from tests.e2e.helpers import read_jsonl, wait_for, write_config
 from tests.faults.helpers import INTERLOCK_OPEN, live_daemon, outputs, runner_on_the_sim, wait_status
 

@@ -24,7 +24,7 @@ from contextlib import ExitStack
 import numpy as np
 import pytest
 
-from millsense.daemon.config import load_config
+from millsense.daemon.config.load import load_config
 from millsense.daemon.pipeline.runner import Runner
 from millsense.drivers.base import SampleBlock
 from tests.e2e.helpers import write_config

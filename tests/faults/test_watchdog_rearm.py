@@ -11,10 +11,10 @@ own, so only a transport that does not remember it (the in-process DAQ here) sho
 
 from __future__ import annotations
 
-from millsense.daemon.config import load_config
+from millsense.daemon.config.load import load_config
 from millsense.drivers.base import LinkEvent
-from millsense.drivers.emulator.device import DeviceModel
-from millsense.drivers.emulator.source import make_source
+from millsense.sim.emulator.device import DeviceModel
+from millsense.sim.emulator.source import make_source
 from tests.e2e.helpers import wait_for, write_config
 from tests.faults.helpers import INTERLOCK_OPEN, runner_on_the_sim
 

@@ -10,8 +10,9 @@ import typing
 
 import pytest
 
-from millsense.daemon.config import ConfigError, load_config_text
-from millsense.daemon.config_models import AlarmSettings, LearningSettings
+from millsense.daemon.config.errors import ConfigError
+from millsense.daemon.config.load import load_config_text
+from millsense.daemon.config.models import AlarmSettings, LearningSettings
 from tests.config.helpers import base, dumps
 
 pytestmark = pytest.mark.quick

@@ -268,7 +268,7 @@ def test_the_live_daemon_does_not_import_scipy_optimize():
         "import sys\n"
         "import numpy as np\n"
         "import millsense.daemon.commands.run\n"
-        "from millsense.daemon.config import demo_config\n"
+        "from millsense.daemon.config.load import demo_config\n"
         "from millsense.daemon.pipeline.run_core import PipelineCore\n"
         "from millsense.drivers.base import SampleBlock\n"
         "from millsense.drivers.protocol import Channel, ChannelKind as K, Descriptor\n"

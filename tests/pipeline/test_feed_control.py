@@ -16,7 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from millsense.daemon.config_models import AfcSettings, AfcTargetSettings, MaterialSettings
+from millsense.daemon.config.models import AfcSettings, AfcTargetSettings, MaterialSettings
 from millsense.daemon.pipeline.feed_control import STATES, FeedController, tune
 from tests.pipeline.loop_model import Cut, run
 

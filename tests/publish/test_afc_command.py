@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import pytest
 
 from millsense.daemon.audit import AuditLog
-from millsense.daemon.config_models import AfcSettings
+from millsense.daemon.config.models import AfcSettings
 from millsense.daemon.pipeline.feed_control import FeedController
 from millsense.daemon.pipeline.local_control import LocalControl, local_command
 from millsense.daemon.publish.command_auth import CommandError, command_message, exchange, mac_hex

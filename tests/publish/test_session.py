@@ -156,7 +156,7 @@ def test_peer_opens_even_when_nothing_answers(port):
 
 
 def test_settings_from_the_toml_config(tmp_path, port):
-    from millsense.daemon import config
+    from millsense.daemon.config import load as config
 
     demo = config.demo_config()
     zs = demo.zenoh.model_copy(update={"mode": "client", "connect": [tcp(port)], "multicast_scouting": False})
@@ -172,7 +172,7 @@ def test_shared_memory_is_off_unless_configured():
     assert _get(zenoh_config(zsettings("peer")), "transport/shared_memory/enabled") is False
     assert _get(zenoh_config(zsettings("peer", shared_memory=True)), "transport/shared_memory/enabled") is True
     # from the TOML model too: the key's default is off
-    from millsense.daemon import config
+    from millsense.daemon.config import load as config
 
     assert _get(zenoh_config(config.demo_config().zenoh), "transport/shared_memory/enabled") is False
 

@@ -17,9 +17,9 @@ from types import SimpleNamespace
 
 import pytest
 
-from millsense.daemon.config_models import AfcSettings
+from millsense.daemon.config.models import AfcSettings
 from millsense.daemon.pipeline.runner import Runner
-from millsense.drivers.emulator.device import StatusLog
+from millsense.sim.emulator.device import StatusLog
 from millsense.drivers.sim_driver import SimDriver
 from tests.runtime.test_runner import RecordingSink, ScriptedEstimator, wait_for
 

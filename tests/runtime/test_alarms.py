@@ -231,7 +231,7 @@ def test_a_torque_rise_is_an_overload_and_never_a_breakage():
 
 
 def test_breakage_not_armed_by_the_default_config():
-    from millsense.daemon.config_models import AlarmSettings
+    from millsense.daemon.config.models import AlarmSettings
 
     defaults = AlarmSettings()
     assert defaults.breakage_drop_pct is None

@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import pytest
 from pydantic import SecretStr
 
-from millsense.daemon.config_models import AfcSettings, AfcTargetSettings
+from millsense.daemon.config.models import AfcSettings, AfcTargetSettings
 from tests.learning.doc_signer import signer
 from tests.runtime.test_afc_runner import TARGET_NM, start_runner, stop_runners
 from tests.runtime.test_runner import wait_for

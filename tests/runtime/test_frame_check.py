@@ -19,18 +19,18 @@ import time
 import numpy as np
 import pytest
 
-from millsense.daemon.config import demo_config, load_config
+from millsense.daemon.config.load import demo_config, load_config
 from millsense.daemon.pipeline.estimator import Estimator
 from millsense.daemon.pipeline.runner import Runner, _merged
 from millsense.daemon.pipeline.safety_check import FrameCheck
 from millsense.drivers.base import LinkEvent, SampleBlock
-from millsense.drivers.emulator.device import DeviceModel
-from millsense.drivers.emulator.pacing import Pacer
-from millsense.drivers.emulator.ramp import RAMP_CHANNELS
-from millsense.drivers.emulator.stream_server import StreamServer
-from millsense.drivers.emulator.wire import WireEmitter
+from millsense.sim.emulator.device import DeviceModel
+from millsense.sim.emulator.pacing import Pacer
+from millsense.sim.emulator.ramp import RAMP_CHANNELS
+from millsense.sim.emulator.stream_server import StreamServer
+from millsense.sim.emulator.wire import WireEmitter
 from millsense.drivers.protocol import Descriptor
-from millsense.drivers.sim import Plant
+from millsense.sim import Plant
 from millsense.drivers.tcp_driver import TcpDriver
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import write_config

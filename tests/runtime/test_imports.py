@@ -22,8 +22,8 @@ NOT_ON_THE_RUN_PATH = (
     "millsense.daemon.opcua",
     "millsense.daemon.dashboard",          # `millsense dashboard`
     "http.server",
-    "millsense.drivers.emulator",          # `millsense sim`
-    "millsense.drivers.sim",
+    "millsense.sim.emulator",          # `millsense sim`
+    "millsense.sim",
     "millsense.daemon.commands.replay",
     "millsense.daemon.commands.calibrate",
     "millsense.daemon.history.export",     # `millsense history`

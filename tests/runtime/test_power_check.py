@@ -14,8 +14,8 @@ import subprocess
 from millsense.daemon.pipeline.estimator import Estimator
 from millsense.daemon.pipeline.power_check import MARGIN_W, REVOLUTIONS, PowerSignCheck
 from millsense.drivers.base import SampleBlock
-from millsense.drivers.sim import Plant
-from millsense.drivers.sim.scenarios import get_scenario
+from millsense.sim import Plant
+from millsense.sim.scenarios import get_scenario
 from tests.e2e.helpers import CMD, Procs, write_config
 from tests.estimator import simcase
 from tests.faults.helpers import log_events

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from millsense.drivers.protocol import Descriptor, Samples, StreamDecoder
-from millsense.drivers.sim import Plant, write_capture
+from millsense.sim import Plant, write_capture
 
 pytestmark = pytest.mark.quick
 

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from millsense.drivers.sim.cutting import CutGeometry, cutting_forces, tooth_chip_factors
-from millsense.drivers.sim.machine import MATERIALS, Material, Tool
+from millsense.sim.cutting import CutGeometry, cutting_forces, tooth_chip_factors
+from millsense.sim.machine import MATERIALS, Material, Tool
 
 pytestmark = pytest.mark.quick
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from millsense.drivers.protocol import CTX_AFC_ALLOWED, CTX_MONITOR
-from millsense.drivers.sim import SCENARIOS, Plant
-from millsense.drivers.sim.program import PROGRAMS
-from millsense.drivers.sim.program_plant import ProgramPlant
+from millsense.sim import SCENARIOS, Plant
+from millsense.sim.program import PROGRAMS
+from millsense.sim.program_plant import ProgramPlant
 
 pytestmark = pytest.mark.quick
 

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from millsense.drivers.sim import Plant
-from millsense.drivers.sim.machine import MCH10
-from millsense.drivers.sim.motor import motor_waveforms
+from millsense.sim import Plant
+from millsense.sim.machine import MCH10
+from millsense.sim.motor import motor_waveforms
 
 from .helpers import airgap_power_w, butterworth2_gain, electrical_hz, physical, steady_cut_revs
 

@@ -1,6 +1,6 @@
 """The part-program scenario: its timeline and context, per-process truth, wear and the three faults.
 
-Expectations come from the program's definition (drivers/sim/program.py PROGRAMS) and from the
+Expectations come from the program's definition (sim/program.py PROGRAMS) and from the
 plant's own signals (sensor counts, per-revolution truth), never from numbers copied out of a run.
 """
 
@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from millsense.drivers.protocol import CTX_AFC_ALLOWED, CTX_CYCLE, CTX_MONITOR
-from millsense.drivers.sim.machine import MATERIALS
-from millsense.drivers.sim.program import PART_GAP_S, PROGRAMS, ProgramFaults
-from millsense.drivers.sim.program_plant import ProgramPlant
+from millsense.sim.machine import MATERIALS
+from millsense.sim.program import PART_GAP_S, PROGRAMS, ProgramFaults
+from millsense.sim.program_plant import ProgramPlant
 
 from .helpers import physical
 
@@ -248,8 +248,8 @@ def test_faults_are_refused_where_they_mean_nothing(millsense_cmd, tmp_path):
 
 
 def test_the_example_config_is_this_machine_and_its_magazine():
-    from millsense.daemon.config import load_config
-    from millsense.drivers.sim import machine_config
+    from millsense.daemon.config.load import load_config
+    from millsense.sim import machine_config
     from tests.config.helpers import REPO
 
     settings = load_config(REPO / "config" / "part-program.toml")

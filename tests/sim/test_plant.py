@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from millsense.drivers.sim import Plant
+from millsense.sim import Plant
 
 from .helpers import physical, steady_cut_revs
 

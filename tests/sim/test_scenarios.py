@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from millsense.drivers.sim import SCENARIOS, Plant, list_scenarios, machine_config
-from millsense.drivers.sim.scenarios import _travel_s
+from millsense.sim import SCENARIOS, Plant, list_scenarios, machine_config
+from millsense.sim.scenarios import _travel_s
 
 from .helpers import steady_cut_revs
 

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from millsense.drivers.sim import Plant, channel_scales
-from millsense.drivers.sim.sensors import quantise
+from millsense.sim import Plant, channel_scales
+from millsense.sim.sensors import quantise
 
 from .helpers import SCALES, physical
 

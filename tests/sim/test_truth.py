@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from millsense.drivers.sim import Plant, SCENARIOS
-from millsense.drivers.sim.machine import MATERIALS
+from millsense.sim import Plant, SCENARIOS
+from millsense.sim.machine import MATERIALS
 
 from .helpers import steady_cut_revs
 

@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from millsense.drivers.sim.machine import Motor
+from millsense.sim.machine import Motor
 
 SQRT2 = math.sqrt(2.0)
 C120 = math.cos(2 * math.pi / 3)

@@ -32,7 +32,7 @@ def ramp_counts(first_index: int, n: int, channels: int) -> np.ndarray:
 
 
 class RampPlant:
-    """Same surface as ``drivers.sim.Plant`` (descriptor, step, feed_hold, truth)."""
+    """Same surface as ``sim.Plant`` (descriptor, step, feed_hold, truth)."""
 
     description = "synthetic int16 ramp, value = (index + 1000*channel) mod 2^16 (contract tests)"
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from millsense.drivers.sim.machine import Material, Tool
+from millsense.sim.machine import Material, Tool
 
 MIN_SLICES = 20
 MAX_SLICE_MM = 1.0

@@ -13,8 +13,8 @@ import contextlib
 import os
 import time
 
-from millsense.drivers.emulator.pacing import CncTimer
-from millsense.drivers.emulator.pty import Pty
+from millsense.sim.emulator.pacing import CncTimer
+from millsense.sim.emulator.pty import Pty
 from millsense.drivers.protocol import CMD_SEND_DESCRIPTOR, Command, StreamDecoder
 
 MAX_CLIENT_BACKLOG = 1 << 20

@@ -11,7 +11,7 @@ import stat
 from pathlib import Path
 from typing import Any
 
-from millsense.daemon.config_models import loopback_only
+from millsense.daemon.config.models import loopback_only
 
 
 def config_warnings(settings: Any, path: str | os.PathLike[str] | None = None) -> list[str]:

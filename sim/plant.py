@@ -28,10 +28,10 @@ import numpy as np
 from scipy import signal
 
 from millsense.drivers.protocol import Descriptor
-from millsense.drivers.sim.cutting import CutGeometry, cutting_forces, tooth_chip_factors
-from millsense.drivers.sim.motor import motor_waveforms
-from millsense.drivers.sim.scenarios import Scenario, get_scenario
-from millsense.drivers.sim.sensors import (
+from millsense.sim.cutting import CutGeometry, cutting_forces, tooth_chip_factors
+from millsense.sim.motor import motor_waveforms
+from millsense.sim.scenarios import Scenario, get_scenario
+from millsense.sim.sensors import (
     AntiAliasFilter,
     ChannelKind,
     descriptor_channels,
@@ -39,7 +39,7 @@ from millsense.drivers.sim.sensors import (
     quantise,
     select_sensors,
 )
-from millsense.drivers.sim.truth import TruthRecorder
+from millsense.sim.truth import TruthRecorder
 
 SAMPLE_RATE_HZ = 1000
 INTERNAL_PER_SAMPLE = 10  # internal rate 10 kHz
@@ -65,7 +65,7 @@ class Plant:
         self.duration_s = math.inf if self.loop else sc.duration_s
         self.feed_hold = False
         # the CNC's applied feed override (percent): a float, or one value per sample of the next step(n),
-        # set by the DAQ emulator before each step (drivers/emulator/cnc_override.py)
+        # set by the DAQ emulator before each step (sim/emulator/cnc_override.py)
         self.feed_override_pct: float | np.ndarray = 100.0
         self._override = np.full(0, 100.0)  # the rest of the current step's per-sample override
         self._seed, self._noise_scale, self._extras = int(seed), noise_scale, extra_channels

@@ -14,7 +14,7 @@ speed within 1 % of constant and within 0.5 % of its command, no feed hold.  A
 taper or ramp is therefore never steady.  Events (``{"event": ...}``) are
 ``crash_power``, ``tool_breakage``, ``feed_hold`` and ``scenario_restart``.
 The part program adds one ``{"process": ...}`` line per monitored process
-(``drivers/sim/program.py``); a revolution is a record with ``rev``.
+(``sim/program.py``); a revolution is a record with ``rev``.
 Only the last ``keep`` records are held (a looping demo runs for days).
 """
 

@@ -18,7 +18,7 @@ frame at whose last sample the applied override (in 0.1 %) moved, within a
 block too (``override_points``): however many samples a block holds (``--fast``
 makes a second of them at once), the host learns of a change where it happened,
 a frame late at most, as from a real DAQ.
-A part program's plant (drivers/sim/program_plant.py) is a CNC of its own: it
+A part program's plant (sim/program_plant.py) is a CNC of its own: it
 sets program, tool, operation, cycle and monitor by sample index, and the
 device passes each change on with the index of the first sample it holds for.
 """
@@ -33,7 +33,7 @@ from typing import IO
 
 import numpy as np
 
-from millsense.drivers.emulator.cnc_override import CncOverride
+from millsense.sim.emulator.cnc_override import CncOverride
 from millsense.drivers.protocol import (
     CAP_CONTEXT,
     CAP_FEED_OVERRIDE,
@@ -136,7 +136,7 @@ class DeviceModel:
         self.operation = operation
         self.cnc_flags = CTX_CYCLE | CTX_MONITOR | (CTX_AFC_ALLOWED if afc_allowed else 0)
         self.context_index = self.head  # the first sample index at which the context holds
-        # a part program (drivers/sim/program.py) is a CNC of its own: it sets program, tool, operation,
+        # a part program (sim/program.py) is a CNC of its own: it sets program, tool, operation,
         # cycle and monitor sample by sample; the device adds only "feed held"
         self._program_source = callable(getattr(source, "drain_context", None))
         if self._program_source:

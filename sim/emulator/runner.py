@@ -8,10 +8,10 @@ import signal
 import sys
 import time
 
-from millsense.drivers.emulator.device import DeviceModel, StatusLog
-from millsense.drivers.emulator.pacing import Pacer
-from millsense.drivers.emulator.source import SourceError, is_program, list_sources, make_source
-from millsense.drivers.emulator.wire import WireEmitter
+from millsense.sim.emulator.device import DeviceModel, StatusLog
+from millsense.sim.emulator.pacing import Pacer
+from millsense.sim.emulator.source import SourceError, is_program, list_sources, make_source
+from millsense.sim.emulator.wire import WireEmitter
 
 
 class EmulatorError(Exception):
@@ -43,7 +43,7 @@ def _program_options(args) -> dict | None:
             raise EmulatorError(f"--{name}: the part program sets the tool and the operation itself", 2)
     if getattr(args, "afc_allowed", False):
         raise EmulatorError("--afc-allowed: the part program allows adaptive feed per operation itself", 2)
-    from millsense.drivers.sim.program import ProgramFaults
+    from millsense.sim.program import ProgramFaults
 
     faults = ProgramFaults(
         wear_pct=tuple(args.wear or ()),
@@ -72,7 +72,7 @@ def serve(args) -> int:
         raise EmulatorError(str(exc), 2) from exc
     source = _with_sensor_faults(source, args)
     if getattr(args, "swap", None) or getattr(args, "reverse", None):
-        from millsense.drivers.emulator.wiring import WiringFaults
+        from millsense.sim.emulator.wiring import WiringFaults
 
         try:
             source = WiringFaults(source, swap=args.swap, reverse=args.reverse)
@@ -139,7 +139,7 @@ def _with_sensor_faults(source, args):
     rate = getattr(args, "descriptor_rate", None)
     if not pin and gain is None and clip is None and rate is None:
         return source
-    from millsense.drivers.sim.sensors import SensorFaults
+    from millsense.sim.sensors import SensorFaults
 
     try:
         return SensorFaults(source, pin=pin, current_gain=gain, clip_currents=clip, descriptor_rate_hz=rate,
@@ -152,18 +152,18 @@ async def _main(args, device, pacer, duration_samples) -> int:
     loop = asyncio.get_running_loop()
     modbus = bool(args.modbus_tcp or args.modbus_rtu)
     if args.modbus_tcp:
-        from millsense.drivers.emulator.modbus_server import ModbusDeviceServer
+        from millsense.sim.emulator.modbus_server import ModbusDeviceServer
 
         server = ModbusDeviceServer(device, pacer, *args.modbus_tcp, unit=args.unit, duration_samples=duration_samples)
         where = f"modbus-tcp {args.modbus_tcp[0]}:{args.modbus_tcp[1]}"
     elif args.modbus_rtu:
-        from millsense.drivers.emulator.modbus_server import ModbusDeviceServer
+        from millsense.sim.emulator.modbus_server import ModbusDeviceServer
 
         server = ModbusDeviceServer(device, pacer, rtu_link=args.modbus_rtu, unit=args.unit,
                                     duration_samples=duration_samples)
         where = f"modbus-rtu {args.modbus_rtu}"
     else:
-        from millsense.drivers.emulator.stream_server import StreamServer
+        from millsense.sim.emulator.stream_server import StreamServer
 
         emitter = WireEmitter(
             device,

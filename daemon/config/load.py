@@ -12,12 +12,9 @@ Public API::
     demo_config() -> Settings                   # the embedded daemon/demo.toml
     effective_config_dict(settings) -> dict     # for the `config` queryable, secrets masked
     check_against_descriptor(settings, channels, *, raise_on_problems=True) -> list[str]
-    descriptor_problems(settings, channels) -> list[str]
-    ConfigError(problems: list[str])
 
-The models live in `config_models`, message shaping in `config_errors`, rules
-across sections / the calibration file / the DAQ descriptor in `config_checks`;
-all public names are re-exported here.
+The models live in `models` (`Settings`), message shaping in `errors` (`ConfigError`), rules
+across sections / the calibration file / the DAQ descriptor in `checks` (`descriptor_problems`).
 """
 
 from __future__ import annotations
@@ -31,15 +28,15 @@ from typing import Annotated, Any
 
 from pydantic import SecretStr, TypeAdapter, ValidationError
 
-from millsense.daemon.config_checks import (
+from millsense.daemon.config.checks import (
     apply_calibration,
     cross_problems,
     descriptor_problems,
     parse_toml,
     read_toml,
 )
-from millsense.daemon.config_errors import ConfigError, problems_from
-from millsense.daemon.config_models import (
+from millsense.daemon.config.errors import ConfigError, problems_from
+from millsense.daemon.config.models import (
     AlarmSettings,
     ChannelSettings,
     CutSettings,
@@ -190,7 +187,7 @@ def _settings_from(data: dict[str, Any], base_dir: Path) -> Settings:
     interlock = updates.get("interlock", parts.get("interlock"))
     if interlock is not None and interlock.reset is None and parts.get("zenoh") is not None:
         # Secure by default (docs/security.md): a session other hosts can reach takes commands only from
-        # whoever proves the token. Without a token nobody can, over the network; `config_warnings` says so.
+        # whoever proves the token. Without a token nobody can, over the network; `config.warnings` says so.
         # A loopback-only session is "open", which lets any local user clear or test a hold and nothing more:
         # whatever loosens protection needs the token or the uid-checked local socket (command_auth.OPEN_COMMANDS).
         reset = "open" if loopback_only(parts["zenoh"]) and not interlock.token() else "token"

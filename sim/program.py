@@ -47,8 +47,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from millsense.drivers.sim.machine import MATERIALS, MCH10, TOOL_D, TOOL_F, TOOL_P, Machine, Material, Tool
-from millsense.drivers.sim.scenarios import Scenario, _steps
+from millsense.sim.machine import MATERIALS, MCH10, TOOL_D, TOOL_F, TOOL_P, Machine, Material, Tool
+from millsense.sim.scenarios import Scenario, _steps
 
 GAP_MM = 2.0  # air between the programmed cutter's edge and the part when the feed starts
 PART_GAP_S = 0.4  # cycle off between parts: the finished part out, the next one clamped

@@ -1,8 +1,8 @@
-"""Which plant the emulator wraps: the ramp, or a scenario of ``drivers.sim``."""
+"""Which plant the emulator wraps: the ramp, or a scenario of ``millsense.sim``."""
 
 from __future__ import annotations
 
-from millsense.drivers.emulator.ramp import RampPlant
+from millsense.sim.emulator.ramp import RampPlant
 
 
 class SourceError(Exception):
@@ -13,13 +13,13 @@ def list_sources() -> list[tuple[str, str]]:
     """(name, description) of every scenario the emulator can serve."""
     names = [("ramp", RampPlant.description)]
     try:
-        from millsense.drivers import sim
+        from millsense import sim
 
         for name in sim.list_scenarios():
             scen = sim.SCENARIOS.get(name) if hasattr(sim, "SCENARIOS") else None
             desc = getattr(scen, "description", "") if scen is not None else ""
             names.append((name, desc))
-        from millsense.drivers.sim.program import PROGRAMS
+        from millsense.sim.program import PROGRAMS
 
         names += [(name, prog.description) for name, prog in PROGRAMS.items()]
     except (ImportError, AttributeError):
@@ -28,9 +28,9 @@ def list_sources() -> list[tuple[str, str]]:
 
 
 def is_program(scenario: str) -> bool:
-    """Whether ``scenario`` is a part program (drivers/sim/program.py): its own CNC, faults, parts."""
+    """Whether ``scenario`` is a part program (sim/program.py): its own CNC, faults, parts."""
     try:
-        from millsense.drivers.sim.program import PROGRAMS
+        from millsense.sim.program import PROGRAMS
     except ImportError:
         return False
     return scenario in PROGRAMS
@@ -52,7 +52,7 @@ def make_source(
     if scenario == "ramp":
         return RampPlant(start_index=start_index)
     if is_program(scenario):
-        from millsense.drivers.sim.program_plant import ProgramPlant
+        from millsense.sim.program_plant import ProgramPlant
 
         options = {k: v for k, v in (program or {}).items() if v is not None}
         if noise_scale is not None:
@@ -62,7 +62,7 @@ def make_source(
         except ValueError as exc:
             raise SourceError(str(exc)) from exc
     try:
-        from millsense.drivers.sim import SCENARIOS, Plant
+        from millsense.sim import SCENARIOS, Plant
     except ImportError as exc:
         raise SourceError(
             f"cannot serve scenario {scenario!r}: the plant simulator is not available ({exc}); only 'ramp' can be"

@@ -19,8 +19,8 @@ from typing import Annotated, Any
 
 from pydantic import BeforeValidator, Field, ValidationError
 
-from millsense.daemon.config_errors import problems_from
-from millsense.daemon.config_models import (
+from millsense.daemon.config.errors import problems_from
+from millsense.daemon.config.models import (
     AFC_MIN_GAIN, CutSettings, DepthSettings, Settings, ToolSettings, _cf_value, _Section,
 )
 

@@ -150,7 +150,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--start-index", type=int, default=0, help="index of the first sample (to test the wrap)")
     parser.add_argument("--ring-depth", type=int, default=4096, help="Modbus ring depth D in samples")
     parser.add_argument("--per-frame", type=int, default=10, help="samples per SAMPLES frame")
-    # sensor and DAQ faults (fault tests): drivers/sim/sensors.py SensorFaults
+    # sensor and DAQ faults (fault tests): sim/sensors.py SensorFaults
     parser.add_argument("--pin", type=_pin, action="append", metavar="CHANNEL=COUNT",
                         help="a stuck sensor: CHANNEL reads COUNT in every sample (repeatable)")
     parser.add_argument("--faults-from-s", type=_non_negative, default=0.0, metavar="S",
@@ -192,7 +192,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--afc-allowed", action="store_true",
                         help="protocol 2: the CNC allows adaptive feed in this cut (CONTEXT flag bit 2); "
                              "a part program sets it per operation")
-    # the part program (drivers/sim/program.py): parts and faults; see below
+    # the part program (sim/program.py): parts and faults; see below
     parser.add_argument("--parts", type=_uint(1, 100_000), default=None, metavar="N",
                         help="part program: how many parts (default 30)")
     parser.add_argument("--wear", type=_pair("TOOL", "PCT", float), action="append", metavar="TOOL:PCT",
@@ -206,7 +206,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from millsense.drivers.emulator.runner import EmulatorError, list_text, serve
+    from millsense.sim.emulator.runner import EmulatorError, list_text, serve
 
     if args.list:
         print(list_text())

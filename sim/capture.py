@@ -21,7 +21,7 @@ from millsense.drivers.protocol import (
     encode_descriptor,
     encode_sample_frames,
 )
-from millsense.drivers.sim.plant import Plant
+from millsense.sim.plant import Plant
 
 
 def write_capture(scenario, capture_path, truth_path=None, *, seed: int = 0, per_frame: int = 10,
@@ -33,10 +33,10 @@ def write_capture(scenario, capture_path, truth_path=None, *, seed: int = 0, per
     ``parts`` and ``faults`` (a ``ProgramFaults``) are for a part program only."""
     if not 1 <= per_frame <= 64:
         raise ValueError("per_frame must be 1..64 samples (SAMPLES frame limit)")
-    from millsense.drivers.sim.program import PROGRAMS, PartProgram
+    from millsense.sim.program import PROGRAMS, PartProgram
 
     if isinstance(scenario, PartProgram) or (isinstance(scenario, str) and scenario in PROGRAMS):
-        from millsense.drivers.sim.program_plant import ProgramPlant
+        from millsense.sim.program_plant import ProgramPlant
 
         plant = ProgramPlant(scenario, parts=parts, faults=faults, seed=seed, extra_channels=extra_channels,
                              filter_cutoff_hz=filter_cutoff_hz, noise_scale=noise_scale)

@@ -2,13 +2,13 @@
 
 Keys follow the daemon's TOML (`interfaces.md`): ``motor``, ``gears``, ``tool``,
 ``material``, ``cut``, plus the DAQ filter and the feed drive's calibration.
-A part program (``drivers/sim/program.py``) adds ``tools`` (its magazine by the
+A part program (``sim/program.py``) adds ``tools`` (its magazine by the
 CNC's tool number), ``program`` (its number) and ``channels`` (the extra ones).
 """
 
 from __future__ import annotations
 
-from millsense.drivers.sim.scenarios import Scenario, get_scenario
+from millsense.sim.scenarios import Scenario, get_scenario
 
 
 def _constant(profile) -> float | None:
@@ -17,7 +17,7 @@ def _constant(profile) -> float | None:
 
 
 def machine_config(scenario: str | Scenario = "step") -> dict:
-    from millsense.drivers.sim.program import PROGRAMS, PartProgram
+    from millsense.sim.program import PROGRAMS, PartProgram
 
     if isinstance(scenario, PartProgram) or (isinstance(scenario, str) and scenario in PROGRAMS):
         return _program_config(scenario if isinstance(scenario, PartProgram) else PROGRAMS[scenario])

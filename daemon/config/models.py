@@ -8,7 +8,7 @@ not armed.
 
 Checks inside one section live here (they can see only that section) and report
 *every* problem they find at once through `problems_error`; checks across
-sections, the calibration file and the DAQ descriptor are in `config_checks`.
+sections, the calibration file and the DAQ descriptor are in `checks`.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def problems_error(problems: list[tuple[str, str]]) -> PydanticCustomError:
     """One pydantic error carrying several `(key, "what is wrong (expected)")` problems.
 
     A validator can raise only one error; this keeps all of a section's
-    problems, and `config_errors` expands them under the section's location.
+    problems, and `errors` expands them under the section's location.
     """
     return PydanticCustomError("millsense_problems", "{count} problem(s)", {"count": len(problems), "problems": problems})
 

@@ -26,10 +26,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from millsense.drivers.protocol import CTX_AFC_ALLOWED, CTX_CYCLE, CTX_MONITOR
-from millsense.drivers.sim.cutting import CutGeometry, tooth_chip_factors
-from millsense.drivers.sim.machine import Tool
-from millsense.drivers.sim.plant import CUT_PER_SAMPLE, SAMPLE_RATE_HZ, Plant
-from millsense.drivers.sim.program import (
+from millsense.sim.cutting import CutGeometry, tooth_chip_factors
+from millsense.sim.machine import Tool
+from millsense.sim.plant import CUT_PER_SAMPLE, SAMPLE_RATE_HZ, Plant
+from millsense.sim.program import (
     BROKEN_FLUTE,
     PART_GAP_S,
     PROGRAMS,

@@ -34,8 +34,8 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 from pymodbus.simulator.simcore import SimCore
 
-from millsense.drivers.emulator.pacing import CncTimer
-from millsense.drivers.emulator.pty import PtyBridge
+from millsense.sim.emulator.pacing import CncTimer
+from millsense.sim.emulator.pty import PtyBridge
 from millsense.drivers.protocol import FLAG_WATCHDOG, OUT_ALARM_LAMP, OUT_FEED_HOLD
 
 RING_BASE = 1000

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 
-from millsense.drivers.sim.machine import MATERIALS, MCH10, TOOL_D, TOOL_P, Machine, Material, Tool
+from millsense.sim.machine import MATERIALS, MCH10, TOOL_D, TOOL_P, Machine, Material, Tool
 
 STEP_EDGE_MM = 1e-6  # width of a vertical wall in a depth profile (np.interp needs increasing x)
 APPROACH_MM = 5.0  # air gap between the tool's edge and the part at start and end
