@@ -43,7 +43,13 @@ def count_roots_on_fine_grid(curve, target):
     """Independent check: sign changes of curve − target on a fine grid over the model's domain."""
     grid = np.geomspace(MIN_RADIAL_RATIO, 2.0, 20001)
     d = curve(grid) - target
-    return int(np.count_nonzero(np.sign(d[1:]) != np.sign(d[:-1])))
+    # A grid point within rounding of the target is a root of its own (a run of them one root): the ends
+    # above all, where no sign change can show it (r_r = 2 evaluated on an array lands 1e-17 off the scalar).
+    near = np.abs(d) <= 1e-12 * max(1.0, abs(target))
+    s = np.sign(np.where(near, 0.0, d))
+    changes = int(np.count_nonzero(s[1:] * s[:-1] < 0))
+    runs_of_near = int(np.count_nonzero(near[1:] & ~near[:-1])) + int(near[0])
+    return changes + runs_of_near
 
 
 @settings(max_examples=80, deadline=None)
@@ -84,13 +90,14 @@ def test_torque_only_round_trip(r_r, r_a, t_c, mode):
 
 @settings(max_examples=60, deadline=None)
 @given(r_r=st.floats(MIN_RADIAL_RATIO * 1.001, 2.0), t_c=feeds, mode=st.sampled_from(["down", "up"]), kind=st.sampled_from(["fx", "fxt"]))
+@example(r_r=2.0, t_c=0.17987216858192062, mode="up", kind="fx")  # a root at the end and one at 1.9963
 def test_status_agrees_with_an_independent_root_count(r_r, t_c, mode, kind):
     """ok ⇔ the measured ratio has one preimage over [MIN_RADIAL_RATIO, 2]; unresolvable ⇔ several."""
     ratio = force_ratio_fx if kind == "fx" else force_ratio_fxt
     solve = radial_ratio_from_fx if kind == "fx" else radial_ratio_from_fxt
     target = float(ratio(r_r, t_c, M, mode))
     roots = count_roots_on_fine_grid(lambda g: ratio(g, t_c, M, mode), target)
-    assume(roots >= 1)  # a root exactly on a grid point or at an end is not counted: skip those
+    assume(roots >= 1)  # two roots closer than the grid's step are not seen: skip those
     got, status = solve(target, t_c, M, mode)
     if roots == 1:
         assert status == "ok" and got == pytest.approx(r_r, abs=1e-6)
