@@ -208,3 +208,20 @@ def tangential_per_axial_ratio_n(radial_ratio, feed_per_tooth_mm, tool_radius_mm
             NP, _valid_ratio(radial_ratio, mode), np.asarray(feed_per_tooth_mm, float),
             np.asarray(tool_radius_mm, float), np.asarray(flutes, float), material, mode,
         )
+
+
+def load_scale(override_pct, gain: float) -> float:
+    """How much a load at feed override `override_pct` (%) exceeds the same cut's load at the programmed feed.
+
+    The load follows the feed per tooth as a power law, torque ~ t_c^(1+p) ([D] eq. 8: t_a ∝ t_c, so
+    ``K_s(t_a)·t_c = k·t_a^p·t_c`` of eqs. 7 and 9), and the override u = `override_pct`/100 multiplies t_c:
+
+        load(u) / load(1) = u^gain          gain = 1 + p, or `[afc] process_gain`
+
+    One plain float (one revolution). Exactly 1.0 at 100 % (and without a report), so nothing changes for a
+    machine that never moves the override. A nonsensical override (None, <= 0) counts as 100 %: the load is
+    taken as it is.
+    """
+    if override_pct is None or not override_pct > 0.0 or override_pct == 100.0:
+        return 1.0
+    return (float(override_pct) / 100.0) ** gain

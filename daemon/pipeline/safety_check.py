@@ -45,8 +45,8 @@ from typing import Any
 
 import numpy as np
 
+from millsense.daemon.events import AlarmEvent
 from millsense.daemon.physics.power import copper_loss_w, input_power_symmetric_w, input_power_two_wattmeter_w
-from millsense.daemon.pipeline.alarms import AlarmEvent
 from millsense.daemon.pipeline.revolutions import STOP_RPM
 from millsense.daemon.pipeline.signal_check import HIGH_FRAC, HIGH_WINDOW_S
 
