@@ -18,7 +18,7 @@ import numpy as np
 from millsense.daemon.commission.report import Step
 from millsense.daemon.physics.power import clarke_alpha_beta_v, input_power_symmetric_w
 from millsense.daemon.pipeline.phase_check import PhaseCheck
-from millsense.daemon.pipeline.safety_check import _three
+from millsense.daemon.pipeline.safety_check import three_lines
 from millsense.daemon.pipeline.scaling import Scaler, line_channels
 from millsense.drivers.protocol import ChannelKind
 
@@ -115,8 +115,8 @@ def _power(settings: Any, descriptor: Any, raw: np.ndarray, lc: Any) -> tuple[fl
     """Mean input power ([P] eq. 11) and how far the current lags its phase voltage, degrees: from the space
     vectors, S = v·conj(i); the line-voltage vector leads the phase voltage's by 30°."""
     x = Scaler(settings, descriptor).scale(raw)
-    v = _three({k: x[n] for k, n in zip(lc.v_keys, lc.v_names)}, ("uv", "vw", "wu"))
-    i = _three({k: x[n] for k, n in zip(lc.i_keys, lc.i_names)}, ("u", "v", "w"))
+    v = three_lines({k: x[n] for k, n in zip(lc.v_keys, lc.v_names)}, ("uv", "vw", "wu"))
+    i = three_lines({k: x[n] for k, n in zip(lc.i_keys, lc.i_names)}, ("u", "v", "w"))
     v_a, v_b = clarke_alpha_beta_v(*v)
     i_a, i_b = (2.0 * i[0] - i[1] - i[2]) / 3.0, (i[1] - i[2]) / math.sqrt(3.0)   # Clarke, as the phase check's
     p, q = float(np.mean(v_a * i_a + v_b * i_b)), float(np.mean(v_b * i_a - v_a * i_b))

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from millsense.daemon.events import finite
 from millsense.daemon.learning.envelope import LOW_MAX_FRACTION, MAX_WIDENING, WideningCapped
 from millsense.daemon.learning.keys import KEY_RE, UINT32_MAX, KeyState, seen_outside
-from millsense.daemon.learning.process import finite
 from millsense.daemon.learning.wear import ToolWear
 
 if TYPE_CHECKING:

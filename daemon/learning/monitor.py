@@ -40,14 +40,14 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from millsense.daemon.events import AlarmEvent, finite
 from millsense.daemon.learning.actions import ACTIONS, run_command
 from millsense.daemon.learning.context import Ctx
 from millsense.daemon.learning.envelope import Envelope, Taught, Widths, learn, setting
 from millsense.daemon.learning.keys import KEY_RE, UINT16_MAX, UINT32_MAX, KeyState, key_show, key_summary, seen_outside
-from millsense.daemon.learning.process import ProcessRun, finite
+from millsense.daemon.learning.process import ProcessRun
 from millsense.daemon.learning.wear import ToolWear
-from millsense.daemon.pipeline.alarms import AlarmEvent
-from millsense.daemon.pipeline.override_track import load_scale
+from millsense.daemon.physics.milling import load_scale
 
 # Levels of the fixed limits that keep a process from teaching (`note_alarm`).
 _FIXED_LEVELS = frozenset({"warning", "overload", "crash", "tool_breakage", "daq_lost"})

@@ -9,7 +9,7 @@ energy is 2π · Σ torque_nm over its valid revolutions (one revolution turns
 
 When the feed moves (the CNC's override, `feed_override_pct` = o %, u = o/100):
 - torque and force are kept normalised to the programmed feed, load / u^gain
-  (torque ~ t^(1+p), [D] eq. 8; `override_track.load_scale`);
+  (torque ~ t^(1+p), [D] eq. 8; `physics.milling.load_scale`);
 - `process_rev` is the progress along the programmed path, not a count: a
   revolution at u advances the tool u programmed revolutions, and it is indexed
   by its middle, round(Σ u before it since entry + u/2 − 1/2); skipped indices
@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
+from millsense.daemon.events import AlarmEvent, finite
 from millsense.daemon.learning.context import Ctx
-from millsense.daemon.pipeline.override_track import load_scale
-from millsense.daemon.pipeline.alarms import AlarmEvent, finite  # noqa: F401 - finite: the learning package's too
+from millsense.daemon.physics.milling import load_scale
 
 MAX_INVALID_FRACTION = 0.10   # a process with more invalid revolutions than this never teaches
 ENTRY_REVOLUTIONS = 2         # entering revolutions in a row that make the entry (the first of them)

@@ -34,13 +34,13 @@ from millsense.daemon.physics.milling import (
     NP,
     SCALAR,
     Material,
-    _chip_xp,
-    _engagement_xp,
     _integrals_xp,
     _ratios_xp,
     _tangential_per_axial_ratio_xp,
     average_forces_n,
     check_mode,
+    chip_xp,
+    engagement_xp,
 )
 
 OK = "ok"
@@ -319,9 +319,9 @@ def _unit_forces(r_r, t_c, radius_mm, flutes, material, mode) -> tuple[float, fl
     t_c = float(t_c)
     if not (0.0 < r_r <= MAX_RADIAL_RATIO and t_c > 0.0):
         return math.nan, math.nan, math.nan
-    entry, exit_ = _engagement_xp(SCALAR, r_r, mode)
+    entry, exit_ = engagement_xp(SCALAR, r_r, mode)
     a, b, c = _integrals_xp(SCALAR, entry, exit_)
-    t_a = _chip_xp(SCALAR, t_c, entry, exit_)                                   # eq. (8)
+    t_a = chip_xp(SCALAR, t_c, entry, exit_)                                   # eq. (8)
     if not (t_a > 0.0 and math.isfinite(t_a)):
         return math.nan, math.nan, math.nan
     ks, r1 = material.ks * t_a**material.ks_exp, material.r1 * t_a**material.r1_exp   # eq. (9)

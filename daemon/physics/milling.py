@@ -23,10 +23,11 @@ For down milling (θ₁ = arccos(R_r − 1), θ₂ = π) they reduce to [D]'s A_
 C_r of eq. (7) without the common factor ``tan β/φ_N``.
 
 Every function takes numpy arrays or scalars and broadcasts; a radial ratio
-outside (0, 2] gives nan. The private ``_*_xp`` kernels take the math
+outside (0, 2] gives nan. The ``*_xp`` kernels take the math
 namespace as an argument so the root finder in ``depth.py`` can run the very
 same formulas on Python floats (``math``), an order of magnitude faster than
-numpy on scalars.
+numpy on scalars; ``engagement_xp`` and ``chip_xp`` are public, the estimator's
+one-revolution path (``pipeline/per_revolution.py``) runs them too.
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ def check_mode(mode: str) -> str:
     return mode
 
 
-def _engagement_xp(xp, radial_ratio, mode: str):
+def engagement_xp(xp, radial_ratio, mode: str):
     """Entry and exit angles (rad) of one tooth, [D] Table 1 generalised."""
     if mode == "down":  # enters at φ_r = arccos(R_r − 1), leaves at π
         return xp.arccos(radial_ratio - 1.0), xp.pi + 0.0 * radial_ratio
@@ -92,16 +93,16 @@ def _integrals_xp(xp, phi_entry, phi_exit):
     return a, b, c
 
 
-def _chip_xp(xp, feed_per_tooth_mm, phi_entry, phi_exit):
+def chip_xp(xp, feed_per_tooth_mm, phi_entry, phi_exit):
     """Average chip thickness, mm, eq. (8): mean of t_c·sin φ over the engagement."""
     return feed_per_tooth_mm * (xp.cos(phi_entry) - xp.cos(phi_exit)) / (phi_exit - phi_entry)
 
 
 def _ratios_xp(xp, radial_ratio, feed_per_tooth_mm, material: Material, mode: str):
     """(f_x, f_xt) of eqs. (10) and (12) — the kernel shared with the root finder."""
-    entry, exit_ = _engagement_xp(xp, radial_ratio, mode)
+    entry, exit_ = engagement_xp(xp, radial_ratio, mode)
     a, b, c = _integrals_xp(xp, entry, exit_)
-    t_a = _chip_xp(xp, feed_per_tooth_mm, entry, exit_)
+    t_a = chip_xp(xp, feed_per_tooth_mm, entry, exit_)
     r1 = material.r1 * t_a**material.r1_exp  # eq. (9)
     feed = a + r1 * b
     f_x = feed / xp.sqrt((1.0 + r1 * r1) * (a * a + b * b))  # eq. (10)
@@ -111,9 +112,9 @@ def _ratios_xp(xp, radial_ratio, feed_per_tooth_mm, material: Material, mode: st
 
 def _tangential_per_axial_ratio_xp(xp, radial_ratio, feed_per_tooth_mm, tool_radius_mm, flutes, material: Material, mode: str):
     """F_at at R_a = 1, N: ``(N/2π)·K_s(t_a)·t_c·R·c`` (eq. 7 is linear in R_a)."""
-    entry, exit_ = _engagement_xp(xp, radial_ratio, mode)
+    entry, exit_ = engagement_xp(xp, radial_ratio, mode)
     c = xp.cos(entry) - xp.cos(exit_)
-    t_a = _chip_xp(xp, feed_per_tooth_mm, entry, exit_)
+    t_a = chip_xp(xp, feed_per_tooth_mm, entry, exit_)
     ks = material.ks * t_a**material.ks_exp  # eq. (9)
     return flutes / (2.0 * xp.pi) * ks * feed_per_tooth_mm * tool_radius_mm * c
 
@@ -133,13 +134,13 @@ def engagement_angles_rad(radial_ratio, mode: str):
     """
     check_mode(mode)
     with np.errstate(invalid="ignore"):
-        return _engagement_xp(NP, _valid_ratio(radial_ratio, mode), mode)
+        return engagement_xp(NP, _valid_ratio(radial_ratio, mode), mode)
 
 
 def average_chip_thickness_mm(feed_per_tooth_mm, phi_entry_rad, phi_exit_rad):
     """Average chip thickness t_a, mm ([D] eq. 8): down milling gives t_c·R_r/(π − φ_r); nan if no engagement."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        return _chip_xp(NP, np.asarray(feed_per_tooth_mm, dtype=float), phi_entry_rad, phi_exit_rad)
+        return chip_xp(NP, np.asarray(feed_per_tooth_mm, dtype=float), phi_entry_rad, phi_exit_rad)
 
 
 def cutting_coefficients(t_a_mm, material: Material):
@@ -173,9 +174,9 @@ def average_forces_n(
     r_r = _valid_ratio(radial_ratio, mode)
     t_c = np.asarray(feed_per_tooth_mm, dtype=float)
     with np.errstate(invalid="ignore", divide="ignore"):
-        entry, exit_ = _engagement_xp(NP, r_r, mode)
+        entry, exit_ = engagement_xp(NP, r_r, mode)
         a, b, c = _integrals_xp(NP, entry, exit_)
-        ks, r1, r2 = cutting_coefficients(_chip_xp(NP, t_c, entry, exit_), material)
+        ks, r1, r2 = cutting_coefficients(chip_xp(NP, t_c, entry, exit_), material)
     axial_mm = np.asarray(axial_ratio, dtype=float) * np.asarray(tool_radius_mm, dtype=float)
     scale_n = np.asarray(flutes, dtype=float) / (2.0 * np.pi) * ks * t_c * axial_mm
     return AverageForces(
@@ -208,3 +209,20 @@ def tangential_per_axial_ratio_n(radial_ratio, feed_per_tooth_mm, tool_radius_mm
             NP, _valid_ratio(radial_ratio, mode), np.asarray(feed_per_tooth_mm, float),
             np.asarray(tool_radius_mm, float), np.asarray(flutes, float), material, mode,
         )
+
+
+def load_scale(override_pct, gain: float) -> float:
+    """How much a load at feed override `override_pct` (%) exceeds the same cut's load at the programmed feed.
+
+    The load follows the feed per tooth as a power law, torque ~ t_c^(1+p) ([D] eq. 8: t_a ∝ t_c, so
+    ``K_s(t_a)·t_c = k·t_a^p·t_c`` of eqs. 7 and 9), and the override u = `override_pct`/100 multiplies t_c:
+
+        load(u) / load(1) = u^gain          gain = 1 + p, or `[afc] process_gain`
+
+    One plain float (one revolution). Exactly 1.0 at 100 % (and without a report), so nothing changes for a
+    machine that never moves the override. A nonsensical override (None, <= 0) counts as 100 %: the load is
+    taken as it is.
+    """
+    if override_pct is None or not override_pct > 0.0 or override_pct == 100.0:
+        return 1.0
+    return (float(override_pct) / 100.0) ** gain

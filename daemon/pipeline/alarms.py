@@ -47,39 +47,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-# Levels that ask the interlock for feed hold.
-TRIP_LEVELS = frozenset({"overload", "crash", "tool_breakage"})
-# Learned limits (issue 14, daemon/learning): envelope alarms hold the feed as `[learning] hold_high` /
-# `hold_low` say (the event's `hold`); a wear warning never does.
-LEVELS = ("warning", "overload", "crash", "tool_breakage", "daq_lost", "clear", "envelope_high", "envelope_low", "wear")
+from millsense.daemon.events import AlarmEvent, finite
+
 _RANK_NAMES = {1: "warning", 2: "overload"}
 
 DEFAULT_HYSTERESIS_PCT = 5.0
 DEFAULT_BREAKAGE_MIN_TORQUE_NM = 1.0
-
-
-@dataclass(frozen=True)
-class AlarmEvent:
-    """One alarm state change, before the runner adds machine, time and interlock."""
-
-    level: str  # one of LEVELS
-    quantity: str  # "torque_nm", "force_n", "p_gap_w", "daq"
-    value: float | None
-    limit: float | None
-    rev: int | None = None  # revolution that decided it, if any
-    seq: int | None = None  # sample (unwrapped index) that decided it, if known
-    hold: bool | None = None  # asks for feed hold regardless of level (learned limits); None: by level
-    detail: tuple[tuple[str, Any], ...] = ()  # extra payload fields (program, tool, operation, process, ...)
-
-    @property
-    def trips(self) -> bool:
-        """Does this event ask for feed hold?"""
-        return self.level in TRIP_LEVELS if self.hold is None else self.hold
 
 
 def alarm_payload(event: AlarmEvent, machine: str, t: float | None, interlock: str | None) -> dict[str, Any]:
@@ -100,16 +77,6 @@ def alarm_payload(event: AlarmEvent, machine: str, t: float | None, interlock: s
 def _setting(section: Any, name: str, default: float | None = None) -> float | None:
     value = getattr(section, name, None) if section is not None else None
     return default if value is None else float(value)
-
-
-def finite(value: Any) -> float | None:
-    if value is None:
-        return None
-    try:
-        f = float(value)
-    except (TypeError, ValueError):
-        return None
-    return f if math.isfinite(f) else None
 
 
 def _load_value(est: Mapping[str, Any], quantity: str) -> float | None:

@@ -35,6 +35,7 @@ from typing import Any, Callable
 
 import structlog
 
+from millsense.daemon.guarded import call_quietly
 from millsense.drivers.base import name_os_thread
 
 log = structlog.get_logger("millsense.latch")
@@ -248,14 +249,3 @@ class LatchStore:
     @staticmethod
     def _call(fn: Callable[..., Any] | None, *args: Any) -> None:
         call_quietly(fn, "latch_store.callback_failed", *args)
-
-
-def call_quietly(fn: Callable[..., Any] | None, event: str, *args: Any) -> None:
-    """A store's fault callback (the runner's fault path): one that raises is logged as `event`, never
-    stops the writer that called it. Shared by the latch store and the history."""
-    if fn is None:
-        return
-    try:
-        fn(*args)
-    except Exception as exc:  # noqa: BLE001
-        log.error(event, error=f"{type(exc).__name__}: {exc}")

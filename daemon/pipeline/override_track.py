@@ -101,17 +101,6 @@ def load_gain(settings) -> float:
     return 1.0 + float(DEFAULT_KS_EXP if ks_exp is None else ks_exp)
 
 
-def load_scale(override_pct, gain: float) -> float:
-    """How much a load at `override_pct` exceeds the same cut's load at the programmed feed: (ovr/100)^gain.
-
-    Exactly 1.0 at 100 % (and without a report), so nothing changes for a machine that never moves
-    the override. A nonsensical override (None, <= 0) counts as 100 %: the load is taken as it is.
-    """
-    if override_pct is None or not override_pct > 0.0 or override_pct == DEFAULT_PCT:
-        return 1.0
-    return (float(override_pct) / 100.0) ** gain
-
-
 def _mean(seqs: list[int], pcts: list[float], first: int, last: int) -> float:
     """Time-weighted mean over samples first … last (inclusive) of the steps (seqs, pcts)."""
     i = bisect_right(seqs, int(first)) - 1

@@ -38,10 +38,10 @@ from millsense.daemon.physics.force import cf_model, resultant_force_magnitudes_
 from millsense.daemon.physics.milling import (
     SCALAR,
     Material,
-    _chip_xp,
-    _engagement_xp,
     average_chip_thickness_mm,
+    chip_xp,
     engagement_angles_rad,
+    engagement_xp,
 )
 from millsense.daemon.physics.power import air_gap_power_w, butterworth_power_gain
 from millsense.daemon.physics.torque import (
@@ -387,8 +387,8 @@ class RevolutionPhysics:
             ratio = 2.0 if self.mode == "slot" else radial_mm / tool.radius_mm
             if not 0.0 < ratio <= 2.0:
                 return math.nan
-            entry, exit_ = _engagement_xp(SCALAR, ratio, self.mode)
-            t_a = _chip_xp(SCALAR, t_c, entry, exit_)                                           # [D] eq. 8
+            entry, exit_ = engagement_xp(SCALAR, ratio, self.mode)
+            t_a = chip_xp(SCALAR, t_c, entry, exit_)                                           # [D] eq. 8
             if not (math.isfinite(t_a) and t_a > 0):
                 return math.nan
             cf = cf_model(t_a, self.material.r1, self.material.r1_exp)                           # [D] eq. 9

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from millsense.daemon.physics.power import clarke_alpha_beta_v
-from millsense.daemon.pipeline.safety_check import _three
+from millsense.daemon.pipeline.safety_check import three_lines
 from millsense.daemon.pipeline.scaling import line_channels
 from millsense.daemon.pipeline.signal_check import FLAT_REL, KIRCHHOFF_SHARE, LIVE_COUNTS
 from millsense.daemon.pipeline.verdict import InARow
@@ -110,8 +110,8 @@ class PhaseCheck:
         v = (raw[:, self._v[0]] - self._v[1]) * self._v[2]
         if _one_flat(i) or _one_flat(v):
             return None   # a stuck, dead or unplugged sensor breaks both rules: the signal check names it
-        v_alpha, v_beta = clarke_alpha_beta_v(*_three(dict(zip(self.v_keys, v.T)), ("uv", "vw", "wu")))
-        i_u, i_v, i_w = _three(dict(zip(self.i_keys, i.T)), ("u", "v", "w"))
+        v_alpha, v_beta = clarke_alpha_beta_v(*three_lines(dict(zip(self.v_keys, v.T)), ("uv", "vw", "wu")))
+        i_u, i_v, i_w = three_lines(dict(zip(self.i_keys, i.T)), ("u", "v", "w"))
         i_alpha, i_beta = (2.0 * i_u - i_v - i_w) / 3.0, (i_v - i_w) / math.sqrt(3.0)   # Clarke, as the voltages'
         turn_v, turn_i = _turning(v_alpha, v_beta), _turning(i_alpha, i_beta)
         if abs(turn_v) < self._min_turn:

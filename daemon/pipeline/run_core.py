@@ -24,9 +24,10 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
+from millsense.daemon.events import AlarmEvent
 from millsense.daemon.learning.context import ContextTrack
 from millsense.daemon.learning.monitor import ProcessMonitor
-from millsense.daemon.pipeline.alarms import AlarmEngine, AlarmEvent
+from millsense.daemon.pipeline.alarms import AlarmEngine
 from millsense.daemon.pipeline.override_track import OverrideTrack, load_gain
 from millsense.daemon.pipeline.safety_check import SafetyCheck
 

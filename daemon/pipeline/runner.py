@@ -61,8 +61,9 @@ import numpy as np
 import structlog
 
 from millsense.daemon.audit import AuditLog
+from millsense.daemon.events import AlarmEvent
 from millsense.daemon.learning import context_auth
-from millsense.daemon.pipeline.alarms import AlarmEvent, alarm_payload
+from millsense.daemon.pipeline.alarms import alarm_payload
 from millsense.daemon.pipeline.feed_control import FeedController
 from millsense.daemon.pipeline.feed_output import OverrideOutput
 from millsense.daemon.pipeline.interlock import TEST_TRIP, TEST_TRIP_WAIT_S, Interlock, ResetCheck, wait_ms

@@ -45,8 +45,8 @@ from typing import Any
 
 import numpy as np
 
+from millsense.daemon.events import AlarmEvent
 from millsense.daemon.physics.power import copper_loss_w, input_power_symmetric_w, input_power_two_wattmeter_w
-from millsense.daemon.pipeline.alarms import AlarmEvent
 from millsense.daemon.pipeline.revolutions import STOP_RPM
 from millsense.daemon.pipeline.signal_check import HIGH_FRAC, HIGH_WINDOW_S
 
@@ -195,8 +195,8 @@ class FrameCheck:
         symmetric = nv == 3 and len(i_keys) == 3
 
         def p_meas_w(x: np.ndarray) -> float:
-            v = _three(dict(zip(v_keys, x[:nv])), ("uv", "vw", "wu"))
-            i = _three(dict(zip(i_keys, x[nv:])), ("u", "v", "w"))
+            v = three_lines(dict(zip(v_keys, x[:nv])), ("uv", "vw", "wu"))
+            i = three_lines(dict(zip(i_keys, x[nv:])), ("u", "v", "w"))
             p_in = input_power_symmetric_w(*v, *i) if symmetric else input_power_two_wattmeter_w(v[0], v[1], i[0], i[1])
             return float(p_in - copper_loss_w(*i, winding, r_s))
 
@@ -371,7 +371,7 @@ def _frame_program(cols: list[int], offsets: list[float], q: np.ndarray,
     return namespace["frame_values"], source
 
 
-def _three(got: dict[str, Any], keys: tuple[str, str, str]) -> tuple[Any, ...]:
+def three_lines(got: dict[str, Any], keys: tuple[str, str, str]) -> tuple[Any, ...]:
     """The three line quantities; a missing one from the other two (they sum to zero)."""
     for k in keys:
         if k not in got:

@@ -7,6 +7,7 @@ import sqlite3
 import subprocess
 
 import pytest
+from structlog.testing import capture_logs
 
 from millsense.daemon.history import HistoryStore
 
@@ -133,3 +134,38 @@ def test_locked_at_start_is_a_fault_the_runner_hears_and_the_writer_retries(tmp_
     assert store.flush(30)
     store.close()
     assert count(path) == 1 and len(events.errors) == 1
+
+
+def test_a_callback_that_raises_is_logged_and_never_stops_the_store(tmp_path):
+    """The runner's fault callback failing (`guarded.call_quietly`): logged, and the store goes on writing."""
+    path = tmp_path / "history.sqlite3"
+    first = HistoryStore(path, machine="m1")
+    first.start()
+    first.close()
+    other = sqlite3.connect(path, isolation_level=None, timeout=0)
+    other.execute("BEGIN EXCLUSIVE")
+    heard: list[str] = []
+
+    def boom(reason: str) -> None:
+        heard.append(reason)
+        raise RuntimeError("the fault board is gone")
+
+    try:
+        store = HistoryStore(path, machine="m1")
+        store.start()
+        with capture_logs() as logs:
+            store.on_error = boom  # hears the fault under way at once, and raises: the setter returns
+        assert heard and "locked" in heard[0]
+        assert [e for e in logs if e["event"] == "history.callback_failed"] == [
+            {"event": "history.callback_failed", "log_level": "error",
+             "error": "RuntimeError: the fault board is gone"}]
+        events = Events()
+        store.on_ok = events.on_ok
+    finally:
+        other.execute("COMMIT")
+        other.close()
+    assert events.recovered.wait(30)  # the writer reopened the file despite the callback that raised
+    store.add_revolution(estimate(1, T0))
+    assert store.flush(30)
+    store.close()
+    assert count(path) == 1

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from millsense.daemon.learning.monitor import ProcessMonitor
-from millsense.daemon.pipeline.alarms import AlarmEvent
+from millsense.daemon.events import AlarmEvent
 from tests.learning.synth import LEVELS_NM, Shape, Shop, ctx, learning
 
 pytestmark = pytest.mark.quick
@@ -591,7 +591,7 @@ def test_keys_and_tools_stop_at_their_cap_and_those_learned_keep_theirs(monkeypa
 
 
 def test_the_fixed_levels_tested_above_are_every_level_of_the_fixed_limits():
-    from millsense.daemon.pipeline.alarms import LEVELS
+    from millsense.daemon.events import LEVELS
 
     tested = {"warning", "overload", "crash", "tool_breakage", "daq_lost"}
     assert tested == set(LEVELS) - {"clear", "envelope_high", "envelope_low", "wear"}

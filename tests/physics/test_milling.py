@@ -15,6 +15,7 @@ from millsense.daemon.physics.milling import (
     engagement_angles_rad,
     force_ratio_fx,
     force_ratio_fxt,
+    load_scale,
 )
 from tests.physics.instant_model import instantaneous_forces
 
@@ -150,3 +151,19 @@ def test_fx_turns_over_at_small_immersion_in_down_milling():
         turn = r[np.argmin(f)]
         assert 0.005 < turn < 0.03
         assert np.all(np.diff(f[r > turn * 1.01]) > 0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(r_r=st.floats(0.01, 2.0), t_c=st.floats(0.01, 0.5), override_pct=st.floats(10.0, 200.0),
+       mode=st.sampled_from(["down", "up", "slot"]))
+def test_load_scale_is_eq7_at_the_overridden_feed_over_the_programmed_one(r_r, t_c, override_pct, mode):
+    """The override scales t_c; eq. 7 with K_s(t_a) of eq. 9 gives the load's ratio u^(1 + p) ([D] eq. 8)."""
+    u = override_pct / 100.0
+    at_programmed = float(average_forces_n(r_r, 0.5, t_c, 8.0, 4, M, mode).tangential_n)
+    at_override = float(average_forces_n(r_r, 0.5, t_c * u, 8.0, 4, M, mode).tangential_n)
+    assert load_scale(override_pct, 1.0 + M.ks_exp) == pytest.approx(at_override / at_programmed, rel=1e-9)
+
+
+@pytest.mark.parametrize("override_pct", [100.0, None, 0.0, -5.0, float("nan")])
+def test_load_scale_takes_the_load_as_it_is_at_or_without_a_sensible_override(override_pct):
+    assert load_scale(override_pct, 0.56) == 1.0
