@@ -38,7 +38,7 @@ import structlog
 
 from millsense.daemon.history import bounds, records
 from millsense.daemon.history.schema import SCHEMA_VERSION, NewerSchemaError, check_version, migrate, version_of
-from millsense.daemon.pipeline.latch_store import call_quietly
+from millsense.daemon.runtime.latch_store import call_quietly
 
 log = structlog.get_logger("millsense.history")
 
