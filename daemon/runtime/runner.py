@@ -60,7 +60,6 @@ import time
 import traceback
 from typing import Any, Callable
 
-import numpy as np
 import structlog
 
 from millsense.daemon.afc.supervisor import AfcSupervisor
@@ -73,6 +72,7 @@ from millsense.daemon.pipeline.power_check import PowerSignCheck
 from millsense.daemon.pipeline.rate_check import RateCheck
 from millsense.daemon.pipeline.run_core import PipelineCore, Step, estimate_payload, process_payload
 from millsense.daemon.publish.alarm_state import ActiveAlarms
+from millsense.daemon.runtime.blocks import arrival, merged
 from millsense.daemon.runtime.controls import OperatorControls
 from millsense.daemon.runtime.faults import DAQ_FAULTS, FaultBoard, safe
 from millsense.daemon.runtime.frame_guard import FrameGuard
@@ -288,7 +288,7 @@ class Runner:
                 if batched:
                     drv.wake.wait(BATCH_S if self.frames.wake_at_seq is None else BATCH_TURNING_S)
                     drv.wake.clear()  # before draining: a frame queued after the drain wakes the next wait
-                    events = _merged(drv.drain())
+                    events = merged(drv.drain())
                 else:
                     ev = drv.get(timeout=BATCH_S)
                     events = [] if ev is None else [(ev, None)]
@@ -410,7 +410,7 @@ class Runner:
                     stored.append(payload)
                     done = time.monotonic()
                     live.latency.add(done - now)
-                    live.delay.add(done - _arrival(parts, int(item.get("seq_end", last_seq)), now))
+                    live.delay.add(done - arrival(parts, int(item.get("seq_end", last_seq)), now))
                     self._last_rev_mono = now
                 elif kind == "process":
                     self._publish_process(item)
@@ -685,49 +685,6 @@ def _named(os_name: str, target: Callable[[], None]) -> Callable[[], None]:
         name_os_thread(os_name)
         target()
     return run
-
-
-def _merged(events: list[Any]) -> list[tuple[Any, list[tuple[int, int, float]] | None]]:
-    """Contiguous frames as one block (one pass of the estimator), with each frame's (seq, n, arrival).
-
-    A frame after lost samples or a discontinuity, or checked differently, starts a new block.
-    """
-    out: list[tuple[Any, list[tuple[int, int, float]] | None]] = []
-    run: list[Any] = []
-
-    def flush() -> None:
-        if not run:
-            return
-        parts = [(b.seq, len(b.counts), b.received_mono) for b in run]
-        first = run[0]
-        block = first if len(run) == 1 else SampleBlock(
-            first.seq, first.index, np.concatenate([b.counts for b in run]), first.lost_before,
-            first.discontinuity, first.checked, run[-1].received_mono, first.after_link_up)
-        out.append((block, parts))
-        run.clear()
-
-    for ev in events:
-        if isinstance(ev, SampleBlock):
-            prev = run[-1] if run else None
-            if prev is not None and not (ev.seq == prev.seq + len(prev.counts) and not ev.lost_before
-                                         and not ev.discontinuity and not ev.after_link_up
-                                         and ev.checked == prev.checked
-                                         and ev.counts.shape[1:] == prev.counts.shape[1:]):
-                flush()
-            run.append(ev)
-        else:
-            flush()
-            out.append((ev, None))
-    flush()
-    return out
-
-
-def _arrival(parts: list[tuple[int, int, float]], seq: int, default: float) -> float:
-    """When the frame holding sample `seq` arrived (the reader's stamp), else `default`."""
-    for first, count, mono in parts:
-        if first <= seq < first + count:
-            return mono if mono > 0.0 else default
-    return default
 
 
 def _limit(section: Any, name: str) -> float | None:

@@ -21,7 +21,8 @@ import pytest
 
 from millsense.daemon.config.load import demo_config, load_config
 from millsense.daemon.pipeline.estimator import Estimator
-from millsense.daemon.runtime.runner import Runner, _merged
+from millsense.daemon.runtime.blocks import merged
+from millsense.daemon.runtime.runner import Runner
 from millsense.daemon.pipeline.safety_check import FrameCheck
 from millsense.drivers.base import LinkEvent, SampleBlock
 from millsense.sim.emulator.device import DeviceModel
@@ -197,7 +198,7 @@ def test_contiguous_frames_become_one_block_and_a_gap_or_an_event_starts_another
         return SampleBlock(seq, seq, np.full((n, 8), seq, dtype=np.int16), lost, False, checked, 100.0 + seq)
 
     link = LinkEvent(True, "connected")
-    out = _merged([blk(0), blk(10), blk(20), link, blk(30), blk(45, lost=5), blk(55, checked=False)])
+    out = merged([blk(0), blk(10), blk(20), link, blk(30), blk(45, lost=5), blk(55, checked=False)])
     kinds = [(type(ev).__name__, getattr(ev, "seq", None), len(getattr(ev, "counts", ()))) for ev, _ in out]
     assert kinds == [("SampleBlock", 0, 30), ("LinkEvent", None, 0), ("SampleBlock", 30, 10),
                      ("SampleBlock", 45, 10), ("SampleBlock", 55, 10)]

@@ -120,6 +120,27 @@ def daemon(tmp_path):
         drv.close()
 
 
+# The latch file exactly as the build before issue 38 wrote it (daemon/pipeline/latch_store.py at a004289, asked
+# to save this record): its bytes, not a record made by today's code, so that a change of the format shows here.
+LATCH_OF_THE_BUILD_BEFORE = b'{"latched":true,"reason":"crash i_w 61.2 > 55.0","since":1764400000.125,"trips":3}\n'
+
+
+def test_a_latch_written_by_the_build_before_is_asserted_at_start(daemon, tmp_path):
+    directory = tmp_path / "state"
+    directory.mkdir()
+    (directory / LATCH_FILE).write_bytes(LATCH_OF_THE_BUILD_BEFORE)
+    runner, drv, sink, _ = daemon(lambda rev: 5.0, directory)
+    il = runner.interlock
+    assert (il.state, il.reason, il.since, il.trips) == ("feed_hold", "crash i_w 61.2 > 55.0", 1764400000.125, 3)
+    wait_for(lambda: drv.device.feed_hold, 1, "feed hold written to the DAQ at start")
+    status = runner.controls.status()
+    assert status["interlock"] == "feed_hold" and status["interlock_detail"]["reason"] == "crash i_w 61.2 > 55.0"
+    # latched until an explicit reset, granted once data newer than the hold show no crash; it clears the file
+    wait_for(lambda: runner.controls.reset("test").get("ok"), 5, "a reset granted on quiet data after the start")
+    assert not il.latched
+    assert runner.latch_store.flush(5) and not (directory / LATCH_FILE).exists()
+
+
 def test_a_latch_survives_the_runner_and_is_asserted_by_the_next(daemon, tmp_path):
     runner, drv, sink, _ = daemon(lambda rev: 35.0 if rev >= 3 else 5.0)
     wait_for(lambda: runner.interlock.latched, 5, "overload trip")
