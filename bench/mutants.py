@@ -22,7 +22,7 @@ copy. The working tree is never written, so no Ctrl-C, crash or `kill -9` of
 this script can leave a bug planted in it; a patch in place with a restore in
 `finally` cannot promise that for SIGKILL or a power cut. The private
 environment (`python -m venv --without-pip`, a `.pth` that puts a shim whose
-`millsense/daemon` and `millsense/drivers` point into the copy first, and the
+`millsense/daemon`, `millsense/drivers` and `millsense/sim` point into the copy first, and the
 running interpreter's site-packages after it for the dependencies) needs no
 PYTHONPATH, which tests may replace for their subprocesses
 (tests/faults/test_clock.py does): every `sys.executable` the tests start
@@ -423,6 +423,7 @@ class Sandbox:
         shim.mkdir(parents=True)
         (shim / "daemon").symlink_to(self.src / "daemon", target_is_directory=True)
         (shim / "drivers").symlink_to(self.src / "drivers", target_is_directory=True)
+        (shim / "sim").symlink_to(self.src / "sim", target_is_directory=True)   # millsense.sim (the plant, emulator)
         site = Path(subprocess.run([str(self.python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
                                    check=True, capture_output=True, text=True).stdout.strip())
         deps = dict.fromkeys([sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]])
@@ -437,8 +438,8 @@ class Sandbox:
         self.env["VIRTUAL_ENV"] = str(self.venv)
 
     def _check_imports(self) -> None:
-        code = ("import millsense.daemon, millsense.drivers, pytest; "
-                "print(millsense.daemon.__file__); print(millsense.drivers.__file__)")
+        code = ("import millsense.daemon, millsense.drivers, millsense.sim, pytest; "
+                "print(millsense.daemon.__file__); print(millsense.drivers.__file__); print(millsense.sim.__file__)")
         out = subprocess.run([str(self.python), "-c", code], cwd=self.src, env=self.env, check=True,
                              capture_output=True, text=True).stdout.split()
         for f in out:

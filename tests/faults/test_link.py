@@ -267,7 +267,7 @@ def test_samples_flowing_again_clear_the_link_faults_even_from_a_daq_that_does_n
         runner.handle(without, time.monotonic())
         assert "descriptor" in runner.faults and runner.core.estimator is None
         runner.handle(SampleBlock(10, 10, np.zeros((10, len(without.channels)), dtype=np.int16), 0, True),
-                         time.monotonic())
+                      time.monotonic())
         assert set(runner.faults) == {"descriptor"}, runner.faults
 
 
