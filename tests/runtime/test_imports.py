@@ -26,6 +26,7 @@ NOT_ON_THE_RUN_PATH = (
     "millsense.sim",
     "millsense.daemon.commands.replay",
     "millsense.daemon.commands.calibrate",
+    "millsense.daemon.commands.capture_reader",   # a capture file: the offline commands' input
     "millsense.daemon.history.export",     # `millsense history`
     "serial",                              # pyserial and pymodbus: other transports than the one configured
     "pymodbus",
