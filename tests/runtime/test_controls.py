@@ -11,12 +11,16 @@ import inspect
 from types import SimpleNamespace
 from typing import Protocol, get_type_hints
 
+import pytest
+
 from millsense.daemon.config.load import demo_config
 from millsense.daemon.controls import Controls
 from millsense.daemon.runtime.controls import OperatorControls
 from millsense.daemon.runtime.runner import Runner
 from millsense.drivers.protocol import Descriptor
 from millsense.sim.emulator.ramp import RAMP_CHANNELS
+
+pytestmark = pytest.mark.quick
 
 
 def _protocol_methods(proto: type) -> dict[str, object]:
