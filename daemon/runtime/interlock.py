@@ -30,7 +30,7 @@ Why it is built this way:
 - **No authority here.** `reset()` clears the latch for whoever calls it:
   the caller has already decided that the request may be granted (the Zenoh
   queryable authorises it in `publish/command_auth.py`; the local control
-  socket checks the peer's uid; the runner checks that the condition that
+  socket checks the peer's uid; `OperatorControls.reset` checks that the condition that
   latched is gone). `reset_policy` is kept only to be reported in the state.
 - **Persisted by others.** `on_change` (if given) is called with the latch
   record after every change, from the changing thread, and must return at
