@@ -52,8 +52,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from millsense.daemon.pipeline.latch_store import state_dir  # noqa: E402
-from millsense.daemon.pipeline.local_control import LocalControlError, local_command  # noqa: E402
+from millsense.daemon.state_dir import state_dir  # noqa: E402
+from millsense.daemon.local_socket import LocalControlError, local_command  # noqa: E402
 from millsense.sim.emulator.device import DeviceModel, StatusLog  # noqa: E402
 from millsense.sim.emulator.pacing import Pacer  # noqa: E402
 from millsense.sim.emulator.ramp import RAMP_CHANNELS  # noqa: E402

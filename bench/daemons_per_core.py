@@ -68,7 +68,7 @@ CAPTURE_S = 30
 
 
 def feed(capture: str, clocks: str, ports: list[int]) -> None:
-    from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
+    from millsense.daemon.commands.capture_reader import iter_capture_blocks
     from millsense.drivers.protocol import encode_descriptor, encode_sample_frames
 
     desc, parts = None, []
@@ -142,8 +142,8 @@ def run(n: int, seconds: float, clocks: str) -> int:
     from tests.e2e.helpers import Procs, tcp, write_config
     from tests.ops.unit_file import unit_environment  # the daemons as their unit runs them
 
-    from millsense.daemon.pipeline.latch_store import state_dir
-    from millsense.daemon.pipeline.local_control import LocalControlError, local_command
+    from millsense.daemon.state_dir import state_dir
+    from millsense.daemon.local_socket import LocalControlError, local_command
 
     tmp = Path(tempfile.mkdtemp(prefix="millsense-per-core-"))
     capture = tmp / "step.cap"

@@ -44,7 +44,7 @@ THRASH_BYTES = 8 << 20
 
 
 def blocks_of(capture: Path) -> tuple[object, list]:
-    from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
+    from millsense.daemon.commands.capture_reader import iter_capture_blocks
     from millsense.drivers.base import SampleBlock
 
     desc, out = None, []

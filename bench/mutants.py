@@ -22,7 +22,7 @@ copy. The working tree is never written, so no Ctrl-C, crash or `kill -9` of
 this script can leave a bug planted in it; a patch in place with a restore in
 `finally` cannot promise that for SIGKILL or a power cut. The private
 environment (`python -m venv --without-pip`, a `.pth` that puts a shim whose
-`millsense/daemon` and `millsense/drivers` point into the copy first, and the
+`millsense/daemon`, `millsense/drivers` and `millsense/sim` point into the copy first, and the
 running interpreter's site-packages after it for the dependencies) needs no
 PYTHONPATH, which tests may replace for their subprocesses
 (tests/faults/test_clock.py does): every `sys.executable` the tests start
@@ -95,20 +95,20 @@ MUTANTS: tuple[Mutant, ...] = (
     # -- interlock ---------------------------------------------------------------------------------------------
     Mutant("il-reset-crash-current", "interlock",
            "reset check: `>` for `>=` at crash_current_a (a current exactly at the limit lets the reset through)",
-           "daemon/pipeline/interlock.py",
+           "daemon/runtime/interlock.py",
            "i_a is not None and i_a >= self.crash_current_a:",
            "i_a is not None and i_a > self.crash_current_a:",
            ("tests/runtime/test_interlock.py", "tests/runtime/test_runner.py", RUNTIME, STANDSTILL, E2E_INTERLOCK),
            trust=True),
     Mutant("il-reset-judged-on-hold-sample", "interlock",
            "reset check: data from the last sample before the hold counts as newer (`>=` for `>`)",
-           "daemon/pipeline/interlock.py",
+           "daemon/runtime/interlock.py",
            "return self.hold_seq is None or (seq is not None and seq > self.hold_seq)",
            "return self.hold_seq is None or (seq is not None and seq >= self.hold_seq)",
            ("tests/runtime/test_interlock.py", STANDSTILL, RUNTIME, E2E_INTERLOCK, E2E_CRASH)),
     Mutant("il-test-trip-masks-real-trip", "interlock",
            "a real trip during a proof test leaves the latch's reason `test-trip` (reset then judges no condition)",
-           "daemon/pipeline/interlock.py",
+           "daemon/runtime/interlock.py",
            "                if self.reason == TEST_TRIP and reason != TEST_TRIP:\n"
            "                    # a real condition during a proof test: the latch now stands for it\n"
            "                    self.reason = reason\n"
@@ -117,29 +117,29 @@ MUTANTS: tuple[Mutant, ...] = (
            ("tests/runtime/test_interlock.py", "tests/runtime/test_runner.py", RUNTIME, "tests/e2e/test_test_trip.py")),
     Mutant("il-latch-damaged-unlatched", "interlock",
            "latch store: a damaged latch file is read as `nothing latched` instead of held",
-           "daemon/pipeline/latch_store.py",
+           "daemon/runtime/latch_store.py",
            'return {"latched": True, "reason": f"latch file damaged ({exc}): {self.path}", "since": None, "trips": 0}',
            "return None",
            ("tests/runtime/test_latch.py", "tests/faults/test_state_dir.py", RUNTIME, E2E_INTERLOCK)),
     Mutant("il-watchdog-not-rearmed", "interlock",
            "watchdog: after the link comes back the DAQ's watchdog is not armed again (a restarted DAQ forgot it)",
-           "daemon/pipeline/runner.py",
+           "daemon/runtime/runner.py",
            "            self._safe(self.interlock.start)\n",
            "",
            ("tests/faults/test_watchdog_rearm.py", "tests/runtime/test_interlock.py", "tests/runtime/test_runner.py",
             "tests/faults/test_watchdog_hold.py", RUNTIME, E2E_FAILURES, "tests/faults/test_link.py")),
     Mutant("il-watchdog-never-armed", "interlock",
            "watchdog: the interlock's start no longer sets the DAQ's watchdog (a hung daemon leaves the feed running)",
-           "daemon/pipeline/interlock.py",
+           "daemon/runtime/interlock.py",
            "        if self.watchdog_ms > 0:\n            self._out.set_watchdog_ms(self.watchdog_ms)\n",
            "",
            ("tests/runtime/test_interlock.py", "tests/runtime/test_runner.py", "tests/faults/test_watchdog_hold.py",
             RUNTIME, E2E_FAILURES, "tests/faults/test_link.py")),
     Mutant("il-frame-check-not-rearmed", "interlock",
            "a reset does not re-arm the reader thread's frame check: the next crash is not caught there",
-           "daemon/pipeline/runner.py",
-           "                if self.frame_check is not None:\n                    self.frame_check.rearm()\n",
-           "                pass\n",
+           "daemon/runtime/frame_guard.py",
+           "            if self.frame_check is not None:\n                self.frame_check.rearm()\n",
+           "            pass\n",
            (STANDSTILL, "tests/runtime/test_frame_check.py", "tests/runtime/test_interlock.py",
             "tests/runtime/test_runner.py", RUNTIME, E2E_CRASH, E2E_INTERLOCK)),
     # -- signal checks -----------------------------------------------------------------------------------------
@@ -243,31 +243,31 @@ MUTANTS: tuple[Mutant, ...] = (
     # -- AFC ---------------------------------------------------------------------------------------------------
     Mutant("afc-trip-not-safe", "AFC",
            "a trip no longer puts the override to <= 100 % at once (the next revolution would)",
-           "daemon/pipeline/runner.py",
-           '        self._afc_safe(f"feed hold: {reason}")  # after the hold is written: it never waits for this\n',
+           "daemon/runtime/runner.py",
+           '        self.afc.safe(f"feed hold: {reason}")  # after the hold is written: it never waits for this\n',
            "",
            ("tests/runtime/test_afc_runner.py", "tests/pipeline", E2E_FLUTE_WHILE_FEED_MOVES), trust=True),
     Mutant("afc-fault-not-safe", "AFC",
            "a fault no longer puts the override to <= 100 % (the call on the fault path forgotten)",
-           "daemon/pipeline/runner.py",
+           "daemon/runtime/faults.py",
            '        self._safe(self._afc_safe, f"fault: {kind}: {reason}")  # first: the feed never runs above',
            '        pass  # first: the feed never runs above',
            ("tests/runtime/test_afc_runner.py", "tests/pipeline", E2E_FLUTE_WHILE_FEED_MOVES)),
     Mutant("afc-clamp-upper-forgotten", "AFC",
            "controller: the PI's output is clamped below only (max_override_pct forgotten)",
-           "daemon/pipeline/feed_control.py",
+           "daemon/afc/controller.py",
            "clamped = min(max(wanted, s.min_override_pct), s.max_override_pct)",
            "clamped = max(wanted, s.min_override_pct)",
            ("tests/pipeline", "tests/runtime/test_afc_runner.py", E2E_FLUTE_WHILE_FEED_MOVES)),
     Mutant("afc-not-followed-timer-restarts", "AFC",
            "not-followed detection: the `above since` time restarts at every STATUS, so it never trips",
-           "daemon/pipeline/runner.py",
+           "daemon/afc/supervisor.py",
            "        if self._override_above_since is None:\n            self._override_above_since = now\n",
            "        self._override_above_since = now\n",
            ("tests/runtime/test_afc_runner.py", "tests/pipeline")),
     Mutant("afc-safe-keeps-recent-raise", "AFC",
            "safe: min(commanded, 100 %) only; what a failing sensor made the controller raise just before stays",
-           "daemon/pipeline/feed_control.py",
+           "daemon/afc/controller.py",
            "new = min(self._commanded, NEUTRAL_PCT, self._lowest_recent())",
            "new = min(self._commanded, NEUTRAL_PCT)",
            ("tests/pipeline", "tests/runtime/test_afc_runner.py")),
@@ -423,6 +423,7 @@ class Sandbox:
         shim.mkdir(parents=True)
         (shim / "daemon").symlink_to(self.src / "daemon", target_is_directory=True)
         (shim / "drivers").symlink_to(self.src / "drivers", target_is_directory=True)
+        (shim / "sim").symlink_to(self.src / "sim", target_is_directory=True)   # millsense.sim (the plant, emulator)
         site = Path(subprocess.run([str(self.python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
                                    check=True, capture_output=True, text=True).stdout.strip())
         deps = dict.fromkeys([sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]])
@@ -437,8 +438,8 @@ class Sandbox:
         self.env["VIRTUAL_ENV"] = str(self.venv)
 
     def _check_imports(self) -> None:
-        code = ("import millsense.daemon, millsense.drivers, pytest; "
-                "print(millsense.daemon.__file__); print(millsense.drivers.__file__)")
+        code = ("import millsense.daemon, millsense.drivers, millsense.sim, pytest; "
+                "print(millsense.daemon.__file__); print(millsense.drivers.__file__); print(millsense.sim.__file__)")
         out = subprocess.run([str(self.python), "-c", code], cwd=self.src, env=self.env, check=True,
                              capture_output=True, text=True).stdout.split()
         for f in out:

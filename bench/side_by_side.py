@@ -39,11 +39,11 @@ from tests.procstat import proc_cpu_s  # noqa: E402
 
 
 def export_base(rev: str, into: Path) -> Path:
-    """`daemon/` and `drivers/` of `rev`, laid out as the package `millsense` (what setuptools' package-dir
+    """`daemon/`, `drivers/` and `sim/` of `rev`, laid out as the package `millsense` (what setuptools' package-dir
     maps them to); returns the directory to put on PYTHONPATH."""
     tree = into / "tree"
     tree.mkdir()
-    archive = subprocess.run(["git", "-C", str(REPO), "archive", "--format=tar", rev, "daemon", "drivers"],
+    archive = subprocess.run(["git", "-C", str(REPO), "archive", "--format=tar", rev, "daemon", "drivers", "sim"],
                              check=True, capture_output=True).stdout
     tar_path = into / "base.tar"
     tar_path.write_bytes(archive)
@@ -51,7 +51,7 @@ def export_base(rev: str, into: Path) -> Path:
         tar.extractall(tree, filter="data")
     pkg = into / "pkg"
     (pkg / "millsense").mkdir(parents=True)
-    for sub in ("daemon", "drivers"):
+    for sub in ("daemon", "drivers", "sim"):
         (pkg / "millsense" / sub).symlink_to(tree / sub, target_is_directory=True)
     return pkg
 

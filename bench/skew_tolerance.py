@@ -64,7 +64,7 @@ class Result:
 
 
 def load(scenario: str, tmp: Path, seed: int = 11, duration_s: float | None = None) -> Stream:
-    from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
+    from millsense.daemon.commands.capture_reader import iter_capture_blocks
     from millsense.sim import write_capture
 
     cap, truth_path = tmp / f"{scenario}-{seed}-{duration_s}.bin", tmp / f"{scenario}-{seed}-{duration_s}.jsonl"

@@ -50,12 +50,12 @@ def test_the_table_covers_every_area_of_the_issue_and_the_trust_issue_bugs():
                         "dashboard", "physics", "drivers", "OPC UA"}
     trust = {m.file: m for m in mutants.MUTANTS if m.trust}
     assert set(trust) == {"daemon/publish/command_auth.py", "daemon/dashboard/server.py", "daemon/learning/monitor.py",
-                          "daemon/pipeline/runner.py", "daemon/pipeline/interlock.py"}
+                          "daemon/runtime/runner.py", "daemon/runtime/interlock.py"}
     assert "compare_digest" in trust["daemon/publish/command_auth.py"].search
     assert "_host_refused" in trust["daemon/dashboard/server.py"].search
     assert '"overload"' in trust["daemon/learning/monitor.py"].search
-    assert "_afc_safe" in trust["daemon/pipeline/runner.py"].search
-    assert ">= self.crash_current_a" in trust["daemon/pipeline/interlock.py"].search
+    assert "afc.safe" in trust["daemon/runtime/runner.py"].search
+    assert ">= self.crash_current_a" in trust["daemon/runtime/interlock.py"].search
 
 
 def test_a_search_string_that_matches_twice_or_never_is_refused(tmp_path):

@@ -120,7 +120,7 @@ def test_installed_cli_runs_from_its_own_venv(installed):
     # with the -OO bytecode the unit's PYTHONOPTIMIZE=2 reads (the service cannot write it), for
     # millsense's modules and for its libraries
     compiled = run([installed["venv"] / "bin" / "python", "-c",
-                    "import importlib.util as u, os, millsense.daemon.pipeline.runner as r, numpy, pydantic\n"
+                    "import importlib.util as u, os, millsense.daemon.runtime.runner as r, numpy, pydantic\n"
                     "print([m.__name__ for m in (r, numpy, pydantic)"
                     " if not os.path.exists(u.cache_from_source(m.__file__, optimization=2))])"], env=offline_env())
     assert compiled.returncode == 0 and compiled.stdout.strip() == "[]", compiled.stdout + compiled.stderr

@@ -111,7 +111,7 @@ def collect(captures, settings, dynamometer: bool):
     settled plateau (for the air check; empty with a dynamometer)."""
     import numpy as np
 
-    from millsense.daemon.pipeline.capture_reader import CaptureError, iter_capture_blocks
+    from millsense.daemon.commands.capture_reader import CaptureError, iter_capture_blocks
     from millsense.daemon.pipeline.estimator import Estimator
 
     air: dict[str, tuple[list[float], list[float]]] = {}
@@ -182,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
         judge_speeds,
         speed_levels_rpm,
     )
-    from millsense.daemon.pipeline.capture_reader import CaptureError
+    from millsense.daemon.commands.capture_reader import CaptureError
 
     out_problem = _out_problem(Path(args.out))
     if out_problem:  # before the fitting: a typo in --out should not cost the whole run

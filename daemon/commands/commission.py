@@ -154,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
     from millsense.daemon.logging_setup import configure_logging
 
     configure_logging("error", "console", stream=sys.stderr)   # the steps speak for themselves
-    from millsense.daemon.pipeline.latch_store import claim_state_dir, daemon_state_dir
+    from millsense.daemon.state_dir import claim_state_dir, daemon_state_dir
     from millsense.drivers import DriverError, create_driver
 
     try:
@@ -332,7 +332,7 @@ def _leave_safe(bench: Any, released_found: bool, directory: Path, say, lead: st
         bench.interlock.trip("held when commissioning began")
         say(f"{lead}the feed hold found at the start is asserted again, as it was found")
     elif bench.asserted and bench.interlock.reason != "held when commissioning began":
-        from millsense.daemon.pipeline.latch_store import LatchStore
+        from millsense.daemon.runtime.latch_store import LatchStore
 
         store = LatchStore(directory)
         store.start()

@@ -132,7 +132,7 @@ def find_database(config: Path) -> tuple[list[str], Path]:
     from millsense.daemon.config.errors import problems_from
     from millsense.daemon.config.models import HistorySettings, Settings
     from millsense.daemon.history import history_path
-    from millsense.daemon.pipeline.latch_store import SYSTEMD_STATE_ROOT, state_dir
+    from millsense.daemon.state_dir import SYSTEMD_STATE_ROOT, state_dir
 
     try:
         raw = tomllib.loads(config.read_text(encoding="utf-8"))

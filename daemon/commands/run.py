@@ -155,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError([f"daq.transport: {exc}"]) from None
     lock = None   # held for the process's life: one daemon a state directory (the demo keeps none)
     if not demo:
-        from millsense.daemon.pipeline.latch_store import claim_state_dir, state_dir
+        from millsense.daemon.state_dir import claim_state_dir, state_dir
 
         lock, busy = claim_state_dir(state_dir(settings.machine))
         if busy is not None:
@@ -265,11 +265,12 @@ class _Daemon:
         from millsense.daemon import __version__, sdnotify
         from millsense.daemon.config.load import effective_config_dict
         importlib.import_module("millsense.daemon.pipeline.estimator")  # numpy now, not on the first block
-        from millsense.daemon.pipeline.runner import Runner
+        from millsense.daemon.runtime.runner import Runner
         from millsense.daemon.publish.sink import ZenohSink
 
         from millsense.daemon.audit import AuditLog
-        from millsense.daemon.pipeline.latch_store import LatchStore, state_dir
+        from millsense.daemon.runtime.latch_store import LatchStore
+        from millsense.daemon.state_dir import state_dir
 
         self.log = structlog.get_logger("millsense.run")
         self.summary = _live_line(demo)
@@ -293,9 +294,9 @@ class _Daemon:
             first_process=first_process,
         )
         if history_error is not None:  # monitoring goes on with the fixed limits and what it learns from now
-            self.runner.fault("history", history_error)
+            self.runner.board.fault("history", history_error)
         self.local = None
-        self.sink = ZenohSink(session, self.runner.machine, self.runner, log=self.log, close_timeout_s=0.5,
+        self.sink = ZenohSink(session, self.runner.machine, self.runner.controls, log=self.log, close_timeout_s=0.5,
                               expects_router=settings.zenoh.mode == "client")
         self.session = session
         self._closed = False
@@ -304,17 +305,17 @@ class _Daemon:
 
     def serve(self, seconds: float | None, stop: threading.Event) -> None:
         if self.state_dir is not None:
-            from millsense.daemon.pipeline.latch_store import ensure_dir
+            from millsense.daemon.state_dir import ensure_dir
 
             try:
                 ensure_dir(self.state_dir)
             except OSError as exc:  # the daemon still protects the machine; it only cannot remember
-                self.runner.fault("latch_store", f"cannot create the state directory {self.state_dir}: {exc}")
+                self.runner.board.fault("latch_store", f"cannot create the state directory {self.state_dir}: {exc}")
         self.runner.start(self.sink)
         if self.state_dir is not None:
-            from millsense.daemon.pipeline.local_control import LocalControl
+            from millsense.daemon.runtime.local_control import LocalControl
 
-            self.local = LocalControl(self.state_dir, self.runner)
+            self.local = LocalControl(self.state_dir, self.runner.controls, on_error=self.runner.board.fault)
             self.local.start()
             self._watch_state()   # what there is to keep an eye on
         self.log.info("daemon.started", machine=self.runner.machine, transport=self.transport, demo=self.demo)
@@ -334,7 +335,7 @@ class _Daemon:
         made again with what this daemon holds, the control socket, its lock and the latch; the history's database
         gone is the fault `history` (SQLite writes on into the deleted file: nothing would last). Only what was
         there is looked for: a directory that could not be written at start is its own fault already."""
-        from millsense.daemon.pipeline.latch_store import LOCK_FILE, claim_state_dir, ensure_dir
+        from millsense.daemon.state_dir import LOCK_FILE, claim_state_dir, ensure_dir
 
         d = self.state_dir
         if d is None:
@@ -374,17 +375,17 @@ class _Daemon:
         machine = self.runner.machine
         others = other_daemons(self.session, machine)
         if others and "machine" not in self.runner.faults:
-            self.runner.fault("machine", f"another daemon is alive as {machine!r} on this Zenoh network (zenoh id "
+            self.runner.board.fault("machine", f"another daemon is alive as {machine!r} on this Zenoh network (zenoh id "
                                          f"{', '.join(others)}): both publish on {key_prefix(machine)}/*, and commands "
                                          f"by name reach both; each machine needs its own name")
         elif not others and "machine" in self.runner.faults:
-            self.runner.recover("machine")
+            self.runner.board.recover("machine")
 
     def _watch_history(self) -> None:
         history = self.runner.history
         if "history" in self.runner.faults or not history.stats().get("open") or history.path.exists():
             return
-        self.runner.fault("history", f"the history database {history.path} was deleted under the running daemon: "
+        self.runner.board.fault("history", f"the history database {history.path} was deleted under the running daemon: "
                                      f"what is written now is lost (restart the daemon to start a new one)")
 
     def close(self) -> None:
@@ -423,7 +424,7 @@ def _open_history(settings: Any, state: Any) -> tuple[Any, dict | None, dict | N
     if state is None or conf is None or not conf.enabled:
         return None, None, None, 1, None
     from millsense.daemon.history.store import HistoryStore
-    from millsense.daemon.pipeline.latch_store import ensure_dir
+    from millsense.daemon.state_dir import ensure_dir
 
     path = Path(conf.path) if conf.path else Path(state) / "history.sqlite3"
     try:
@@ -477,7 +478,7 @@ class _LiveLine:
         self.owned = owned
 
     def __call__(self, status: dict, estimate: dict | None, alarm_state: str) -> None:
-        from millsense.daemon.pipeline.status import summary_line
+        from millsense.daemon.status_text import summary_line
 
         self.writer.show_live(summary_line(estimate, alarm_state, status))
 
@@ -494,7 +495,7 @@ class _SummaryLines:
         self.stream = stream
 
     def __call__(self, status: dict, estimate: dict | None, alarm_state: str) -> None:
-        from millsense.daemon.pipeline.status import summary_line
+        from millsense.daemon.status_text import summary_line
 
         self.stream.write(summary_line(estimate, alarm_state, status) + "\n")
         self.stream.flush()

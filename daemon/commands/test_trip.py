@@ -28,7 +28,7 @@ import argparse
 import sys
 from typing import Any
 
-from millsense.daemon.pipeline.local_control import CLIENT_TIMEOUT_S
+from millsense.daemon.local_socket import CLIENT_TIMEOUT_S
 from millsense.daemon.publish.cli_args import (
     EXIT_UNKNOWN,
     Target,
@@ -76,8 +76,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _local(machine: str, timeout_s: float) -> int:
-    from millsense.daemon.pipeline.latch_store import daemon_state_dir
-    from millsense.daemon.pipeline.local_control import LocalControlError, local_command
+    from millsense.daemon.state_dir import daemon_state_dir
+    from millsense.daemon.local_socket import LocalControlError, local_command
 
     directory = daemon_state_dir(machine)
     try:

@@ -33,7 +33,7 @@ from millsense.daemon.publish.cli_args import (
     hint,
     strip_rust,
 )
-from millsense.daemon.pipeline.status import TRIP_LEVELS, held_text, hold_of
+from millsense.daemon.status_text import TRIP_LEVELS, held_text, hold_of
 from millsense.daemon.stop_signals import stop_on_signals
 
 KINDS = ("estimate", "alarm", "process", "status")

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from millsense.daemon.pipeline.interlock import Interlock
+from millsense.daemon.runtime.interlock import Interlock
 from millsense.drivers.base import LinkEvent, SampleBlock
 from millsense.drivers.protocol import Status
 

@@ -3,7 +3,7 @@
 Why not the running daemon's `test-trip`: the daemon must not run while `commission` does (two masters on one
 DAQ fight over the hold and the watchdog), and the watchdog step must stop the heartbeats, which a running
 daemon would never let a client do. So both steps drive the daemon's own `Interlock` (the same trip, the same
-write, the same reset) on the bench, and time the confirmations as `Runner.test_trip` does (`wait_ms`).
+write, the same reset) on the bench, and time the confirmations as `OperatorControls.test_trip` does (`wait_ms`).
 """
 
 from __future__ import annotations
@@ -13,8 +13,9 @@ from typing import Any
 
 from millsense.daemon.commission.bench import Bench
 from millsense.daemon.commission.report import Step
-from millsense.daemon.pipeline.interlock import TEST_TRIP
-from millsense.daemon.pipeline.interlock import TEST_TRIP_WAIT_S, wait_ms
+from millsense.daemon.runtime.interlock import TEST_TRIP
+from millsense.daemon.controls import TEST_TRIP_WAIT_S
+from millsense.daemon.runtime.interlock import wait_ms
 from millsense.drivers.protocol import CAP_CONTEXT
 
 WATCHDOG_SLACK_MS = 500.0   # beyond the watchdog period: the STATUS's way back and the host's scheduling

@@ -4,7 +4,7 @@ The overload's alarm condition is active for about 0.2 s: the hold takes the loa
 alarm clears, while the machine stays stopped until an operator's reset. An alarm client must see
 a stopped machine as stopped, so the held feed is a condition of its own: active from the trip until
 the daemon's status says the feed is released (the reset, and the DAQ's own STATUS confirming it:
-`pipeline/status.py`, `hold_of`), one event per transition.
+`daemon/status_text.py`, `hold_of`), one event per transition.
 
 `FeedHeldTrack` is the pure half: it is fed the machine's alarm and status payloads and returns the
 transition to fire, or None. It goes active from the alarm that tripped (`interlock: "feed_hold"` on a
@@ -20,7 +20,7 @@ import datetime as dt
 from dataclasses import dataclass
 from typing import Any
 
-from millsense.daemon.pipeline.status import TRIP_LEVELS, hold_of
+from millsense.daemon.status_text import TRIP_LEVELS, hold_of
 
 NAME = "FeedHeld"
 # A held feed stops the machine: at least an overload's severity, more when its cause is graver.

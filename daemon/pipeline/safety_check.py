@@ -174,7 +174,7 @@ class FrameCheck:
     frame whose peak could cross a limit (rare) takes the means and the clip
     test in numpy (`_crash`).
 
-    Not thread-safe: one caller at a time (the runner holds its frame lock).
+    Not thread-safe: one caller at a time (the runtime's frame guard holds its lock).
     Raises `ConfigError` when the configuration does not fit the descriptor.
     """
 

@@ -92,7 +92,7 @@ CLEAR_S = 1.0           # good for this long: fault cleared
 # than PIN_COUNTS while another channel of its kind swings LIVE_COUNTS. A healthy phase at its peak moves
 # more than that over 5 samples whenever another swings so much, down to f_e = 5 Hz (the others' swing
 # bounds its amplitude: 0.136 A >= 200 gives 0.003 A >= 4.5 counts). Not a verdict (a revolution needs
-# longer evidence): the feed controller raises no feed while it holds (feed_control.py).
+# longer evidence): the feed controller raises no feed while it holds (afc/controller.py).
 PIN_SAMPLES = 5
 PIN_COUNTS = 2
 KEEP_S = 2.5            # rows kept: the longest revolution (at STOP_RPM, 2 s) and some

@@ -3,7 +3,7 @@
 Each check (`power_check.py`, `phase_check.py`, `loss_check.py`) is fed one
 observation at a time and answers with a verdict on fault `signals`: the
 fault's reason (in words, naming what to check) when it is raised, "" when it
-clears, None when nothing changed. The runner (`Runner._verdict`) and replay
+clears, None when nothing changed. The live daemon (`FaultBoard.verdict`) and replay
 (`_note_fault_change`) read the verdicts the same way.
 
 `InARow` is the debounce of the power and phase checks: the verdict flips

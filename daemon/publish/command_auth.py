@@ -227,7 +227,7 @@ class Answer:
 
 
 def policy_and_token(controls: Any) -> tuple[str, str]:
-    """The `[interlock] reset` policy and token of a Controls object that carries `settings` (the Runner).
+    """The `[interlock] reset` policy and token of a Controls object that carries `settings` (the daemon's OperatorControls).
 
     A policy left unresolved (settings not from config.py) is "token" when a token
     exists, else "off": when in doubt, nothing is commanded over the network.

@@ -21,7 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from millsense.daemon.pipeline.local_control import CLIENT_TIMEOUT_S
+from millsense.daemon.local_socket import CLIENT_TIMEOUT_S
 from millsense.daemon.publish.cli_args import (
     EXIT_UNKNOWN,
     add_config_argument,
@@ -92,8 +92,8 @@ class OperatorCommand:
 
     def _local(self, machine: str, request: dict[str, Any], args: argparse.Namespace,
                report: Callable[[str, dict[str, Any]], int]) -> int:
-        from millsense.daemon.pipeline.latch_store import daemon_state_dir
-        from millsense.daemon.pipeline.local_control import LocalControlError, local_command
+        from millsense.daemon.state_dir import daemon_state_dir
+        from millsense.daemon.local_socket import LocalControlError, local_command
 
         try:
             reply = local_command(daemon_state_dir(machine), self.command, args.timeout, args=request)

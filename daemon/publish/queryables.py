@@ -12,7 +12,7 @@ time a flood can take.
 
 Per query: the payload's length is checked before anything reads it
 (`MAX_QUERY_BYTES`); `status` and `config` answers are kept as bytes for a
-moment, so a burst of status queries costs one `Runner.status()`. `limits`
+moment, so a burst of status queries costs one `Controls.status()`. `limits`
 reads only (no token): with no payload it answers `controls.limits()`, with
 `{"key": "program/tool/operation"}` that key's detail. Refusals are
 never logged one line each (finding 6): `cmd/*` refusals go to the audit log,

@@ -34,7 +34,7 @@ refused by its length, unread, and refusals are logged at most once per 10 s
 with a count (`zenoh.context_refused`). Whatever a query carries and whatever
 `controls` raises, the answer is a JSON reply, never an exception escaping into Zenoh.
 The command policy and token come from `controls.settings.interlock` (the
-Runner's), unless `command_policy` / `command_token` are given.
+OperatorControls'), unless `command_policy` / `command_token` are given.
 """
 
 from __future__ import annotations
@@ -44,11 +44,13 @@ import threading
 import time
 from queue import Empty as _Empty
 from queue import SimpleQueue as _SimpleQueue
-from typing import Any, Protocol
+from typing import Any
 
 import zenoh
 
+from millsense.daemon.afc.args import afc_reply, check_afc_args
 from millsense.daemon.audit import AuditLog
+from millsense.daemon.controls import Controls
 from millsense.daemon.publish.command_auth import CommandGate, policy_and_token
 from millsense.daemon.publish.limits_args import check_args
 from millsense.daemon.publish.payload import MAX_QUERY_BYTES, dumps, loads_object
@@ -63,19 +65,6 @@ CONTEXT_SOURCES = ("auto", "zenoh")  # `[context] source` values under which the
 CONTEXT_PER_TICK = 20
 
 
-class Controls(Protocol):
-    """What the queryables ask of the running daemon (docs/architecture.md)."""
-
-    def status(self) -> dict: ...
-    def config(self) -> dict: ...
-    def reset(self, requester: str = "") -> dict: ...
-    # optional: test_trip(requester="") -> dict (then `cmd/test-trip` is declared);
-    # limits() -> dict and limits_command(args, requester) -> dict (then `limits` and `cmd/limits`);
-    # afc_command(args, requester) -> dict (then `cmd/afc`: adaptive feed control on, off, status);
-    # on_context_payload(payload, source) -> None (then the `context` subscriber, thread-safe);
-    # `settings.interlock` (reset policy and token); `settings.context.source`; `audit` (an AuditLog)
-
-
 def _no_args(name: str, method: Any) -> Any:
     def run(args: dict, requester: str) -> dict:
         if args:
@@ -86,7 +75,7 @@ def _no_args(name: str, method: Any) -> Any:
 
 
 def _limits_run(method: Any) -> Any:
-    """`cmd/limits`: args checked before the Runner sees them; the result names what was asked (audited)."""
+    """`cmd/limits`: args checked before the daemon's controls see them; the result names what was asked (audited)."""
 
     def run(args: dict, requester: str) -> dict:
         checked = check_args(args)  # ValueError: a signed refusal, audited with its reason
@@ -98,35 +87,8 @@ def _limits_run(method: Any) -> Any:
     return run
 
 
-AFC_ACTIONS = ("on", "off", "status")
-
-
-def check_afc_args(args: Any) -> dict[str, str]:
-    """The args of `cmd/afc` and the local `afc`: exactly {"action": on | off | status}; ValueError otherwise."""
-    if not isinstance(args, dict):
-        raise ValueError("afc: args must be an object {\"action\": \"on\" | \"off\" | \"status\"}")
-    extra = sorted(set(args) - {"action"})
-    if extra:
-        raise ValueError(f"afc takes only \"action\" (got {', '.join(extra)})")
-    action = args.get("action")
-    if action not in AFC_ACTIONS:
-        raise ValueError(f"afc: action must be one of {', '.join(AFC_ACTIONS)}, not {action!r}")
-    return {"action": action}
-
-
-def afc_reply(checked: dict[str, str], result: Any) -> dict:
-    """The Runner's answer with the action asked; a refusal's `reason` also as `error`, which the
-    command clients print (the Runner says `reason`, every other command `error`)."""
-    if not isinstance(result, dict):
-        return {"ok": False, "error": f"the daemon returned {type(result).__name__}, expected an object", **checked}
-    out = {**checked, **result}
-    if out.get("ok") is False and "error" not in out:
-        out["error"] = str(out.get("reason") or "refused")
-    return out
-
-
 def _afc_run(method: Any) -> Any:
-    """`cmd/afc`: args checked before the Runner sees them (a bad one is a signed, audited refusal)."""
+    """`cmd/afc`: args checked before the daemon's controls see them (a bad one is a signed, audited refusal)."""
 
     def run(args: dict, requester: str) -> dict:
         checked = check_afc_args(args)

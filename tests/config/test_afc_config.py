@@ -14,7 +14,7 @@ import pytest
 from millsense.daemon.config.errors import ConfigError
 from millsense.daemon.config.load import load_config_text
 from millsense.daemon.config.warnings import config_warnings
-from millsense.daemon.pipeline.feed_control import FeedController
+from millsense.daemon.afc.controller import FeedController
 from tests.config.helpers import base, dumps, write
 
 pytestmark = pytest.mark.quick

@@ -17,7 +17,7 @@ import subprocess
 import pytest
 
 from millsense.daemon.commands.watch import _TtyView
-from millsense.daemon.pipeline.status import status_line
+from millsense.daemon.status_text import status_line
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for, write_config
 

@@ -44,7 +44,7 @@ def _config(tmp_path: Path, port: int, machine: str = "comm", replace: tuple[str
 def meter(tmp_path_factory) -> dict[str, float]:
     """Each current and voltage channel's true RMS, from a capture of the sound emulator."""
     from millsense.daemon.config.load import load_config
-    from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
+    from millsense.daemon.commands.capture_reader import iter_capture_blocks
 
     tmp = tmp_path_factory.mktemp("meter")
     capture = tmp / "sound.bin"
@@ -192,7 +192,7 @@ def test_the_prompts_on_a_terminal(tmp_path, meter):
 
 @pytest.mark.quick
 def test_refused_beside_a_daemon_of_this_machine(tmp_path):
-    from millsense.daemon.pipeline.latch_store import claim_state_dir, state_dir
+    from millsense.daemon.state_dir import claim_state_dir, state_dir
 
     cfg = _config(tmp_path, free_tcp_port(), machine="held")
     lock, busy = claim_state_dir(state_dir("held"))   # as a running daemon holds it
@@ -273,7 +273,7 @@ def test_ctrl_c_mid_step_leaves_the_hold_asserted_and_latched(tmp_path, meter):
         text = out.read_text()
         assert "interrupted: the feed hold this command asserted stays asserted" in text
         assert "`millsense reset` clears it" in text and "Traceback" not in text
-        from millsense.daemon.pipeline.latch_store import state_dir
+        from millsense.daemon.state_dir import state_dir
 
         latch = json.loads((state_dir("ctrl-c") / "latch.json").read_text())
         assert latch["latched"] is True and latch["reason"] == "commission: test-trip"

@@ -199,7 +199,7 @@ def test_reset_refused_while_the_overload_persists_and_the_latch_survives_a_kill
     0, as after a power cut) and start the daemon again: the feed is held at start and the log says
     why and since when.
     """
-    from millsense.daemon.pipeline.local_control import local_command
+    from millsense.daemon.local_socket import local_command
 
     machine = "ilk-persist"
     state = tmp_path / "state"

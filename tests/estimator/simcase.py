@@ -91,7 +91,7 @@ def settings_for(scenario: str, tmp: Path, *, method: str = "auto", filter_cutof
 
 def run(capture_path: Path, settings, **est_kwargs) -> tuple[list[dict], object]:
     """All estimates of a capture (and the estimator, for its counters)."""
-    from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
+    from millsense.daemon.commands.capture_reader import iter_capture_blocks
     from millsense.daemon.pipeline.estimator import Estimator
 
     est = None

@@ -157,7 +157,7 @@ def test_air_cut_revolutions_say_so(caps):
 
 def test_damaged_capture_flags_revolutions_and_conserves_lost_samples(caps, tmp_path):
     """Cut bytes out of a real capture: the decoder resyncs, the gap is lost samples."""
-    from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
+    from millsense.daemon.commands.capture_reader import iter_capture_blocks
     from millsense.daemon.pipeline.estimator import Estimator
 
     cap, _ = caps("step")

@@ -21,7 +21,7 @@ import subprocess
 import pytest
 
 from millsense.daemon.config.load import load_config
-from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
+from millsense.daemon.commands.capture_reader import iter_capture_blocks
 from millsense.daemon.pipeline.run_core import PipelineCore
 from millsense.drivers.base import SampleBlock
 from tests.e2e.helpers import CMD

@@ -19,7 +19,7 @@ import pytest
 
 from millsense.daemon.config.errors import ConfigError
 from millsense.daemon.config.load import load_config
-from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
+from millsense.daemon.commands.capture_reader import iter_capture_blocks
 from millsense.daemon.pipeline.run_core import PipelineCore
 from tests.estimator import configs
 

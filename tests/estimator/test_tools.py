@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from millsense.daemon.config.load import load_config
-from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
+from millsense.daemon.commands.capture_reader import iter_capture_blocks
 from millsense.daemon.pipeline.estimator import Estimator
 from millsense.drivers.base import SampleBlock
 

@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, assume, given, settings as hyp_settings, str
 
 from millsense.daemon.physics.force import resultant_force_magnitudes_n
 from millsense.daemon.physics.torque import select_gear, select_gears
-from millsense.daemon.pipeline.capture_reader import iter_capture_blocks
+from millsense.daemon.commands.capture_reader import iter_capture_blocks
 from millsense.daemon.pipeline.estimator import Estimator
 from millsense.drivers.base import SampleBlock
 from tests.estimator import configs, simcase, synthetic

@@ -108,7 +108,7 @@ def runner_on_the_sim(settings) -> Iterator[tuple[Any, Any, Any]]:
     interlock live), its threads not started. The test is its estimator thread: it hands the runner's block
     handler (`_on_block`) blocks cut where it needs them, which live is a matter of timing (a catch-up after
     the thread fell behind, where a hold falls in a block). The sink records what would be published."""
-    from millsense.daemon.pipeline.runner import Runner
+    from millsense.daemon.runtime.runner import Runner
     from millsense.drivers.sim_driver import SimDriver
     from tests.runtime.test_runner import RecordingSink
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from millsense.daemon.config.load import load_config
-from millsense.daemon.pipeline.runner import Runner
+from millsense.daemon.runtime.runner import Runner
 from millsense.drivers.sim_driver import SimDriver
 from tests.e2e.helpers import write_config
 from tests.faults.helpers import runner_on_the_sim
@@ -92,7 +92,7 @@ def test_a_stuck_current_sensor_holds_the_feed_by_default(pipeline):
     assert alarm["level"] == "overload" and alarm["quantity"] == "signals" and alarm["interlock"] == "feed_hold"
     assert held, "feed hold on the DAQ before the alarm is published"
     # blind: a reset cannot judge the condition, so it is refused and says why
-    r = runner.reset("pytest")
+    r = runner.controls.reset("pytest")
     assert r["ok"] is False and r["condition"] == "blind" and "i_u" in r["error"]
     assert drv.device.feed_hold
 
@@ -128,7 +128,7 @@ def test_a_blind_spell_raised_and_cleared_inside_one_block_still_holds_the_feed(
     with runner_on_the_sim(load_config(cfg)) as (runner, drv, sink):
         counts = np.array(make_source("step", seed=4).step(4000), dtype=np.int16, copy=True)
         counts[1000:1500, list(drv.descriptor.names).index("i_u")] = 32767
-        runner._on_block(SampleBlock(0, 0, counts, 0, False), time.monotonic())
+        runner.handle(SampleBlock(0, 0, counts, 0, False), time.monotonic())
         assert runner.interlock.latched and runner.interlock.reason.startswith("blind: signals: i_u")
         assert [a["level"] for a, _ in sink.of("alarm")] == ["overload", "clear"]
         assert "signals" not in runner.faults and drv.device.feed_hold

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from millsense.daemon.pipeline.status import SeqClock
+from millsense.daemon.runtime.status import SeqClock
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
 from tests.faults.helpers import assert_clean_exit, assert_no_damaged_estimate_looks_valid, assert_revs_contiguous, outputs, status

@@ -58,10 +58,10 @@ def test_a_current_scale_configured_wrong_is_blind_and_holds_the_feed(tmp_path):
     with runner_on_the_sim(load_config(cfg)) as (runner, drv, sink):
         counts = _plant(4.0)
         for k in range(0, len(counts), 100):
-            runner._on_block(SampleBlock(k, k, counts[k : k + 100], 0, False), time.monotonic())
+            runner.handle(SampleBlock(k, k, counts[k : k + 100], 0, False), time.monotonic())
         assert runner.phase_check is not None and runner.phase_check.faulted
         assert "the line currents do not sum to zero" in runner.faults.get("signals", ""), runner.faults
         assert runner.interlock.latched and runner.interlock.reason.startswith("blind: signals:")
         assert drv.device.feed_hold
-        r = runner.reset("pytest")
+        r = runner.controls.reset("pytest")
         assert r["ok"] is False and r["condition"] == "blind"

@@ -244,30 +244,30 @@ def test_samples_flowing_again_clear_the_link_faults_even_from_a_daq_that_does_n
     import numpy as np
 
     from millsense.daemon.config.load import load_config
-    from millsense.daemon.pipeline.runner import DAQ_STALL_S
+    from millsense.daemon.runtime.runner import DAQ_STALL_S
     from millsense.drivers.base import LinkEvent, SampleBlock
     from tests.faults.helpers import runner_on_the_sim
 
     cfg = write_config(tmp_path / "l.toml", machine="link-01", daq='transport = "sim"\nscenario = "step"')
     with runner_on_the_sim(load_config(cfg)) as (runner, drv, sink):
         good = drv.descriptor
-        runner._on_block(SampleBlock(0, 0, np.zeros((10, len(good.channels)), dtype=np.int16), 0, False),
-                         time.monotonic())
-        runner._last_block_mono = time.monotonic() - 10.0   # the last samples came 10 s ago: the link went down
-        runner._on_link(LinkEvent(False, "connection reset"))
+        # the last samples came 10 s ago: the link went down
+        runner.handle(SampleBlock(0, 0, np.zeros((10, len(good.channels)), dtype=np.int16), 0, False),
+                      time.monotonic() - 10.0)
+        runner.handle(LinkEvent(False, "connection reset"), time.monotonic())
         assert "daq_link" in runner.faults
-        runner._on_link(LinkEvent(True, "connected"))
+        runner.handle(LinkEvent(True, "connected"), time.monotonic())
         up = time.monotonic()
-        runner._check_stall(up + 0.5 * DAQ_STALL_S)
+        runner.check_stall(up + 0.5 * DAQ_STALL_S)
         assert "daq_stalled" not in runner.faults, runner.faults   # the link is up only half the allowance
-        runner._check_stall(up + 3.0 * DAQ_STALL_S)
+        runner.check_stall(up + 3.0 * DAQ_STALL_S)
         assert "no samples for 3.0 s with the link up" in runner.faults.get("daq_stalled", ""), runner.faults
         without = dataclasses.replace(good, channels=tuple(c for c in good.channels if c.name != "i_u"))
         drv.descriptor = without   # what the DAQ now announces (the simulated one sends it only when asked)
-        runner._on_descriptor(without)
+        runner.handle(without, time.monotonic())
         assert "descriptor" in runner.faults and runner.core.estimator is None
-        runner._on_block(SampleBlock(10, 10, np.zeros((10, len(without.channels)), dtype=np.int16), 0, True),
-                         time.monotonic())
+        runner.handle(SampleBlock(10, 10, np.zeros((10, len(without.channels)), dtype=np.int16), 0, True),
+                      time.monotonic())
         assert set(runner.faults) == {"descriptor"}, runner.faults
 
 
@@ -279,22 +279,22 @@ def test_a_link_back_up_is_not_a_stall_before_its_event_is_handled(tmp_path):
     import numpy as np
 
     from millsense.daemon.config.load import load_config
-    from millsense.daemon.pipeline.runner import DAQ_STALL_S
+    from millsense.daemon.runtime.runner import DAQ_STALL_S
     from millsense.drivers.base import LinkEvent, SampleBlock
     from tests.faults.helpers import runner_on_the_sim
 
     cfg = write_config(tmp_path / "l.toml", machine="link-02", daq='transport = "sim"\nscenario = "step"')
     with runner_on_the_sim(load_config(cfg)) as (runner, drv, sink):
-        runner._on_block(SampleBlock(0, 0, np.zeros((10, len(drv.descriptor.channels)), dtype=np.int16), 0, False),
-                         time.monotonic())
-        runner._last_block_mono = time.monotonic() - 10.0   # the link went down 10 s ago
-        runner._stall_since = time.monotonic() - 60.0       # it had come up a minute ago
-        runner._on_link(LinkEvent(False, "connection reset"))
+        runner.handle(LinkEvent(True, "connected"), time.monotonic() - 60.0)   # it had come up a minute ago
+        # the link went down 10 s ago
+        runner.handle(SampleBlock(0, 0, np.zeros((10, len(drv.descriptor.channels)), dtype=np.int16), 0, False),
+                      time.monotonic() - 10.0)
+        runner.handle(LinkEvent(False, "connection reset"), time.monotonic())
         drv.link_up = True   # the driver's reader thread has reconnected; its LinkEvent is not queued yet
-        runner._check_stall(time.monotonic())
+        runner.check_stall(time.monotonic())
         assert "daq_stalled" not in runner.faults, runner.faults
-        runner._on_link(LinkEvent(True, "connected"))
-        runner._check_stall(time.monotonic() + 2 * DAQ_STALL_S)   # and a real stall after it is still one
+        runner.handle(LinkEvent(True, "connected"), time.monotonic())
+        runner.check_stall(time.monotonic() + 2 * DAQ_STALL_S)   # and a real stall after it is still one
         assert "daq_stalled" in runner.faults, runner.faults
 
 

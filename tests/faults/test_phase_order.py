@@ -51,11 +51,11 @@ def test_two_current_channels_swapped_are_blind_and_hold_the_feed(tmp_path):
         u, v = names.index("i_u"), names.index("i_v")
         counts[:, [u, v]] = counts[:, [v, u]]
         for k in range(0, len(counts), 100):
-            runner._on_block(SampleBlock(k, k, counts[k : k + 100], 0, False), time.monotonic())
+            runner.handle(SampleBlock(k, k, counts[k : k + 100], 0, False), time.monotonic())
         assert "the current space vector turns against the voltages'" in runner.faults.get("signals", ""), runner.faults
         assert runner.interlock.latched and runner.interlock.reason.startswith("blind: signals:")
         assert drv.device.feed_hold
-        r = runner.reset("pytest")
+        r = runner.controls.reset("pytest")
         assert r["ok"] is False and r["condition"] == "blind"
 
 
@@ -142,7 +142,7 @@ def test_a_fault_two_checks_hold_names_the_one_still_holding_it(tmp_path):
             while k < last:
                 lost = 300 if run and since_gap == run else 0
                 k, since_gap = k + lost, (0 if lost else since_gap) + 100
-                runner._on_block(SampleBlock(k, k, counts[k : k + 100], lost, False), time.monotonic())
+                runner.handle(SampleBlock(k, k, counts[k : k + 100], lost, False), time.monotonic())
                 k += 100
             return k
 
@@ -170,12 +170,12 @@ def test_a_new_descriptor_goes_on_judging_the_fault_it_inherits(tmp_path):
         wrong = counts.copy()
         wrong[:, u] = -wrong[:, u]
         for k in range(0, 3000, 100):
-            runner._on_block(SampleBlock(k, k, wrong[k : k + 100], 0, False), time.monotonic())
+            runner.handle(SampleBlock(k, k, wrong[k : k + 100], 0, False), time.monotonic())
         assert "do not sum to zero" in runner.faults.get("signals", ""), runner.faults
         restarted = dataclasses.replace(drv.descriptor, protocol_version=2)
         assert runner.core.on_descriptor(restarted)
         for k in range(3000, 6000, 100):   # rewired right while the DAQ was off
-            runner._on_block(SampleBlock(k, k, counts[k : k + 100], 0, k == 3000), time.monotonic())
+            runner.handle(SampleBlock(k, k, counts[k : k + 100], 0, k == 3000), time.monotonic())
         assert "signals" not in runner.faults, runner.faults
 
 
@@ -193,17 +193,17 @@ def test_a_new_descriptor_goes_on_judging_a_stuck_sensor(tmp_path, refused_first
         stuck = counts.copy()
         stuck[:, list(drv.descriptor.names).index("i_u")] = 1234
         for k in range(0, 3000, 100):
-            runner._on_block(SampleBlock(k, k, stuck[k : k + 100], 0, False), time.monotonic())
+            runner.handle(SampleBlock(k, k, stuck[k : k + 100], 0, False), time.monotonic())
         assert "i_u" in runner.faults.get("signals", ""), runner.faults
         if refused_first:   # the DAQ came back without i_u: fault `descriptor`, no estimator
             without = dataclasses.replace(drv.descriptor, channels=tuple(c for c in drv.descriptor.channels
                                                                          if c.name != "i_u"))
-            runner._on_descriptor(without)
+            runner.handle(without, time.monotonic())
             assert runner.core.estimator is None and "descriptor" in runner.faults
-        runner._on_descriptor(dataclasses.replace(drv.descriptor, protocol_version=2))
+        runner.handle(dataclasses.replace(drv.descriptor, protocol_version=2), time.monotonic())
         assert runner.core.estimator is not None and "descriptor" not in runner.faults
         for k in range(3000, 8000, 100):   # a sound sensor in its place
-            runner._on_block(SampleBlock(k, k, counts[k : k + 100], 0, k == 3000), time.monotonic())
+            runner.handle(SampleBlock(k, k, counts[k : k + 100], 0, k == 3000), time.monotonic())
         assert "signals" not in runner.faults, runner.faults
 
 

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from millsense.daemon.config.load import load_config
-from millsense.daemon.pipeline.runner import Runner
+from millsense.daemon.runtime.runner import Runner
 from millsense.drivers.base import SampleBlock
 from tests.e2e.helpers import write_config
 from tests.faults.helpers import PULSE, runner_on_the_sim
@@ -55,13 +55,13 @@ class Feed:
         self.r, self.seq = r, 0
 
     def land(self, counts: np.ndarray, through_reader: bool = True) -> SampleBlock:
-        checked = self.r._on_frame(self.seq, counts, 0, False)[0] if through_reader else False
+        checked = self.r.frames.on_frame(self.seq, counts, 0, False)[0] if through_reader else False
         block = SampleBlock(self.seq, self.seq, counts, 0, False, checked)
         self.seq += len(counts)
         return block
 
     def take(self, block: SampleBlock) -> None:
-        self.r._on_block(block, time.monotonic())
+        self.r.handle(block, time.monotonic())
 
     def __call__(self, counts: np.ndarray) -> None:
         self.take(self.land(counts, through_reader=False))
@@ -83,11 +83,11 @@ def test_a_pulse_whose_tail_is_still_over_the_limit_is_not_gone_with_the_spindle
     feed(np.concatenate([still(7), rows(PULSE, 3)]))    # the hold: the pulse's first 3 samples end the block
     assert r.interlock.latched and r.interlock.reason.startswith("crash"), r.interlock.reason
     feed(np.concatenate([rows(PULSE, 7), still(3)]))    # its tail: after the hold, still over, spindle stopped
-    refused = r.reset("test")
+    refused = r.controls.reset("test")
     assert not refused["ok"] and refused["condition"] == "crash", refused
     assert r.interlock.latched and drv.device.feed_hold
     feed(still(100))                                    # quiet, the spindle still stopped: gone
-    assert r.reset("test")["ok"]
+    assert r.controls.reset("test")["ok"]
     feed(still(100))
     assert not r.interlock.latched and not drv.device.feed_hold  # not held again by the tail
 
@@ -99,11 +99,11 @@ def test_a_stalled_spindle_still_at_its_current_is_not_gone_with_the_spindle(run
     feed(rows(STALL, 6000))                             # standing still at 20 A: a stall, held
     assert r.interlock.latched and "stall" in r.interlock.reason, r.interlock.reason
     feed(rows(STALL, 100))                              # after the hold: still stalled
-    refused = r.reset("test")
+    refused = r.controls.reset("test")
     assert not refused["ok"] and refused["condition"] == "stall", refused
     assert drv.device.feed_hold
     feed(still(100))                                    # the drive let go: gone with the spindle
-    assert r.reset("test")["ok"]
+    assert r.controls.reset("test")["ok"]
 
 
 def test_a_crash_the_reader_skipped_while_held_is_judged_after_a_reset(runner):
@@ -121,7 +121,7 @@ def test_a_crash_the_reader_skipped_while_held_is_judged_after_a_reset(runner):
     for _ in range(10):
         feed.take(feed.land(still(10)))                 # quiet, stopped: the condition is gone
     late = feed.land(rows(PULSE, 10))                   # a second crash lands while held; not taken yet
-    assert r.reset("test")["ok"]                        # judged on what the estimator has taken: quiet
+    assert r.controls.reset("test")["ok"]                        # judged on what the estimator has taken: quiet
     feed.take(late)
     assert r.interlock.latched and r.interlock.reason.startswith("crash"), r.interlock.reason
     assert drv.device.feed_hold
@@ -142,7 +142,7 @@ def test_after_a_reset_the_next_crash_is_held_by_the_readers_check_again(runner)
     feed.take(first)
     for _ in range(10):
         feed.take(feed.land(still(10)))                 # quiet, stopped: the condition is gone
-    assert r.reset("test")["ok"] and not drv.device.feed_hold
+    assert r.controls.reset("test")["ok"] and not drv.device.feed_hold
     feed.take(feed.land(still(10)))
     assert not r.interlock.latched
     second = feed.land(rows(PULSE, 10))                 # landed; the estimator thread has not taken it

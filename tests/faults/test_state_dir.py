@@ -17,7 +17,7 @@ from tests.faults.helpers import wait_status
 
 
 def test_the_state_directory_deleted_is_made_again_and_the_history_loss_said(tmp_path):
-    from millsense.daemon.pipeline.latch_store import state_dir
+    from millsense.daemon.state_dir import state_dir
 
     machine = "state-01"
     port = free_tcp_port()

@@ -11,6 +11,8 @@ own, so only a transport that does not remember it (the in-process DAQ here) sho
 
 from __future__ import annotations
 
+import time
+
 from millsense.daemon.config.load import load_config
 from millsense.drivers.base import LinkEvent
 from millsense.sim.emulator.device import DeviceModel
@@ -31,8 +33,8 @@ def test_a_daq_that_restarted_is_armed_again_and_holds_the_feed_when_the_daemon_
             drv.device = DeviceModel(make_source("step", loop=True), watchdog_ms=0)
             drv._send_descriptor = True   # a restarted board announces itself
         restarted = drv.device
-        runner._on_link(LinkEvent(False, "connection reset"))
-        runner._on_link(LinkEvent(True, "connected"))
+        runner.handle(LinkEvent(False, "connection reset"), time.monotonic())
+        runner.handle(LinkEvent(True, "connected"), time.monotonic())
         assert restarted.watchdog_ms == 1000, "the restarted DAQ was not told its watchdog period"
         assert not restarted.feed_hold
         # the runner's heartbeat thread is not started: after this one heartbeat the daemon is silent (hung)

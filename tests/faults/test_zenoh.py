@@ -28,8 +28,8 @@ from hypothesis import strategies as st
 
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import Procs, Subscriber, tcp, wait_for, write_config
-from millsense.daemon.pipeline.latch_store import state_dir
-from millsense.daemon.pipeline.local_control import local_command
+from millsense.daemon.state_dir import state_dir
+from millsense.daemon.local_socket import local_command
 from tests.procstat import proc_kb
 from tests.faults.helpers import (
     assert_clean_exit,

@@ -10,7 +10,7 @@ import types
 import pytest
 from structlog.testing import capture_logs
 
-from millsense.daemon.pipeline.interlock import Interlock
+from millsense.daemon.runtime.interlock import Interlock
 from millsense.drivers.tcp_driver import TcpDriver
 
 pytestmark = pytest.mark.quick

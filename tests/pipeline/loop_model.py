@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from millsense.daemon.pipeline.feed_control import FeedController
+from millsense.daemon.afc.controller import FeedController
 
 SAMPLE_S = 0.001
 

@@ -1,4 +1,4 @@
-"""The adaptive feed controller (daemon/pipeline/feed_control.py), alone and in a simple closed loop.
+"""The adaptive feed controller (daemon/afc/controller.py), alone and in a simple closed loop.
 
 The loop (tests/pipeline/loop_model.py) is the cut as the controller sees it:
 a static gain between ln(feed) and ln(load), one revolution's averaging, the
@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from millsense.daemon.config.models import AfcSettings, AfcTargetSettings, MaterialSettings
-from millsense.daemon.pipeline.feed_control import STATES, FeedController, tune
+from millsense.daemon.afc.controller import STATES, FeedController, tune
 from tests.pipeline.loop_model import Cut, run
 
 pytestmark = pytest.mark.quick

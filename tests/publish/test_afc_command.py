@@ -17,8 +17,9 @@ import pytest
 
 from millsense.daemon.audit import AuditLog
 from millsense.daemon.config.models import AfcSettings
-from millsense.daemon.pipeline.feed_control import FeedController
-from millsense.daemon.pipeline.local_control import LocalControl, local_command
+from millsense.daemon.afc.controller import FeedController
+from millsense.daemon.local_socket import local_command
+from millsense.daemon.runtime.local_control import LocalControl
 from millsense.daemon.publish.command_auth import CommandError, command_message, exchange, mac_hex
 from millsense.daemon.publish.sink import ZenohSink
 
@@ -238,7 +239,7 @@ def test_a_client_that_dribbles_its_request_is_cut_off_and_the_next_is_served(lo
     """A byte a second, never a newline, held the one server thread for as long as it went on (a probe of stop 26):
     `millsense reset --local` at the machine timed out behind it. The whole request must now come within
     READ_DEADLINE_S of the connection."""
-    from millsense.daemon.pipeline.local_control import SOCKET_NAME
+    from millsense.daemon.local_socket import SOCKET_NAME
 
     controls = local((os.getuid(),))
     state = tmp_path / "state"
@@ -255,7 +256,7 @@ def test_a_client_that_dribbles_its_request_is_cut_off_and_the_next_is_served(lo
 
 
 def test_a_uid_that_may_not_command_is_refused_without_waiting_for_its_request(local, tmp_path):
-    from millsense.daemon.pipeline.local_control import SOCKET_NAME
+    from millsense.daemon.local_socket import SOCKET_NAME
 
     local((os.getuid() + 4242,))
     loris = _Dribbler(tmp_path / "state" / SOCKET_NAME)

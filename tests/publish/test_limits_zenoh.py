@@ -428,7 +428,8 @@ def test_the_local_socket_refuses_json_nan_and_infinity_with_a_clear_message(tmp
     import os
     import socket
 
-    from millsense.daemon.pipeline.local_control import LocalControl, socket_path
+    from millsense.daemon.local_socket import socket_path
+    from millsense.daemon.runtime.local_control import LocalControl
 
     controls = LimitsControls(AuditLog(tmp_path / "audit.log", "m1"))
     server = LocalControl(tmp_path / "state", controls, allowed_uids=(os.getuid(),))

@@ -18,7 +18,7 @@ from types import SimpleNamespace
 import pytest
 
 from millsense.daemon.config.models import AfcSettings
-from millsense.daemon.pipeline.runner import Runner
+from millsense.daemon.runtime.runner import Runner
 from millsense.sim.emulator.device import StatusLog
 from millsense.drivers.sim_driver import SimDriver
 from tests.runtime.test_runner import RecordingSink, ScriptedEstimator, wait_for
@@ -81,7 +81,7 @@ def stop_runners(made: list) -> None:
 
 
 def _above_100(runner, drv, sink):
-    assert runner.afc_command({"action": "on"}, "test")["ok"]
+    assert runner.controls.afc_command({"action": "on"}, "test")["ok"]
     wait_for(lambda: drv.device.feed_override_commanded > 1050, 5, "the controller raising the feed of a light cut")
     assert sink.of("estimate")[-1][0]["afc"]["state"] in ("armed", "saturated")
 
@@ -90,13 +90,13 @@ def test_a_fault_from_any_thread_brings_the_override_to_100_before_it_returns(ri
     torque = {"nm": 10.0}  # half the target: the controller wants more feed
     runner, drv, sink = rig(lambda rev: torque["nm"])
     _above_100(runner, drv, sink)
-    runner.fault("history", "test: the disk is full")  # this thread, not the estimator's
+    runner.board.fault("history", "test: the disk is full")  # this thread, not the estimator's
     assert drv.device.feed_override_commanded <= 1000
     wait_for(lambda: sink.of("estimate")[-1][0]["afc"]["state"] == "safe", 5, "estimates saying safe")
     n = len(sink.of("estimate"))
     wait_for(lambda: len(sink.of("estimate")) >= n + 5, 5, "revolutions while the fault lasts")
     assert drv.device.feed_override_commanded <= 1000  # nothing rises while it lasts
-    runner.recover("history")
+    runner.board.recover("history")
     wait_for(lambda: drv.device.feed_override_commanded > 1050, 5, "control again once the fault is gone")
 
 
@@ -110,30 +110,30 @@ def test_a_trip_holds_the_override_at_100_until_an_authorised_reset(rig):
     torque["nm"] = 10.0
     n = len(sink.of("estimate"))
     wait_for(lambda: len(sink.of("estimate")) >= n + 5, 5, "light revolutions while held")
-    assert drv.device.feed_override_commanded <= 1000 and runner.status()["afc"]["state"] == "safe"
-    assert runner.reset("test")["ok"]
+    assert drv.device.feed_override_commanded <= 1000 and runner.controls.status()["afc"]["state"] == "safe"
+    assert runner.controls.reset("test")["ok"]
     wait_for(lambda: drv.device.feed_override_commanded > 1050, 5, "control again after the reset")
 
 
 def test_switching_off_returns_to_the_programmed_feed_at_once(rig):
     runner, drv, sink = rig(lambda rev: 10.0)
     _above_100(runner, drv, sink)
-    reply = runner.afc_command({"action": "off"}, "test")
+    reply = runner.controls.afc_command({"action": "off"}, "test")
     assert reply["ok"] and reply["afc"]["state"] == "off"
     assert drv.device.feed_override_commanded == 1000
 
 
 def test_a_protocol_1_daq_refuses_afc_and_says_why(rig):
     runner, drv, sink = rig(lambda rev: 10.0, protocol=1)
-    reply = runner.afc_command({"action": "on"}, "test")
+    reply = runner.controls.afc_command({"action": "on"}, "test")
     assert reply["ok"] is False and "protocol version 1" in reply["reason"]
-    status = runner.status()["afc"]
+    status = runner.controls.status()["afc"]
     assert status["available"] is False and status["state"] == "unavailable"
 
 
 def test_without_the_interlock_afc_is_refused(rig):
     runner, drv, sink = rig(lambda rev: 10.0, interlock=False)
-    reply = runner.afc_command({"action": "on"}, "test")
+    reply = runner.controls.afc_command({"action": "on"}, "test")
     assert reply["ok"] is False and "watchdog" in reply["reason"]
     assert drv.device.feed_override_commanded == 1000
 
@@ -143,7 +143,7 @@ def test_an_override_left_by_an_earlier_run_is_set_back_at_connection(rig_left_o
     at start, so the feed must go back to the programmed one, not stay where nobody controls it."""
     runner, drv = rig_left_override(1400)
     wait_for(lambda: drv.device.feed_override_commanded == 1000, 5, "the programmed feed set again")
-    assert runner.status()["afc"]["state"] == "off"
+    assert runner.controls.status()["afc"]["state"] == "off"
 
 
 @pytest.fixture
@@ -175,25 +175,25 @@ def test_a_cnc_that_does_not_follow_the_override_down_holds_the_feed(rig, monkey
     150 % while the daemon commanded 100 % and said `safe`: the feed ran faster than programmed with nothing in
     control, and nothing said so. Now, AFC on, an applied override above both 100 % and the command for a second
     holds the feed, says why, and a reset is refused while it lasts."""
-    from millsense.daemon.pipeline.runner import OVERRIDE_FOLLOW_S
+    from millsense.daemon.afc.supervisor import OVERRIDE_FOLLOW_S
 
     torque = {"nm": 10.0}
     runner, drv, sink = rig(lambda rev: torque["nm"])
     _above_100(runner, drv, sink)
-    wait_for(lambda: (runner.applied_override_pct or 0) > 105.0, 5, "the CNC applying more than 100 %")
+    wait_for(lambda: (runner.afc.applied_override_pct or 0) > 105.0, 5, "the CNC applying more than 100 %")
     # from now on the DAQ takes no override command (it answers, but nothing changes): a failure a real emulator
     # cannot be made to have on cue
     monkeypatch.setattr(drv.device, "set_feed_override", lambda tenths, now, cause="command": True)
-    runner.fault("history", "test: the disk is full")    # AFC goes safe: 100 % commanded
-    assert runner.feed_out.sent_pct <= 100.0 and not runner.interlock.latched
+    runner.board.fault("history", "test: the disk is full")    # AFC goes safe: 100 % commanded
+    assert runner.afc.feed_out.sent_pct <= 100.0 and not runner.interlock.latched
     wait_for(lambda: runner.interlock.latched, 5 + OVERRIDE_FOLLOW_S, "the feed held")
     assert runner.interlock.reason.startswith("afc: the CNC applies a ") and "nothing controls it" in runner.interlock.reason
     alarm = [a for a, _ in sink.of("alarm") if a.get("quantity") == "feed_override_pct"]
     assert alarm and alarm[-1]["level"] == "overload" and alarm[-1]["value"] > 105.0
-    runner.recover("history")
+    runner.board.recover("history")
     n = len(sink.of("estimate"))
     wait_for(lambda: len(sink.of("estimate")) >= n + 3, 5, "revolutions since the hold (evidence for a reset)")
-    r = runner.reset("test")
+    r = runner.controls.reset("test")
     assert r["ok"] is False and r["condition"] == "feed_override", r
 
 
@@ -220,11 +220,11 @@ def test_a_trip_writes_the_override_down_itself_before_any_further_revolution(ri
         drv.device.log = StatusLog(str(log_path))   # from here on, the DAQ logs what it is told, in order
         gate.clear()
         assert parked.wait(10), "the estimator thread never came to the next revolution"
-        revolutions = runner.revolutions
+        revolutions = runner.live.revolutions
         assert drv.device.feed_override_commanded > 1000
-        r = runner.test_trip("pytest")
+        r = runner.controls.test_trip("pytest")
         assert r["ok"] is True, r
-        assert runner.revolutions == revolutions and not gate.is_set()   # still parked: no revolution since
+        assert runner.live.revolutions == revolutions and not gate.is_set()   # still parked: no revolution since
         events = [json.loads(line) for line in log_path.read_text().splitlines()]
         told = [e for e in events if e["event"] in ("outputs", "feed_override_command")]  # in the DAQ's order
         holds = [k for k, e in enumerate(told) if e["event"] == "outputs" and e["cause"] == "command"

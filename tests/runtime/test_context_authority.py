@@ -53,7 +53,7 @@ def rig():
 
 def put(runner, payload: dict) -> None:
     """What the sink's context subscriber does with one put (a refusal raises ValueError there)."""
-    runner.on_context_payload(json.loads(json.dumps(payload)), "zid:test")
+    runner.controls.on_context_payload(json.loads(json.dumps(payload)), "zid:test")
 
 
 def sign(runner, seq: int, **over) -> dict:
@@ -74,7 +74,7 @@ def test_an_unsigned_context_never_lets_afc_raise_the_feed(rig):
     for est in revolutions_under(sink, 3):
         assert est["afc"]["state"] == "idle" and est["afc"]["override_pct"] <= 100.0, est["afc"]
     assert drv.device.feed_override_commanded <= 1000
-    status = runner.status()
+    status = runner.controls.status()
     assert status["afc"]["reason"] == UNTRUSTED and status["context"]["authority"] == "none"
 
 
@@ -83,11 +83,11 @@ def test_a_signed_context_lets_afc_run_and_a_replay_or_an_unsigned_one_does_not(
     first = sign(runner, 1)
     put(runner, first)
     wait_for(lambda: drv.device.feed_override_commanded > 1050, 10, "the controller raising the feed of a light cut")
-    assert runner.status()["context"]["authority"] == "mac"
-    assert runner.status()["context_auth"] == {"key": True, "trust": "none", "seq": 1}
+    assert runner.controls.status()["context"]["authority"] == "mac"
+    assert runner.controls.status()["context_auth"] == {"key": True, "trust": "none", "seq": 1}
     # the same context unsigned: AFC stops following, the feed back to 100 % at once
     put(runner, {**CUT, "program": 1235})
-    wait_for(lambda: runner.status()["afc"]["reason"] == UNTRUSTED, 10, "idle under the unsigned context")
+    wait_for(lambda: runner.controls.status()["afc"]["reason"] == UNTRUSTED, 10, "idle under the unsigned context")
     assert drv.device.feed_override_commanded <= 1000
     # the first signed put again: refused on Zenoh's thread, so the sink counts it; nothing changes
     with pytest.raises(ValueError, match="not above 1"):
@@ -103,11 +103,11 @@ def test_a_signed_context_cannot_lift_a_targets_allow_false(rig):
     put(runner, sign(runner, 1, tool=7))
     for est in revolutions_under(sink, 7):
         assert est["afc"]["state"] == "idle" and est["afc"]["override_pct"] <= 100.0, est["afc"]
-    assert runner.status()["afc"]["reason"] == "not allowed" and drv.device.feed_override_commanded <= 1000
+    assert runner.controls.status()["afc"]["reason"] == "not allowed" and drv.device.feed_override_commanded <= 1000
 
 
 def test_trust_acl_lets_an_unsigned_context_steer_afc(rig):
     runner, drv, sink = rig(key="", trust="acl")
     put(runner, CUT)
     wait_for(lambda: drv.device.feed_override_commanded > 1050, 10, "the controller raising the feed under the ACL")
-    assert runner.status()["context"]["authority"] == "acl"
+    assert runner.controls.status()["context"]["authority"] == "acl"

@@ -21,7 +21,8 @@ import pytest
 
 from millsense.daemon.config.load import demo_config, load_config
 from millsense.daemon.pipeline.estimator import Estimator
-from millsense.daemon.pipeline.runner import Runner, _merged
+from millsense.daemon.runtime.blocks import merged
+from millsense.daemon.runtime.runner import Runner
 from millsense.daemon.pipeline.safety_check import FrameCheck
 from millsense.drivers.base import LinkEvent, SampleBlock
 from millsense.sim.emulator.device import DeviceModel
@@ -197,7 +198,7 @@ def test_contiguous_frames_become_one_block_and_a_gap_or_an_event_starts_another
         return SampleBlock(seq, seq, np.full((n, 8), seq, dtype=np.int16), lost, False, checked, 100.0 + seq)
 
     link = LinkEvent(True, "connected")
-    out = _merged([blk(0), blk(10), blk(20), link, blk(30), blk(45, lost=5), blk(55, checked=False)])
+    out = merged([blk(0), blk(10), blk(20), link, blk(30), blk(45, lost=5), blk(55, checked=False)])
     kinds = [(type(ev).__name__, getattr(ev, "seq", None), len(getattr(ev, "counts", ()))) for ev, _ in out]
     assert kinds == [("SampleBlock", 0, 30), ("LinkEvent", None, 0), ("SampleBlock", 30, 10),
                      ("SampleBlock", 45, 10), ("SampleBlock", 55, 10)]
@@ -311,7 +312,7 @@ def live(tmp_path):
     runner = Runner(settings, drv, estimator_factory=GatedEstimator)
     sink = Sink()
     runner.start(sink)
-    wait_for(lambda: runner.samples_received > 300, 10, "samples flowing")
+    wait_for(lambda: runner.live.samples_received > 300, 10, "samples flowing")
     yield runner, source, sink, loop
     GatedEstimator.gate.set()
     runner.stop(1.0)
@@ -325,13 +326,13 @@ def test_a_crash_in_one_frame_holds_the_feed_while_the_estimator_thread_is_stuck
     GatedEstimator.entered.clear()
     GatedEstimator.gate.clear()  # the estimator thread stops inside its next batch
     wait_for(GatedEstimator.entered.is_set, 5, "the estimator thread held in its batch")
-    revolutions, published = runner.revolutions, len(sink.items)
+    revolutions, published = runner.live.revolutions, len(sink.items)
     loop.call_soon_threadsafe(lambda: setattr(source, "armed", True))
 
     assert source.held.wait(5), "the emulator never received feed hold while the estimator was stuck"
     assert runner.interlock.latched and runner.interlock.reason.startswith("crash p_gap_w")
-    assert runner.revolutions == revolutions and len(sink.items) == published  # nothing waited for a batch
-    wait_for(lambda: runner.last_trip_ms is not None, 5, "the reader's trip timed (it logs after the write)")
+    assert runner.live.revolutions == revolutions and len(sink.items) == published  # nothing waited for a batch
+    wait_for(lambda: runner.live.last_trip_ms is not None, 5, "the reader's trip timed (it logs after the write)")
 
     GatedEstimator.gate.set()  # the estimator goes on: the crash is latched and published, once
     wait_for(lambda: sink.alarms("crash"), 5, "the crash alarm published")
@@ -349,7 +350,7 @@ def test_after_a_reset_the_next_crash_trips_again_and_frames_go_through_in_batch
         assert source.held.wait(5), f"trip {trip}: no feed hold at the emulator"
         wait_for(lambda: len(sink.alarms("crash")) == trip, 5, f"crash alarm {trip}")
         # the spindle stands still: the reset is granted once a block after the hold is judged
-        wait_for(lambda: runner.reset().get("ok"), 5, f"reset after trip {trip}")
+        wait_for(lambda: runner.controls.reset().get("ok"), 5, f"reset after trip {trip}")
         assert not runner.interlock.latched and not runner.core.alarms.crash_latched
     assert runner.interlock.trips == 2 and len(sink.alarms("crash")) == 2
     # nothing asks for the estimator at once while the spindle stands still: it takes frames in batches
@@ -367,20 +368,19 @@ def test_a_frame_reaching_the_predicted_close_of_a_revolution_wakes_the_estimato
     daq = SimpleNamespace(descriptor=Descriptor(1000, RAMP_CHANNELS), link_up=True, last_status=None)
     runner = Runner(demo_config(), daq)  # not started: the reader's hook called by hand
     quiet = np.zeros((10, 8), dtype=np.int16)
-    assert runner._on_frame(0, quiet, 0, False) == (True, False)  # checked; nothing asks for the estimator
-    runner._spindle_stopped = False
-    runner._predict_close(Step(items=[("estimate", {"seq_end": 1009, "samples": 100, "lost_samples": 0})]))
+    assert runner.frames.on_frame(0, quiet, 0, False) == (True, False)  # checked; nothing asks for the estimator
+    runner.frames.predict_close(Step(items=[("estimate", {"seq_end": 1009, "samples": 100, "lost_samples": 0})]),
+                                spindle_stopped=False)
     # the next revolution ends at sample 1109 and is closed by sample 1110, the first past its boundary: the
     # frame holding 1110 wakes the estimator, not those before (waking for 1109 found nothing to close)
-    assert runner._on_frame(1090, quiet, 0, False) == (True, False)
-    assert runner._on_frame(1100, quiet, 0, False) == (True, False)
-    assert runner._on_frame(1110, quiet, 0, False) == (True, True)
-    runner._spindle_stopped = True
-    runner._predict_close(Step())
-    assert runner._on_frame(1120, quiet, 0, False) == (True, False)  # stopped: no revolution to wait for
+    assert runner.frames.on_frame(1090, quiet, 0, False) == (True, False)
+    assert runner.frames.on_frame(1100, quiet, 0, False) == (True, False)
+    assert runner.frames.on_frame(1110, quiet, 0, False) == (True, True)
+    runner.frames.predict_close(Step(), spindle_stopped=True)
+    assert runner.frames.on_frame(1120, quiet, 0, False) == (True, False)  # stopped: no revolution to wait for
     loud = quiet.copy()
     loud[:, 3:6] = [12500, 12500, -25000]  # i_w 50 A: over stall_current_a (45), under crash_current_a (55)
-    assert runner._on_frame(1130, loud, 0, False) == (True, True)  # a stall is judged at once
+    assert runner.frames.on_frame(1130, loud, 0, False) == (True, True)  # a stall is judged at once
     assert not runner.interlock.latched
 
 
@@ -390,10 +390,10 @@ def test_the_trip_time_ends_when_the_hold_is_written(live):
     tripping thread does after the write (the log line, the AFC override to 100 %, which waits for the AFC lock while
     another thread holds it) is not part of it: it measured up to the end of all of that before stop 28."""
     runner, source, sink, loop = live
-    with runner._afc_lock:   # another thread in the middle of an override step as the crash lands
+    with runner.afc.lock:   # another thread in the middle of an override step as the crash lands
         loop.call_soon_threadsafe(lambda: setattr(source, "armed", True))
         assert source.held.wait(5), "the emulator never received feed hold"
         time.sleep(0.3)
-    wait_for(lambda: runner.last_trip_ms is not None, 5, "the reader's trip timed")
+    wait_for(lambda: runner.live.last_trip_ms is not None, 5, "the reader's trip timed")
     assert runner.interlock.latched and runner.interlock.trips == 1
-    assert 0.0 <= runner.last_trip_ms < 300.0, runner.last_trip_ms
+    assert 0.0 <= runner.live.last_trip_ms < 300.0, runner.live.last_trip_ms

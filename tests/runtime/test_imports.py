@@ -26,6 +26,7 @@ NOT_ON_THE_RUN_PATH = (
     "millsense.sim",
     "millsense.daemon.commands.replay",
     "millsense.daemon.commands.calibrate",
+    "millsense.daemon.commands.capture_reader",   # a capture file: the offline commands' input
     "millsense.daemon.history.export",     # `millsense history`
     "serial",                              # pyserial and pymodbus: other transports than the one configured
     "pymodbus",
@@ -74,7 +75,7 @@ def test_the_live_daemon_loads_nothing_it_does_not_use(tmp_path):
     modules = seen["modules"]
     # the path under test is the whole one: history, learning and the local control socket were built
     for used in ("millsense.daemon.history.store", "millsense.daemon.learning.monitor",
-                 "millsense.daemon.pipeline.local_control", "millsense.drivers.tcp_driver", "zenoh"):
+                 "millsense.daemon.runtime.local_control", "millsense.drivers.tcp_driver", "zenoh"):
         assert used in modules, used
     loaded = {name: _loaded(modules, name) for name in NOT_ON_THE_RUN_PATH}
     assert not any(loaded.values()), {k: v for k, v in loaded.items() if v}

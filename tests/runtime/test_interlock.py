@@ -14,7 +14,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from millsense.daemon.pipeline.interlock import TEST_TRIP, Interlock, ResetCheck
+from millsense.daemon.runtime.interlock import TEST_TRIP, Interlock, ResetCheck
 
 pytestmark = pytest.mark.quick
 

@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 
 from millsense.daemon.history.store import HistoryStore
-from millsense.daemon.pipeline import runner as runner_module
-from millsense.daemon.pipeline.runner import Runner
-from millsense.daemon.pipeline.status import SeqClock
+from millsense.daemon.runtime import runner as runner_module
+from millsense.daemon.runtime.runner import Runner
+from millsense.daemon.runtime.status import SeqClock
 from millsense.drivers.sim_driver import SimDriver
 
 REV_SAMPLES = 100
@@ -137,9 +137,9 @@ def test_overload_asserts_feed_hold_before_anything_is_published(rig):
     assert held, "feed hold must be on the DAQ before the alarm is handed to the sink"
     by_rev = {p["rev"]: h for p, h in sink.of("estimate")}
     assert by_rev[6] is True and by_rev[4] is False
-    assert drv.device.feed_hold and runner.status()["interlock"] == "feed_hold"
+    assert drv.device.feed_hold and runner.controls.status()["interlock"] == "feed_hold"
     # numbered within the run, and listed as active in every status (for subscribers that join late)
-    status = runner.status()
+    status = runner.controls.status()
     assert alarm["alarm_seq"] == 1 and alarm["run_id"] == status["run_id"] and status["alarm_seq"] == 1
     assert status["active_alarms"] == [alarm]
     # latched: it stays although the torque stays over the limit and nothing new trips
@@ -147,13 +147,13 @@ def test_overload_asserts_feed_hold_before_anything_is_published(rig):
     wait_for(lambda: len(sink.of("estimate")) >= n_est + 2, 3, "revolutions newer than the hold")
     assert [p["level"] for p, _ in sink.of("alarm")] == ["overload"]
     # the overload persists: the reset is refused and says why; the feed stays held
-    refused = runner.reset("test")
+    refused = runner.controls.reset("test")
     assert refused["ok"] is False and refused["condition"] == "overload" and "torque_nm" in refused["error"]
     assert drv.device.feed_hold and runner.interlock.state == "feed_hold"
     torque["nm"] = 10.0
     n_est = len(sink.of("estimate"))
     wait_for(lambda: len(sink.of("estimate")) >= n_est + 2, 3, "revolutions under the limit")
-    result = runner.reset("test")
+    result = runner.controls.reset("test")
     assert result["ok"] and result["interlock"] == "armed"
     wait_for(lambda: not drv.device.feed_hold, 1, "feed hold released on the DAQ")
     # reset re-arms: an overload that comes back trips again two revolutions later
@@ -168,7 +168,7 @@ def test_a_reset_right_after_the_trip_is_refused_for_want_of_news(rig):
     est = ScriptedEstimator(lambda rev: 35.0 if rev >= 5 else 10.0)
     runner, drv, sink = rig(est)
     wait_for(lambda: runner.interlock.latched, 5, "overload trip")
-    r = runner.reset()
+    r = runner.controls.reset()
     # nothing newer than the hold says the overload is gone: when in doubt, hold
     assert r["ok"] is False and r["condition"] in ("no_data", "no_revolution", "overload"), r
     assert drv.device.feed_hold
@@ -215,7 +215,7 @@ def test_heartbeats_flow_while_healthy_and_stop_when_the_estimator_stalls(rig):
     runner, drv, sink = rig(est)
     # (the deadlines are for events on a loaded 2-core box, not budgets: the outcomes are what is checked)
     wait_for(lambda: drv.device.last_heartbeat > 5, 10, "heartbeats")
-    assert not drv.device.feed_hold and runner.status()["heartbeating"]
+    assert not drv.device.feed_hold and runner.controls.status()["heartbeating"]
     # rev 15 closes after ~1.5 s and then the estimator hangs for 0.9 s (> watchdog 200 ms)
     wait_for(lambda: drv.device.feed_hold, 10, "the DAQ's watchdog tripping")
     assert drv.device.flags & 0x01, "feed hold must come from the watchdog"
@@ -235,7 +235,7 @@ def test_status_and_stop(rig):
     t0 = time.monotonic()
     runner.stop(1.0)
     assert time.monotonic() - t0 < 1.2
-    assert all(not t.is_alive() for t in runner._threads)
+    assert all(not t.is_alive() for t in runner.threads)
     assert runner.state == "stopping"
 
 
@@ -243,19 +243,19 @@ def test_test_trip_holds_through_the_trip_path_and_reports_the_daq_confirmation(
     runner, drv, sink = rig(ScriptedEstimator(lambda rev: 5.0))
     wait_for(lambda: len(sink.of("estimate")) >= 2, 5, "revolutions")
     writes_before = runner.interlock.hold_writes
-    r = runner.test_trip("pytest")
+    r = runner.controls.test_trip("pytest")
     assert r["ok"] is True, r
     assert r["daq_confirm_ms"] is not None and r["daq_confirm_ms"] >= 0
     assert r["cnc_confirm_ms"] is None and r["cnc_reports_hold"] is False  # the simulated DAQ speaks protocol 1
     assert drv.device.feed_hold and runner.interlock.reason == "test-trip" and runner.interlock.trips == 1
     assert runner.interlock.hold_writes == writes_before + 1
     # a second test while held proves nothing: refused
-    again = runner.test_trip("pytest")
+    again = runner.controls.test_trip("pytest")
     assert again["ok"] is False and "already" in again["error"]
     # a test-trip latched for no condition: the reset that follows is granted at once
-    assert runner.reset("pytest")["ok"] is True
+    assert runner.controls.reset("pytest")["ok"] is True
     wait_for(lambda: not drv.device.feed_hold, 1, "released")
-    assert runner.status()["last_test_trip"]["ok"] is True
+    assert runner.controls.status()["last_test_trip"]["ok"] is True
 
 
 def test_test_trip_without_a_daq_confirmation_is_not_ok(rig):
@@ -264,7 +264,7 @@ def test_test_trip_without_a_daq_confirmation_is_not_ok(rig):
     # a DAQ that takes the command but never shows it in its status (a stuck output stage)
     real = drv.device.status
     drv.device.status = lambda: real().__class__(real().outputs & ~1, real().flags, real().last_heartbeat)
-    r = runner.test_trip("pytest", wait_s=0.3)
+    r = runner.controls.test_trip("pytest", wait_s=0.3)
     assert r["ok"] is False and r["daq_confirm_ms"] is None and "did not show" in r["error"]
 
 

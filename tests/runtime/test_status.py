@@ -9,16 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from millsense.daemon.pipeline.status import (
-    LatencyStats,
-    SeqClock,
-    bad_frames,
-    hold_of,
-    interlock_detail,
-    percentile,
-    status_line,
-    summary_line,
-)
+from millsense.daemon.runtime.status import LatencyStats, SeqClock, bad_frames, interlock_detail, percentile
+from millsense.daemon.status_text import hold_of, status_line, summary_line
 from millsense.drivers.protocol import OUT_FEED_HOLD, Status
 
 pytestmark = pytest.mark.quick

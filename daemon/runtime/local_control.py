@@ -9,13 +9,15 @@ The socket file is mode 0660 in the state directory.
 
 Protocol: one connection per request; the client sends one JSON line
 `{"command": "reset" | "test-trip" | "status" | "limits" | "afc", "args": {...}}` and
-gets one JSON line back. `reset` and `test-trip` go through `Runner.reset` /
-`Runner.test_trip`, so a reset is still refused while the condition that
+gets one JSON line back (daemon/local_socket.py: the protocol and the client; this is the server).
+Every request is asked of the daemon's one `Controls` (runtime/controls.py), the same object the
+Zenoh queryables ask. `reset` and `test-trip` go through `Controls.reset` /
+`Controls.test_trip`, so a reset is still refused while the condition that
 latched persists. `limits` takes the args of `cmd/limits` (publish/limits_args.py):
-`list` and `show` read (`Runner.limits()`, or the key's detail), the other
-actions change the learned limits through `Runner.limits_command`. `afc` takes the
+`list` and `show` read (`Controls.limits()`, or the key's detail), the other
+actions change the learned limits through `Controls.limits_command`. `afc` takes the
 args of `cmd/afc` ({"action": "on" | "off" | "status"}): `status` reads, `on` and
-`off` switch adaptive feed control through `Runner.afc_command`. Every command
+`off` switch adaptive feed control through `Controls.afc_command`. Every command
 that changes something is recorded in the audit log, granted or refused, with
 the peer's uid and pid.
 
@@ -32,116 +34,32 @@ from __future__ import annotations
 import json
 import os
 import socket
-import struct
 import threading
-import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import structlog
 
+from millsense.daemon.afc.args import afc_reply, check_afc_args
+from millsense.daemon.controls import Controls
+from millsense.daemon.local_socket import (COMMANDS, DENIED_READ_S, READ_DEADLINE_S, SOCKET_MODE, command_of,
+                                           peer_credentials, read_line, socket_path)
+from millsense.daemon.publish.limits_args import READS, check_args
 from millsense.drivers.base import name_os_thread
 
 log = structlog.get_logger("millsense.local_control")
-
-SOCKET_NAME = "control.sock"
-COMMANDS = ("reset", "test-trip", "status", "limits", "afc")
-MAX_REQUEST_BYTES = 4096
-READ_DEADLINE_S = 2.0    # the whole request, from the connection
-DENIED_READ_S = 0.25     # ... from a uid that may not command: read only to name its command in the audit log
-SOCKET_MODE = 0o660
-# How long a local client waits for the daemon's answer. An edge box can be loaded (a slicer, a
-# backup, another daemon): a daemon that is running answers, only later, and an operator at the
-# machine would rather wait than be told to try again. What cannot be answered in this long is a
-# daemon that is hung, and the error says so.
-CLIENT_TIMEOUT_S = 30.0
-
-
-class LocalControlError(Exception):
-    """The local command could not be asked or answered (no daemon, no permission, a bad reply)."""
-
-
-def socket_path(state_dir: Path) -> Path:
-    return Path(state_dir) / SOCKET_NAME
-
-
-# -- client ----------------------------------------------------------------------
-def local_command(state_dir: Path, command: str, timeout_s: float = CLIENT_TIMEOUT_S,
-                  args: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Ask the daemon whose state directory is `state_dir`; its JSON reply. `args`: for `limits`, `afc`.
-
-    Raises `LocalControlError` with a sentence for the user when no daemon
-    listens there, the socket is not ours to use, or nothing came back in time.
-    """
-    path = socket_path(state_dir)
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    sock.settimeout(timeout_s)
-    try:
-        try:
-            sock.connect(str(path))
-        except FileNotFoundError:
-            raise LocalControlError(f"no daemon's control socket at {path} (is millsense running for this machine?)") from None
-        except PermissionError:
-            raise LocalControlError(f"not allowed to use {path}: run as root or as the daemon's user") from None
-        except ConnectionRefusedError:
-            raise LocalControlError(f"no daemon listens on {path} (a socket left by a stopped daemon?)") from None
-        except OSError as exc:
-            raise LocalControlError(f"cannot connect to {path}: {exc}") from None
-        try:
-            request: dict[str, Any] = {"command": command} if args is None else {"command": command, "args": args}
-            sock.sendall((json.dumps(request) + "\n").encode())
-            data = _read_line(sock)
-        except socket.timeout:
-            raise LocalControlError(
-                f"the daemon at {path} accepted the request but did not answer within {timeout_s:g} s: "
-                "it is running but hung or starved of CPU (see its log; a longer --timeout waits more)"
-            ) from None
-        except OSError as exc:
-            raise LocalControlError(f"the daemon closed the connection: {exc}") from None
-    finally:
-        sock.close()
-    if not data:
-        raise LocalControlError("the daemon closed the connection without an answer")
-    try:
-        reply = json.loads(data.decode("utf-8"))
-    except (UnicodeDecodeError, ValueError):
-        raise LocalControlError("the daemon's answer is not JSON") from None
-    if not isinstance(reply, dict):
-        raise LocalControlError("the daemon's answer is not a JSON object")
-    return reply
-
-
-def _read_line(sock: socket.socket, deadline_s: float | None = None) -> bytes:
-    """One line; with `deadline_s`, all of it within that many seconds from now (socket.timeout if not)."""
-    end = None if deadline_s is None else time.monotonic() + deadline_s
-    buf = b""
-    while b"\n" not in buf and len(buf) <= MAX_REQUEST_BYTES * 64:
-        if end is not None:
-            left = end - time.monotonic()
-            if left <= 0:
-                raise socket.timeout("no complete request in time")
-            sock.settimeout(left)
-        chunk = sock.recv(65536)
-        if not chunk:
-            break
-        buf += chunk
-    return buf.split(b"\n", 1)[0]
-
-
-# -- server ----------------------------------------------------------------------
-def peer_credentials(conn: socket.socket) -> tuple[int, int, int]:
-    """(pid, uid, gid) of the process at the other end (Linux SO_PEERCRED)."""
-    raw = conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
-    pid, uid, gid = struct.unpack("3i", raw)
-    return pid, uid, gid
 
 
 class LocalControl:
     """The server side: one thread accepting on `state_dir/control.sock`."""
 
-    def __init__(self, state_dir: Path, runner: Any, allowed_uids: tuple[int, ...] | None = None):
+    def __init__(self, state_dir: Path, controls: Controls, allowed_uids: tuple[int, ...] | None = None,
+                 on_error: Callable[[str, str], Any] | None = None):
+        """`controls`: what the requests ask (the daemon's `OperatorControls`, the same as Zenoh's); its
+        `audit` records them. `on_error(kind, reason)`: a socket that cannot be made (the fault path)."""
         self.path = socket_path(state_dir)
-        self.runner = runner
+        self.controls = controls
+        self._on_error = on_error
         self.allowed_uids = allowed_uids if allowed_uids is not None else tuple(sorted({0, os.getuid()}))
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
@@ -164,7 +82,11 @@ class LocalControl:
                 sock.close()
                 raise
         except OSError as exc:
-            self.runner.fault("local_control", f"cannot open the local control socket {self.path}: {exc}")
+            reason = f"cannot open the local control socket {self.path}: {exc}"
+            if self._on_error is not None:
+                self._on_error("local_control", reason)
+            else:
+                log.error("local_control.failed", reason=reason)
             return False
         self._sock = sock
         self._stop.clear()   # started again after a close (the socket deleted under the daemon)
@@ -212,10 +134,10 @@ class LocalControl:
     def _handle(self, conn: socket.socket) -> None:
         pid, uid, _gid = peer_credentials(conn)
         requester = f"local uid={uid} pid={pid}"
-        audit = self.runner.audit
+        audit = self.controls.audit
         allowed = uid in self.allowed_uids
         try:
-            line = _read_line(conn, READ_DEADLINE_S if allowed else DENIED_READ_S)
+            line = read_line(conn, READ_DEADLINE_S if allowed else DENIED_READ_S)
         except socket.timeout:
             if allowed:
                 audit.record("?", requester, False, reason=f"no complete request within {READ_DEADLINE_S:g} s: cut off")
@@ -223,20 +145,20 @@ class LocalControl:
             line = b""   # refused all the same, below: its command unknown
         except OSError:
             return
-        command, args = _command_of(line)
+        command, args = command_of(line)
         if not allowed:
             reply = {"ok": False, "error": f"uid {uid} may not command this daemon (root or uid {os.getuid()} only)"}
             audit.record(command or "?", requester, False, reason=reply["error"])
         elif command is None:
             reply = {"ok": False, "error": f"bad request: expected one JSON line {{\"command\": one of {list(COMMANDS)}}}"}
         elif command == "status":
-            reply = {"ok": True, **self.runner.status()}
+            reply = {"ok": True, **self.controls.status()}
         elif command == "limits":
             reply = self._limits(args, requester)
         elif command == "afc":
             reply = self._afc(args, requester)
         else:
-            fn = self.runner.reset if command == "reset" else self.runner.test_trip
+            fn = self.controls.reset if command == "reset" else self.controls.test_trip
             reply = fn(requester=requester)
             audit.record(command, requester, bool(reply.get("ok")), reason=reply.get("error"),
                          result={k: v for k, v in reply.items() if k not in ("interlock_detail",)})
@@ -247,10 +169,8 @@ class LocalControl:
 
     def _limits(self, args: Any, requester: str) -> dict[str, Any]:
         """`limits` at the machine: reads answered as they are, changes audited like a reset."""
-        from millsense.daemon.publish.limits_args import READS, check_args
-
-        audit = self.runner.audit
-        method = getattr(self.runner, "limits_command", None)
+        audit = self.controls.audit
+        method = getattr(self.controls, "limits_command", None)
         if not callable(method):
             return {"ok": False, "error": "this daemon has no learned limits"}
         try:
@@ -259,26 +179,24 @@ class LocalControl:
             audit.record("limits", requester, False, reason=str(exc))
             return {"ok": False, "error": str(exc)}
         if checked["action"] == "list":
-            return {"ok": True, **self.runner.limits()}
+            return {"ok": True, **self.controls.limits()}
         try:
             result = method(checked, requester)
-        except Exception as exc:  # noqa: BLE001 - ValueError: the Runner's refusal; anything else: said, not hung up
+        except Exception as exc:  # noqa: BLE001 - ValueError: the daemon's refusal; anything else: said, not hung up
             result = {"ok": False, "error": str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"}
         if not isinstance(result, dict):
             result = {"ok": False, "error": f"the daemon returned {type(result).__name__}, expected an object"}
         reply = {**checked, **result}
         if checked["action"] not in READS:
-            # Granted as over Zenoh (cmd/limits): the operator was allowed and the Runner asked; whether it
+            # Granted as over Zenoh (cmd/limits): the operator was allowed and the daemon asked; whether it
             # could do it is in the result (a refusal line would be rate-limited, and this is no attack).
             audit.record("limits", requester, True, result=reply)
         return reply
 
     def _afc(self, args: Any, requester: str) -> dict[str, Any]:
         """`afc` at the machine: `status` read as it is, `on` / `off` audited like a reset."""
-        from millsense.daemon.publish.sink import afc_reply, check_afc_args
-
-        audit = self.runner.audit
-        method = getattr(self.runner, "afc_command", None)
+        audit = self.controls.audit
+        method = getattr(self.controls, "afc_command", None)
         if not callable(method):
             return {"ok": False, "error": "this daemon has no adaptive feed control"}
         try:
@@ -291,19 +209,7 @@ class LocalControl:
         except Exception as exc:  # noqa: BLE001 - said to the operator, not hung up on
             reply = {**checked, "ok": False, "error": f"{type(exc).__name__}: {exc}"}
         if checked["action"] != "status":
-            # Granted as over Zenoh (cmd/afc): the operator was allowed and the Runner asked; a refusal
-            # of the Runner's own (a protocol-1 DAQ, say) is in the result.
+            # Granted as over Zenoh (cmd/afc): the operator was allowed and the daemon asked; a refusal
+            # of the daemon's own (a protocol-1 DAQ, say) is in the result.
             audit.record("afc", requester, True, result=reply)
         return reply
-
-
-def _command_of(line: bytes) -> tuple[str | None, Any]:
-    """(command, args) of a request line; (None, None) for anything else."""
-    try:
-        obj = json.loads(line.decode("utf-8"))
-    except (UnicodeDecodeError, ValueError):
-        return None, None
-    command = obj.get("command") if isinstance(obj, dict) else None
-    if command not in COMMANDS:
-        return None, None
-    return command, obj.get("args")

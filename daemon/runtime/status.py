@@ -1,6 +1,8 @@
-"""Small pure helpers of the runtime: live time of a sample, latency percentiles, the status line.
+"""The status payload of the live daemon (`StatusReport`, what `status` answers and the status thread
+publishes) and its small pure helpers: live time of a sample, latency percentiles, bad frames.
 
-Kept apart from the threads so that each can be tested with a fake clock.
+The helpers are kept apart from the threads so that each can be tested with a fake clock; the text
+renderings of a status (the live line, sd_notify's STATUS=, the hold) are daemon/status_text.py's.
 """
 
 from __future__ import annotations
@@ -121,20 +123,6 @@ def bad_frames(driver_stats: dict[str, Any]) -> int:
     return sum(int(driver_stats.get(k, 0) or 0) + int(driver_stats.get(f"decoder_{k}", 0) or 0) for k in BAD_FRAME_KEYS)
 
 
-def _fmt(value: Any, spec: str) -> str:
-    if value is None:
-        return "–"
-    try:
-        return format(float(value), spec)
-    except (TypeError, ValueError):
-        return "–"
-
-
-# The alarm levels whose alarm, sent with `"interlock": "feed_hold"`, is the trip itself (pipeline/alarms.py,
-# TRIP_LEVELS; envelope alarms hold as `[learning]` says): a display may show the hold from it at once.
-TRIP_LEVELS = ("overload", "crash", "tool_breakage", "envelope_high", "envelope_low")
-
-
 def interlock_detail(interlock: Any, driver: Any) -> dict[str, Any]:
     """The status's `interlock_detail`: the interlock's own state, and `daq_feed_hold`, what the DAQ's
     last STATUS says of its feed-hold output (None before one came).
@@ -147,77 +135,103 @@ def interlock_detail(interlock: Any, driver: Any) -> dict[str, Any]:
     return detail
 
 
-def hold_of(status: dict[str, Any]) -> tuple[str, float | None] | None:
-    """(reason, since) while a status says the feed is held, else None.
+class LiveState:
+    """What the estimator thread counted and last saw, read by the status payload, the fault board and the
+    controls. Written by the estimator thread only (and `last_trip_ms` by the trip, `last_test_trip` by a
+    test-trip); a reader takes each value as it is."""
 
-    Held: the interlock latched (`feed_hold`: its reason and the trip's Unix time), the DAQ holds a
-    feed this run did not set (`held_by_device`), or the DAQ's last STATUS still shows the hold (a
-    release written but not yet confirmed)."""
-    if not isinstance(status, dict):
-        return None
-    detail = status.get("interlock_detail") if isinstance(status.get("interlock_detail"), dict) else {}
-    state = status.get("interlock")
-    since = detail.get("since")
-    since = float(since) if isinstance(since, (int, float)) and not isinstance(since, bool) else None
-    if state == "feed_hold":
-        reason = detail.get("reason")
-        return (reason if isinstance(reason, str) and reason else "latched"), since
-    if state == "held_by_device":
-        return ("by the DAQ, not set by this run" + (" (its watchdog tripped)" if detail.get("watchdog_tripped")
-                                                      else "")), since
-    if detail.get("daq_feed_hold") is True:
-        return "release not yet confirmed by the DAQ", since
-    return None
-
-
-def held_text(reason: str, since: float | None) -> str:
-    """"feed held: <reason>, since HH:MM:SS" (local time), as every display says it."""
-    when = f", since {time.strftime('%H:%M:%S', time.localtime(since))}" if since is not None else ""
-    return f"feed held: {reason}{when}"
+    def __init__(self, now_mono: float):
+        self.started_mono = now_mono
+        self.samples_received = 0
+        self.revolutions = 0
+        self.alarms_sent = 0
+        self.processes = 0
+        self.last_estimate: dict | None = None
+        self.last_alarm: dict | None = None
+        self.last_process: dict | None = None
+        self.last_trip_ms: float | None = None
+        self.last_test_trip: dict[str, Any] | None = None
+        self.last_seq: int | None = None   # the last sample the estimator took: a hold that begins now is newer
+        self.spindle_stopped = False
+        self.latency = LatencyStats()  # per revolution: its frame handed to the estimator thread → sink
+        self.delay = LatencyStats()    # per revolution: its frame decoded by the reader → sink (queue wait too)
 
 
-def summary_line(estimate: dict[str, Any] | None, alarm_state: str, status: dict[str, Any]) -> str:
-    """The live line: state, interlock and alarm first (and while held, why and since when), then rpm,
-    torque, force, depths.
+class StatusReport:
+    """The `status` payload (docs/zenoh.md): what the status thread publishes each second and `status` answers."""
 
-    Fixed widths, so that a line refreshed in place does not jitter; what matters for
-    safety comes first, because a terminal narrower than the line cuts its end.
-    """
-    e = estimate or {}
-    hold = hold_of(status)
-    return (
-        f"{status.get('state', '?'):<8} interlock {status.get('interlock', '?'):<9}  alarm {alarm_state:<8}  "
-        + (held_text(*hold) + "  " if hold is not None else "")
-        + f"rev {e.get('rev', '–')!s:>6}  "
-        f"{_fmt(e.get('spindle_rpm'), '5.0f')} rpm  "
-        f"T {_fmt(e.get('torque_nm'), '6.2f')} N·m  "
-        f"F {_fmt(e.get('force_n'), '6.0f')} N  "
-        f"ae {_fmt(e.get('radial_depth_mm'), '5.2f')} ap {_fmt(e.get('axial_depth_mm'), '5.2f')} mm"
-        + ("  (speeding up)" if e.get("accelerating") else "")
-    )
+    def __init__(self, machine: str, version: str, driver: Any, core: Any, interlock: Any, live: LiveState, *,
+                 board: Any, afc: Any, active_alarms: Any, alarm_lock: threading.Lock,
+                 history: Any = None, sink: Any = None):
+        self.machine = machine
+        self.version = version
+        self._driver = driver
+        self._core = core
+        self._interlock = interlock
+        self._live = live
+        self._board = board
+        self._afc = afc
+        self._active_alarms = active_alarms
+        self._alarm_lock = alarm_lock
+        self.history = history
+        self.sink = sink   # set by the Runner's start
 
+    def payload(self) -> dict[str, Any]:
+        live, core = self._live, self._core
+        stats: dict[str, Any] = {}
+        try:
+            stats = dict(self._driver.stats())
+        except Exception:  # noqa: BLE001
+            pass
+        with self._alarm_lock:
+            alarms = core.active()
+            alarm = core.summary()
+            ctx = core.context.at(live.last_seq) if live.last_seq is not None else None
+            learning = None if core.monitor is None else core.monitor.state_counts()
+            learned = {} if core.monitor is None else {"learned_limits": core.monitor.learned_limits_status()}
+        return {
+            "machine": self.machine,
+            "t": time.time(),
+            "state": self._board.state,
+            "daq_link": "up" if self._driver.link_up else "down",
+            "samples_received": live.samples_received,
+            "bad_frames": bad_frames(stats),
+            "lost_samples": core.lost_samples_total,
+            "revolutions": live.revolutions,
+            "latency_ms": live.latency.percentiles_ms(),
+            "rev_delay_ms": live.delay.percentiles_ms(),
+            "interlock": self._interlock.state,
+            "interlock_detail": interlock_detail(self._interlock, self._driver),
+            "heartbeating": self._interlock.heartbeating,
+            "last_trip_ms": live.last_trip_ms,
+            "last_test_trip": live.last_test_trip,
+            "alarm": alarm,
+            "alarms": alarms,
+            **self._active_alarms.snapshot(),
+            "faults": dict(self._board.faults),
+            "context": None if ctx is None else {"program": ctx.program, "tool": ctx.tool,
+                                                 "operation": ctx.operation, "source": ctx.source,
+                                                 "authority": ctx.authority},
+            "context_auth": core.context.auth.status() if core.context.auth is not None else None,
+            "processes": live.processes,
+            "learning": learning,   # how many process keys are learning, pending, active (None: learning off)
+            **learned,
+            "afc": self._afc.status(),
+            "history": self._history_stats(),
+            "daq": stats,
+            "sink": self._sink_stats(),
+            "uptime_s": round(time.monotonic() - live.started_mono, 1),
+            "version": self.version,
+        }
 
-def status_line(status: dict[str, Any]) -> str:
-    """One-line health for sd_notify STATUS= and the debug stats line."""
-    lat = status.get("latency_ms") or {}
-    return (
-        f"{status.get('state')}; DAQ {status.get('daq_link')}; {status.get('samples_received')} samples, "
-        f"{status.get('lost_samples')} lost, {status.get('bad_frames')} bad frames; "
-        f"{status.get('revolutions')} revs, p99 {_fmt(lat.get('p99'), '.2f')} ms; "
-        f"alarm {status.get('alarm')}; interlock {status.get('interlock')}"
-        + _afc_part(status.get("afc"))
-        + _zenoh_part(status.get("sink"))
-    )
+    def _history_stats(self) -> dict | None:
+        try:
+            return self.history.stats() if self.history is not None else None
+        except Exception:  # noqa: BLE001
+            return None
 
-
-def _afc_part(afc: dict[str, Any] | None) -> str:
-    """Only while adaptive feed control is on: its state and the override it commands (issue 15)."""
-    if not isinstance(afc, dict) or not afc.get("enabled"):
-        return ""
-    return f"; AFC {afc.get('state')} override {_fmt(afc.get('override_pct'), '.0f')} %"
-
-
-def _zenoh_part(sink: dict[str, Any] | None) -> str:
-    if not sink or sink.get("zenoh_routers") is None:
-        return ""
-    return f"; Zenoh {sink['zenoh_routers']} routers, {sink.get('zenoh_peers')} peers"
+    def _sink_stats(self) -> dict | None:
+        try:
+            return self.sink.stats() if self.sink is not None and hasattr(self.sink, "stats") else None
+        except Exception:  # noqa: BLE001
+            return None

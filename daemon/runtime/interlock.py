@@ -30,7 +30,7 @@ Why it is built this way:
 - **No authority here.** `reset()` clears the latch for whoever calls it:
   the caller has already decided that the request may be granted (the Zenoh
   queryable authorises it in `publish/command_auth.py`; the local control
-  socket checks the peer's uid; the runner checks that the condition that
+  socket checks the peer's uid; `OperatorControls.reset` checks that the condition that
   latched is gone). `reset_policy` is kept only to be reported in the state.
 - **Persisted by others.** `on_change` (if given) is called with the latch
   record after every change, from the changing thread, and must return at
@@ -52,7 +52,7 @@ import structlog
 log = structlog.get_logger("millsense.interlock")
 
 RESET_POLICIES = ("open", "token", "off")
-TEST_TRIP = "test-trip"  # the reason of a proof test's latch (`Runner.test_trip`)
+TEST_TRIP = "test-trip"  # the reason of a proof test's latch (`OperatorControls.test_trip`)
 
 
 class Interlock:
@@ -422,12 +422,9 @@ def _number(value: Any) -> float | None:
     return f if f == f else None  # inf stays: a current clipped while high is beyond what the sensor measures
 
 
-TEST_TRIP_WAIT_S = 2.0  # longest wait for each confirmation of a test-trip (the daemon's and `commission`'s)
-
-
 def wait_ms(done: Callable[[], bool], t0: float, wait_s: float) -> float | None:
     """Milliseconds from `t0` until `done()`, polled every half millisecond; None if not within wait_s.
-    How a proof test times the DAQ's and the CNC's confirmation of a hold (`Runner.test_trip`, `commission`)."""
+    How a proof test times the DAQ's and the CNC's confirmation of a hold (`OperatorControls.test_trip`, `commission`)."""
     while True:
         now = time.monotonic()
         if done():
@@ -435,3 +432,9 @@ def wait_ms(done: Callable[[], bool], t0: float, wait_s: float) -> float | None:
         if now - t0 > wait_s:
             return None
         time.sleep(0.0005)
+
+
+def trip_reason(ev: Any) -> str:
+    """The interlock's reason for a hold: the alarm, its value and the limit it crossed (from below or above)."""
+    side = "<" if ev.level == "envelope_low" else ">"
+    return f"{ev.level} {ev.quantity} {ev.value} {side} {ev.limit}"

@@ -1,7 +1,7 @@
 """Adaptive feed control: hold a cut's load at its target through the CNC's feed override (issue 15).
 
-Pure: no I/O, no threads, time passed in. The runner feeds it one estimate per
-revolution and writes what it decides (`feed_output.py`); faults reach it
+Pure: no I/O, no threads, time passed in. The supervisor (`supervisor.py`) feeds it one estimate per
+revolution and writes what it decides (`output.py`); faults reach it
 through `safe()`. Tuning and its reasons: docs/afc.md.
 
 The plant, seen from the override: the load follows feed^gain (torque ~ t^(1+p),

@@ -1,6 +1,6 @@
 """The feed override written to the DAQ (protocol version 2), from any thread.
 
-The adaptive feed controller (`feed_control.py`) decides; this module only
+The adaptive feed controller (`controller.py`) decides; this module only
 writes. Two threads write: the estimator thread (the controller's decision per
 revolution, the staleness check) and whichever thread sees a fault or trips the
 interlock (the reader thread's crash check too), which sets the override to

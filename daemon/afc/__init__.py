@@ -1,0 +1,1 @@
+"""Adaptive feed control (docs/afc.md): the pure controller, the override output, and the supervisor that runs them live."""

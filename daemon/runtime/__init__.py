@@ -1,0 +1,1 @@
+"""The live daemon, built only by `millsense run`: the Runner's threads and the parts it builds (docs/architecture.md)."""
