@@ -1,4 +1,5 @@
-"""Captures of the simulated plant made once per test run and shared by every module and worker.
+"""Captures of the simulated plant (and the firmware's host builds) made once per test run and shared by
+every module and worker.
 
 A capture is a pure function of what generates it (the scenario, the seed, the flags of
 `millsense sim`): the plant is seeded and plays no clock. Several modules (and several tests
@@ -71,10 +72,10 @@ def shared(key: str, build: Callable[[Path], None]) -> Path:
             work = Path(tempfile.mkdtemp(prefix=f"{name}.", dir=base))
             try:
                 build(work)
-                sums = {f.name: _sha256(f) for f in sorted(work.iterdir())}
+                sums = {str(f.relative_to(work)): _sha256(f) for f in _files(work)}
                 (work / SUMS).write_text(json.dumps({"key": key, "sha256": sums}, indent=1) + "\n")
-                for f in work.iterdir():
-                    f.chmod(stat.S_IRUSR | stat.S_IRGRP | stat.S_IROTH)
+                for f in _files(work):
+                    f.chmod(f.stat().st_mode & ~(stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH))   # an executable stays one
                 os.rename(work, done)
             except BaseException:
                 shutil.rmtree(work, ignore_errors=True)
@@ -90,6 +91,10 @@ def lock_file(key: str) -> Path:
 
 
 SUMS = "sha256.json"
+
+
+def _files(d: Path) -> list[Path]:
+    return sorted(f for f in d.rglob("*") if f.is_file() and not f.is_symlink())
 
 
 def _sha256(path: Path) -> str:
