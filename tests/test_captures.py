@@ -13,6 +13,8 @@ import pytest
 from tests import captures
 from tests.e2e.helpers import wait_for
 
+pytestmark = pytest.mark.quick  # what many live modules read is checked in the inner loop too (a few seconds)
+
 
 def test_a_shared_capture_is_the_bytes_the_simulator_writes_in_place(tmp_path):
     from millsense.sim import write_capture
