@@ -55,25 +55,28 @@ def any_build(request) -> Path:
     return _build(request.param)
 
 
+def _sim_capture(*args: str) -> Path:
+    """`millsense sim ... --capture`, made once per test run and shared by the workers (tests/captures.py)."""
+
+    def build(d: Path) -> None:
+        p = subprocess.run(CMD + ["sim", *args, "--capture", str(d / "capture.cap")], capture_output=True, text=True,
+                           timeout=120)
+        assert p.returncode == 0, p.stderr
+
+    return captures.shared("millsense sim " + " ".join(args), build) / "capture.cap"
+
+
 @pytest.fixture(scope="session")
-def ramp_capture(tmp_path_factory) -> Path:
+def ramp_capture() -> Path:
     """Three seconds of the emulator's ramp: channel c of sample k is (k + 1000 c) mod 2^16."""
-    cap = tmp_path_factory.mktemp("ramp") / "ramp.cap"
-    p = subprocess.run(CMD + ["sim", "--scenario", "ramp", "--capture", str(cap), "--duration-s", "3"],
-                       capture_output=True, text=True, timeout=120)
-    assert p.returncode == 0, p.stderr
-    return cap
+    return _sim_capture("--scenario", "ramp", "--duration-s", "3")
 
 
 @pytest.fixture(scope="session")
-def ramp_capture_v2(tmp_path_factory) -> Path:
+def ramp_capture_v2() -> Path:
     """The ramp from a protocol-2 emulator whose CNC runs program 1234, tool 12, operation 3 (its CONTEXT)."""
-    cap = tmp_path_factory.mktemp("ramp2") / "ramp2.cap"
-    p = subprocess.run(CMD + ["sim", "--scenario", "ramp", "--protocol", "2", "--program", "1234", "--tool", "12",
-                              "--operation", "3", "--capture", str(cap), "--duration-s", "3"],
-                       capture_output=True, text=True, timeout=120)
-    assert p.returncode == 0, p.stderr
-    return cap
+    return _sim_capture("--scenario", "ramp", "--protocol", "2", "--program", "1234", "--tool", "12", "--operation", "3",
+                        "--duration-s", "3")
 
 
 def ramp_counts(index: int, channels: int = 8) -> tuple[int, ...]:
