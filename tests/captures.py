@@ -4,7 +4,7 @@ every module and worker.
 A capture is a pure function of what generates it (the scenario, the seed, the flags of
 `millsense sim`): the plant is seeded and plays no clock. Several modules (and several tests
 of one module) ask for the same one; each used to build its own copy, at 0.5 to 2 CPU s a
-capture (docs/testing.md, "Captures made once"). `shared(key, build)` builds it the first
+capture (docs/testing.md, "Captures made once a run"). `shared(key, build)` builds it the first
 time any test of the run asks, with exactly the call the test made before, and hands every
 later asker the same files:
 
@@ -75,7 +75,8 @@ def shared(key: str, build: Callable[[Path], None]) -> Path:
                 sums = {str(f.relative_to(work)): _sha256(f) for f in _files(work)}
                 (work / SUMS).write_text(json.dumps({"key": key, "sha256": sums}, indent=1) + "\n")
                 for f in _files(work):
-                    f.chmod(f.stat().st_mode & ~(stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH))   # an executable stays one
+                    # read-only; an executable stays one
+                    f.chmod(f.stat().st_mode & ~(stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH))
                 os.rename(work, done)
             except BaseException:
                 shutil.rmtree(work, ignore_errors=True)

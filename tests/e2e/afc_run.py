@@ -237,9 +237,9 @@ def torque_at_depth(scenario: str, depth_mm: float, feed_mm_min: float, tmp: Pat
     tmp = Path(tempfile.mkdtemp()) if tmp is None else tmp
 
     def build(d: Path) -> None:
-        cap = d / "prog.bin"
-        subprocess.run(CMD + ["sim", "--scenario", scenario, "--capture", str(cap), "--truth", str(d / "prog-truth.jsonl"),
-                              "--fast"], check=True, capture_output=True, timeout=300)
+        cap, truth = d / "prog.bin", d / "prog-truth.jsonl"
+        subprocess.run(CMD + ["sim", "--scenario", scenario, "--capture", str(cap), "--truth", str(truth), "--fast"],
+                       check=True, capture_output=True, timeout=300)
         cfg = daemon_config(tmp / "replay.toml", machine="afc-ref", daq_port=1, z_port=free_tcp_port(),
                             feed_mm_min=feed_mm_min, afc=None)
         out = subprocess.run(CMD + ["replay", str(cap), "--config", str(cfg)], capture_output=True, text=True,

@@ -45,7 +45,8 @@ def capture(tmp: Path, scenario: str, *, seed: int = 1, filter_cutoff_hz: float 
         write_capture(scenario, str(d / "capture.bin"), str(d / "truth.jsonl"), **kwargs)
 
     d = captures.shared(f"write_capture {tag}", build)
-    return captures.link(d / "capture.bin", tmp / f"{tag}.bin"), captures.link(d / "truth.jsonl", tmp / f"{tag}.truth.jsonl")
+    return (captures.link(d / "capture.bin", tmp / f"{tag}.bin"),
+            captures.link(d / "truth.jsonl", tmp / f"{tag}.truth.jsonl"))
 
 
 def read_truth(path: Path) -> list[dict]:

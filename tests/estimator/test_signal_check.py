@@ -39,7 +39,8 @@ def capture(tmp: Path, scenario: str, seconds: float, *flags: str, seed: int = 1
         assert res.returncode == 0, res.stderr
 
     shared = captures.shared("millsense sim " + " ".join(args), build)
-    return captures.link(shared / "capture.bin", tmp / f"{scenario}-{seed}-{'_'.join(flags).replace('=', '-') or 'clean'}.bin")
+    name = f"{scenario}-{seed}-{'_'.join(flags).replace('=', '-') or 'clean'}.bin"
+    return captures.link(shared / "capture.bin", tmp / name)
 
 
 def settings(tmp: Path, *, alarms: str = "", encoder: bool = True, channels_extra: dict[str, str] | None = None,

@@ -75,8 +75,8 @@ def ramp_capture() -> Path:
 @pytest.fixture(scope="session")
 def ramp_capture_v2() -> Path:
     """The ramp from a protocol-2 emulator whose CNC runs program 1234, tool 12, operation 3 (its CONTEXT)."""
-    return _sim_capture("--scenario", "ramp", "--protocol", "2", "--program", "1234", "--tool", "12", "--operation", "3",
-                        "--duration-s", "3")
+    return _sim_capture("--scenario", "ramp", "--protocol", "2", "--program", "1234", "--tool", "12",
+                        "--operation", "3", "--duration-s", "3")
 
 
 def ramp_counts(index: int, channels: int = 8) -> tuple[int, ...]:

@@ -37,4 +37,5 @@ def test_a_sim_that_never_filters_does_not_import_scipy_signal(tmp_path, args):
 
 def test_a_plant_that_filters_does(tmp_path):
     # the probe itself can see the import (the test above cannot pass for want of a plant)
-    assert _imports_scipy_signal("sim", "--scenario", "step", "--duration-s", "0.1", "--capture", str(tmp_path / "c.bin"))
+    assert _imports_scipy_signal("sim", "--scenario", "step", "--duration-s", "0.1",
+                                 "--capture", str(tmp_path / "c.bin"))
