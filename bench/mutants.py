@@ -22,8 +22,9 @@ copy. The working tree is never written, so no Ctrl-C, crash or `kill -9` of
 this script can leave a bug planted in it; a patch in place with a restore in
 `finally` cannot promise that for SIGKILL or a power cut. The private
 environment (`python -m venv --without-pip`, a `.pth` that puts a shim whose
-`millsense/daemon`, `millsense/drivers` and `millsense/sim` point into the copy first, and the
-running interpreter's site-packages after it for the dependencies) needs no
+`millsense/daemon`, `millsense/drivers` and `millsense/sim` (pyproject's
+`package-dir`) point into the copy first, and the running interpreter's
+site-packages after it for the dependencies) needs no
 PYTHONPATH, which tests may replace for their subprocesses
 (tests/faults/test_clock.py does): every `sys.executable` the tests start
 imports the copy. The script checks that before the first mutant.
@@ -421,9 +422,8 @@ class Sandbox:
         subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(self.venv)], check=True)
         shim = self.dir / "shim" / "millsense"
         shim.mkdir(parents=True)
-        (shim / "daemon").symlink_to(self.src / "daemon", target_is_directory=True)
-        (shim / "drivers").symlink_to(self.src / "drivers", target_is_directory=True)
-        (shim / "sim").symlink_to(self.src / "sim", target_is_directory=True)   # millsense.sim (the plant, emulator)
+        for name, folder in self.packages().items():   # millsense.daemon -> daemon/, millsense.sim -> sim/, ...
+            (shim / name.removeprefix("millsense.")).symlink_to(self.src / folder, target_is_directory=True)
         site = Path(subprocess.run([str(self.python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
                                    check=True, capture_output=True, text=True).stdout.strip())
         deps = dict.fromkeys([sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]])
@@ -437,9 +437,17 @@ class Sandbox:
         self.env["PATH"] = f"{bindir}{os.pathsep}{self.env.get('PATH', '')}"
         self.env["VIRTUAL_ENV"] = str(self.venv)
 
+    def packages(self) -> dict[str, str]:
+        """pyproject's top-level packages and their folders (`package-dir`): every one must come from the copy
+        (the simulator moved to millsense.sim, sim/: a shim without it imported the working tree's)."""
+        import tomllib
+
+        dirs = tomllib.loads((self.src / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+        return {name: folder for name, folder in dirs.items() if name.count(".") == 1}
+
     def _check_imports(self) -> None:
-        code = ("import millsense.daemon, millsense.drivers, millsense.sim, pytest; "
-                "print(millsense.daemon.__file__); print(millsense.drivers.__file__); print(millsense.sim.__file__)")
+        names = sorted(self.packages())
+        code = f"import {', '.join(names)}, pytest; " + "; ".join(f"print({n}.__file__)" for n in names)
         out = subprocess.run([str(self.python), "-c", code], cwd=self.src, env=self.env, check=True,
                              capture_output=True, text=True).stdout.split()
         for f in out:

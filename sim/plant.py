@@ -25,7 +25,6 @@ import bisect
 import math
 
 import numpy as np
-from scipy import signal
 
 from millsense.drivers.protocol import Descriptor
 from millsense.sim.cutting import CutGeometry, cutting_forces, tooth_chip_factors
@@ -37,6 +36,7 @@ from millsense.sim.sensors import (
     descriptor_channels,
     encoder_counts,
     quantise,
+    scipy_signal,
     select_sensors,
 )
 from millsense.sim.truth import TruthRecorder
@@ -376,7 +376,7 @@ class Plant:
             vx = (v0[:, None] + (v1 - v0)[:, None] * fi).ravel() * cos_p
             amps = (fx_i + fd.friction_n * np.tanh(vx / 0.5)) / fd.newton_per_amp
             a = self._feed_lag  # the servo's current loop: first order at its bandwidth
-            values["ix_feed"], self._feed_zi = signal.lfilter([1 - a], [1, -a], amps, zi=self._feed_zi)
+            values["ix_feed"], self._feed_zi = scipy_signal().lfilter([1 - a], [1, -a], amps, zi=self._feed_zi)
             values["fx_rate"] = vx * 60.0
             values["fx"], values["fy"], values["fz"] = fx_i, fy_i, fz_i
         x = np.stack([values[s.name] for s in self._analog])

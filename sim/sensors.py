@@ -14,12 +14,20 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import signal
 
 from millsense.drivers.protocol import Channel, ChannelKind
 
 ENCODER_COUNTS_PER_REV = 4096
 INT16_MIN, INT16_MAX = -32768, 32767
+
+
+def scipy_signal():
+    """`scipy.signal`, imported when the first filter is built, not with this module: the import costs about
+    0.8 CPU s, which a process that never filters (the emulator's ramp, `millsense sim --help`, an argument
+    refused) need not pay. Python imports a module once; later calls are a dictionary lookup."""
+    from scipy import signal
+
+    return signal
 
 
 @dataclass(frozen=True)
@@ -94,19 +102,19 @@ class AntiAliasFilter:
             if self.cutoff_hz >= internal_rate_hz / 2:
                 raise ValueError(f"filter cut-off {cutoff_hz} Hz must be below {internal_rate_hz / 2} Hz")
             # scipy's digital butter = bilinear transform with the cut-off pre-warped
-            self.sos = signal.butter(order, self.cutoff_hz, btype="low", fs=internal_rate_hz, output="sos")
+            self.sos = scipy_signal().butter(order, self.cutoff_hz, btype="low", fs=internal_rate_hz, output="sos")
             self.zi = np.zeros((self.sos.shape[0], channels, 2))
 
     def prime(self, x0: np.ndarray) -> None:
         """Start in steady state for a constant input x0 (C,)."""
         if self.sos is not None:
-            self.zi = signal.sosfilt_zi(self.sos)[:, None, :] * np.asarray(x0, dtype=float)[None, :, None]
+            self.zi = scipy_signal().sosfilt_zi(self.sos)[:, None, :] * np.asarray(x0, dtype=float)[None, :, None]
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """x: (C, n) at the internal rate."""
         if self.sos is None:
             return x
-        y, self.zi = signal.sosfilt(self.sos, x, axis=1, zi=self.zi)
+        y, self.zi = scipy_signal().sosfilt(self.sos, x, axis=1, zi=self.zi)
         return y
 
 

@@ -29,6 +29,7 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from tests import captures
 from tests.conftest import free_tcp_port
 from tests.e2e.helpers import CMD, Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
 
@@ -234,14 +235,22 @@ def peak(loop: Loop, quantity: str = "torque_nm", top: int = 5) -> float:
 def torque_at_depth(scenario: str, depth_mm: float, feed_mm_min: float, tmp: Path | None = None) -> float:
     """The daemon's torque at `depth_mm` with the programmed feed, from a fast capture replayed offline."""
     tmp = Path(tempfile.mkdtemp()) if tmp is None else tmp
-    cap, truth = tmp / "prog.bin", tmp / "prog-truth.jsonl"
-    subprocess.run(CMD + ["sim", "--scenario", scenario, "--capture", str(cap), "--truth", str(truth), "--fast"],
-                   check=True, capture_output=True, timeout=300)
-    cfg = daemon_config(tmp / "replay.toml", machine="afc-ref", daq_port=1, z_port=free_tcp_port(),
-                        feed_mm_min=feed_mm_min, afc=None)
-    out = subprocess.run(CMD + ["replay", str(cap), "--config", str(cfg)], capture_output=True, text=True,
-                         timeout=300, check=True)
-    est = [json.loads(line) for line in out.stdout.splitlines() if line.startswith("{")]
+
+    def build(d: Path) -> None:
+        cap, truth = d / "prog.bin", d / "prog-truth.jsonl"
+        subprocess.run(CMD + ["sim", "--scenario", scenario, "--capture", str(cap), "--truth", str(truth), "--fast"],
+                       check=True, capture_output=True, timeout=300)
+        cfg = daemon_config(tmp / "replay.toml", machine="afc-ref", daq_port=1, z_port=free_tcp_port(),
+                            feed_mm_min=feed_mm_min, afc=None)
+        out = subprocess.run(CMD + ["replay", str(cap), "--config", str(cfg)], capture_output=True, text=True,
+                             timeout=300, check=True)
+        (d / "replay.jsonl").write_text(out.stdout)
+
+    # the capture and its replay depend on the scenario and the feed alone: made once per test run and shared
+    # by the tests that ask for a level of the same scenario (tests/captures.py)
+    d = captures.shared(f"torque_at_depth {scenario} feed_mm_min={feed_mm_min!r}", build)
+    truth = d / "prog-truth.jsonl"
+    est = [json.loads(line) for line in (d / "replay.jsonl").read_text().splitlines() if line.startswith("{")]
     est = [e for e in est if e.get("type") == "estimate" and e.get("cutting") and e.get("valid", True)]
     # the revolutions with the whole tool inside the level: its centre past the wall before it, and its leading
     # edge not yet at the next one

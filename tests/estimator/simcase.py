@@ -31,17 +31,22 @@ FEED_FORCE = "ix_feed = { newton_per_amp = 950.0, friction_n = 120.0 }"
 
 def capture(tmp: Path, scenario: str, *, seed: int = 1, filter_cutoff_hz: float | None = None,
             noise_scale: float = 1.0, extra_channels: bool | None = None) -> tuple[Path, Path]:
-    """Write (or reuse) a capture and its truth file for the scenario."""
+    """A capture and its truth file for the scenario, as links in `tmp` to the one made for the whole
+    test run (tests/captures.py): read-only, a test that damages a capture writes its own copy."""
     from millsense.sim import write_capture
+    from tests import captures
 
     tag = f"{scenario}-s{seed}-f{filter_cutoff_hz}-n{noise_scale}-x{extra_channels}"
-    cap, truth = tmp / f"{tag}.bin", tmp / f"{tag}.truth.jsonl"
-    if not cap.exists():
+
+    def build(d: Path) -> None:
         kwargs = {"seed": seed, "noise_scale": noise_scale, "extra_channels": extra_channels}
         if filter_cutoff_hz is not None:
             kwargs["filter_cutoff_hz"] = filter_cutoff_hz
-        write_capture(scenario, str(cap), str(truth), **kwargs)
-    return cap, truth
+        write_capture(scenario, str(d / "capture.bin"), str(d / "truth.jsonl"), **kwargs)
+
+    d = captures.shared(f"write_capture {tag}", build)
+    return (captures.link(d / "capture.bin", tmp / f"{tag}.bin"),
+            captures.link(d / "truth.jsonl", tmp / f"{tag}.truth.jsonl"))
 
 
 def read_truth(path: Path) -> list[dict]:

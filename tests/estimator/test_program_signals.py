@@ -24,6 +24,7 @@ from millsense.daemon.config.load import load_config
 from millsense.daemon.commands.capture_reader import iter_capture_blocks
 from millsense.daemon.pipeline.run_core import PipelineCore
 from millsense.drivers.base import SampleBlock
+from tests import captures
 from tests.e2e.helpers import CMD
 from tests.e2e.learning_run import CONFIG
 
@@ -41,9 +42,12 @@ def frames(block: SampleBlock, n: int):
 
 @pytest.mark.parametrize("per_block", [0, 10, 20, 40, 60, 80])
 def test_tool_changes_of_a_part_program_raise_no_signal_fault(tmp_path, per_block):
-    cap = tmp_path / "three-parts.bin"
-    subprocess.run(CMD + ["sim", "--scenario", "part-program", "--parts", "3", "--capture", str(cap)],
-                   check=True, capture_output=True, timeout=300)
+    def build(d):
+        subprocess.run(CMD + ["sim", "--scenario", "part-program", "--parts", "3", "--capture", str(d / "capture.bin")],
+                       check=True, capture_output=True, timeout=300)
+
+    # one capture for the six block sizes (tests/captures.py)
+    cap = captures.shared("millsense sim --scenario part-program --parts 3", build) / "capture.bin"
     core = PipelineCore(load_config(CONFIG))
     faults, stops = [], 0
     for desc, whole in iter_capture_blocks(cap):

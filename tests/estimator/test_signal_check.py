@@ -21,6 +21,7 @@ from millsense.daemon.config.errors import ConfigError
 from millsense.daemon.config.load import load_config
 from millsense.daemon.commands.capture_reader import iter_capture_blocks
 from millsense.daemon.pipeline.run_core import PipelineCore
+from tests import captures
 from tests.estimator import configs
 
 SIM = [sys.executable, "-m", "millsense.daemon", "sim"]
@@ -29,12 +30,17 @@ CURRENTS = ("i_u", "i_v", "i_w")
 
 
 def capture(tmp: Path, scenario: str, seconds: float, *flags: str, seed: int = 1) -> Path:
-    out = tmp / f"{scenario}-{seed}-{'_'.join(flags).replace('=', '-') or 'clean'}.bin"
-    if not out.exists():
-        res = subprocess.run([*SIM, "--scenario", scenario, "--capture", str(out), "--duration-s", str(seconds),
-                              "--seed", str(seed), *flags], capture_output=True, text=True, timeout=300)
+    """`millsense sim --capture` with these flags, made once per test run (tests/captures.py), linked into `tmp`."""
+    args = ["--scenario", scenario, "--duration-s", str(seconds), "--seed", str(seed), *flags]
+
+    def build(d: Path) -> None:
+        res = subprocess.run([*SIM, *args[:2], "--capture", str(d / "capture.bin"), *args[2:]],
+                             capture_output=True, text=True, timeout=300)
         assert res.returncode == 0, res.stderr
-    return out
+
+    shared = captures.shared("millsense sim " + " ".join(args), build)
+    name = f"{scenario}-{seed}-{'_'.join(flags).replace('=', '-') or 'clean'}.bin"
+    return captures.link(shared / "capture.bin", tmp / name)
 
 
 def settings(tmp: Path, *, alarms: str = "", encoder: bool = True, channels_extra: dict[str, str] | None = None,
