@@ -89,9 +89,9 @@ def test_pty_survives_the_reader_closing_and_reopening(tmp_path):
             try:
                 assert drv.wait_connected(10)
                 col = Collector(drv)
-                col.pump(1.0)
+                # 800 samples (0.8 s of the stream) arriving is the event; the wait's bound is only a backstop
+                assert col.pump(30.0, until=lambda: sum(len(x.counts) for _, x in col.blocks) >= 800)
                 blocks = [x for _, x in col.blocks]
-                assert sum(len(x.counts) for x in blocks) >= 800
                 check_every_sample_once(blocks)
             finally:
                 drv.close()
@@ -123,7 +123,11 @@ def test_full_queue_drops_newest_and_carries_the_count():
     drv.start()
     try:
         assert drv.wait_connected(2)
-        time.sleep(0.5)  # nobody consumes: ~50 blocks for a queue of 5
+        # nobody consumes: the queue of 5 fills and the driver drops and counts what follows (the event waited
+        # for, not a time: a loaded box may read fewer frames in a given half second)
+        deadline = time.monotonic() + 30.0
+        while drv.stats().get("queue_dropped_samples", 0) < 300 and time.monotonic() < deadline:
+            time.sleep(0.02)
         got = []
         deadline = time.monotonic() + 1.0
         while time.monotonic() < deadline:
