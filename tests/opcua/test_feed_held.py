@@ -106,6 +106,10 @@ def test_a_held_feed_is_one_retained_condition_from_the_trip_until_the_reset(tmp
                     # 2. The overload at the depth step: active again, as grave as the overload at least.
                     await wait_async(lambda: _count(events, 3), SLOW_S, "FeedHeld active after the overload")
                     held = events.named("FeedHeld")[2]
+                    # the overload's own event and FeedHeld's are two notifications: either may come first
+                    async def overload_seen():
+                        return any(getattr(e, "Level", None) == "overload" for e in events.all)
+                    await wait_async(overload_seen, SLOW_S, "the overload's alarm event")
                     overload = next(e for e in events.all if getattr(e, "Level", None) == "overload")
                     assert getattr(held, "ActiveState/Id") is True and held.Retain is True
                     assert held.Severity >= overload.Severity == 800
