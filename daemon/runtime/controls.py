@@ -57,6 +57,7 @@ class OperatorControls(Controls):
         check_lock: threading.Lock,
         alarm_lock: threading.Lock,
         trip: Callable[[str], str | None],
+        trip_lock: threading.RLock,
         publish_alarm: Callable[[AlarmEvent, str | None], None],
         persist_limits: Callable[[set[str], bool], None],
         effective_config: Callable[[], dict] | None = None,
@@ -76,6 +77,7 @@ class OperatorControls(Controls):
         self._check_lock = check_lock
         self._alarm_lock = alarm_lock
         self._trip = trip
+        self._trip_lock = trip_lock   # the trip path's own: a reset is judged and applied with no trip between
         self._publish_alarm = publish_alarm
         self._persist_limits = persist_limits
         self._effective_config = effective_config
@@ -100,28 +102,34 @@ class OperatorControls(Controls):
         if not isinstance(requester, str):  # an older caller handing over the request payload
             requester = ""
         il, faults = self._interlock, self._board.faults
-        with self._check_lock:
-            held = il.latched or il.device_hold
-            blind = {k: faults[k] for k in BLIND_KINDS if k in faults}
-            daq = next((f"{k}: {faults[k]}" for k in DAQ_FAULTS if k in faults), None)
-            if daq is None and not self._driver.link_up:
-                daq = "daq_link: the link is down"
-            refusal = self._check.refusal(il.reason, blind, daq) if held and il.enabled else None
-            runaway = self._afc.override_runaway() if held and il.enabled else None
-            if refusal is None and runaway is not None:
-                refusal = {"condition": "feed_override", "error": runaway}
+        # Judged and applied under the trip path's lock: a trip that latches between the judgement and the release
+        # (a crash on the reader thread, a second press answered late) would otherwise be released unjudged.
+        with self._trip_lock:
+            with self._check_lock:
+                held = il.latched or il.device_hold
+                blind = {k: faults[k] for k in BLIND_KINDS if k in faults}
+                daq = next((f"{k}: {faults[k]}" for k in DAQ_FAULTS if k in faults), None)
+                if daq is None and not self._driver.link_up:
+                    daq = "daq_link: the link is down"
+                refusal = self._check.refusal(il.reason, blind, daq) if held and il.enabled else None
+                runaway = self._afc.override_runaway() if held and il.enabled else None
+                if refusal is None and runaway is not None:
+                    refusal = {"condition": "feed_override", "error": runaway}
+            if refusal is None:
+                result = il.reset()
+                events = []
+                if result.get("ok"):
+                    with self._check_lock:
+                        self._check.clear()
+                    with self._alarm_lock:
+                        events = self._core.reset()
+                    self._frames.rearm()
         if refusal is not None:
             log.warning("interlock.reset_refused", requester=requester or "unknown", reason=il.reason, **refusal)
             result = {"ok": False, **refusal, **il.state_dict()}
             result["alarm"] = self._core.summary()
             return result
-        result = il.reset()
         if result.get("ok"):
-            with self._check_lock:
-                self._check.clear()
-            with self._alarm_lock:
-                events = self._core.reset()
-            self._frames.rearm()
             for ev in events:
                 safe(self._publish_alarm, ev, None)
             safe(self._afc.release)

@@ -190,6 +190,7 @@ class Runner:
                                          audit=self.audit, board=self.board, frames=self.frames, afc=self.afc,
                                          live=self.live, report=self.report, reset_check=self.reset_check,
                                          check_lock=self.check_lock, alarm_lock=self._alarm_lock, trip=self._trip,
+                                         trip_lock=self._trip_lock,
                                          publish_alarm=self._publish_alarm, persist_limits=self._persist_limits,
                                          effective_config=effective_config)
         if latch_store is not None:

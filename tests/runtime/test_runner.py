@@ -304,3 +304,32 @@ def test_every_published_estimate_reaches_the_history_even_when_the_block_fails_
     with sqlite3.connect(path) as db:
         stored = sorted(rev for (rev,) in db.execute("SELECT rev FROM revolutions"))
     assert stored == published
+
+
+def test_a_hold_that_latches_while_a_reset_is_judged_is_not_released_by_that_reset(rig, monkeypatch):
+    """A reset is judged, then applied: a trip that latches between the two (a crash on the reader thread, an
+    operator's second press answered late) must stay held. Found by bench/crash_latency.py under load: a repeated
+    reset, judged while nothing was held, cleared the next crash's fresh latch 0.7 ms after it was written.
+    Here the racing trip is started inside the window (between the judgement and the interlock's release)."""
+    runner, drv, sink = rig(ScriptedEstimator(lambda rev: 5.0))
+    wait_for(lambda: len(sink.of("estimate")) >= 2, 5, "revolutions")
+    il = runner.interlock
+    real_reset, racer = il.reset, {}
+
+    def reset_with_a_trip_in_its_window():
+        trips = il.trips
+        racer["thread"] = threading.Thread(target=lambda: racer.update(result=runner.controls.test_trip("racer", 2.0)))
+        racer["thread"].start()
+        # the racing trip latches now, unless the reset keeps every trip out until it is done (then this waits
+        # out its bound and the trip latches after the release)
+        deadline = time.monotonic() + 1.0
+        while il.trips == trips and time.monotonic() < deadline:
+            time.sleep(0.002)
+        return real_reset()
+
+    monkeypatch.setattr(il, "reset", reset_with_a_trip_in_its_window)
+    assert runner.controls.reset("operator")["ok"] is True   # nothing was held: granted
+    racer["thread"].join(10)
+    assert racer["result"]["ok"] is True, racer["result"]
+    assert il.latched and il.reason == "test-trip", il.state_dict()
+    wait_for(lambda: drv.device.feed_hold, 5, "the DAQ holds the feed")
