@@ -210,6 +210,7 @@ def test_crash_trips_on_the_block_with_the_time_of_the_crossing_sample(rig, monk
     assert abs(alarm["t"] - (est[k - 1] + (1234 - (REV_SAMPLES * (k - 1) - 1)) / 1000.0)) < 1e-6
 
 
+@pytest.mark.serial   # heartbeats every 20 ms keep a 200 ms watchdog from tripping: a bound from above
 def test_heartbeats_flow_while_healthy_and_stop_when_the_estimator_stalls(rig):
     est = ScriptedEstimator(lambda rev: 5.0, stall_at_rev=15, stall_s=0.9)
     runner, drv, sink = rig(est)
