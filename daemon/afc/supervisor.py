@@ -28,6 +28,7 @@ import structlog
 from millsense.daemon.afc.controller import FeedController
 from millsense.daemon.afc.output import OverrideOutput
 from millsense.daemon.events import AlarmEvent
+from millsense.daemon.guarded import safe
 from millsense.daemon.learning import context_auth
 
 log = structlog.get_logger("millsense.runner")  # the runner's logger, as before it was carved out of it
@@ -140,8 +141,8 @@ class AfcSupervisor:
         reason = f"afc error: {type(exc).__name__}: {exc}"
         if reason not in self._notes_said:  # once per distinct error: a lasting one would log every revolution
             self._notes_said.add(reason)
-            _safe(lambda: log.error("afc.error", reason=reason, traceback=traceback.format_exc()))
-        _safe(self.safe, reason)
+            safe(lambda: log.error("afc.error", reason=reason, traceback=traceback.format_exc()))
+        safe(self.safe, reason)
         est["afc"] = {"state": self.feed.state, "override_pct": self.feed.commanded_pct, "target": None}
 
     # ------------------------------------------------------------------ the DAQ
@@ -165,8 +166,8 @@ class AfcSupervisor:
         self.applied_override_pct = applied_pct
         if self._resync:
             self._resync = False
-            _safe(self._resync_now)
-        _safe(self.check_override, now)
+            safe(self._resync_now)
+        safe(self.check_override, now)
 
     def _resync_now(self) -> None:
         """Write what the controller holds (100 % unless it is controlling) to a DAQ just (re)connected."""
@@ -197,7 +198,7 @@ class AfcSupervisor:
                   detail=runaway)
         ev = AlarmEvent("overload", "feed_override_pct", self.applied_override_pct,
                         max(self.feed_out.sent_pct, 100.0), None, self._last_seq())
-        _safe(self._publish_alarm, ev, held)
+        safe(self._publish_alarm, ev, held)
 
     # ------------------------------------------------------------------ the operator
     def status(self) -> dict[str, Any]:
@@ -242,14 +243,3 @@ class AfcSupervisor:
         log.warning("afc.switched", requester=requester or "unknown", on=action == "on", state=self.feed.state,
                     reason=blocked)
         return {"ok": True, "afc": self.status()}
-
-
-def _safe(fn: Callable[..., Any], *args: Any) -> None:
-    """A handler on a fault or status path: one that raises is logged, never stops its caller."""
-    try:
-        fn(*args)
-    except Exception as exc:  # noqa: BLE001
-        try:
-            log.error("fault_handler_failed", handler=getattr(fn, "__name__", "?"), error=f"{type(exc).__name__}: {exc}")
-        except Exception:  # noqa: BLE001
-            pass

@@ -27,7 +27,8 @@ import structlog
 from millsense.daemon.audit import AuditLog
 from millsense.daemon.controls import TEST_TRIP_WAIT_S, Controls
 from millsense.daemon.events import AlarmEvent
-from millsense.daemon.runtime.faults import BLIND_KINDS, DAQ_FAULTS, safe
+from millsense.daemon.guarded import safe
+from millsense.daemon.runtime.faults import BLIND_KINDS, DAQ_FAULTS
 from millsense.daemon.runtime.interlock import TEST_TRIP, wait_ms
 
 log = structlog.get_logger("millsense.runner")  # the runner's logger, as before it was carved out of it

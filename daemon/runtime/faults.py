@@ -23,6 +23,7 @@ from typing import Any, Callable
 import structlog
 
 from millsense.daemon.events import AlarmEvent
+from millsense.daemon.guarded import safe
 
 log = structlog.get_logger("millsense.runner")  # the runner's logger, as before it was carved out of it
 
@@ -82,14 +83,14 @@ class FaultBoard:
             self.faults[kind] = reason
         if self.state in ("running", "starting") and self._ready.is_set():
             self.state = "degraded"
-        self._safe(self._afc_safe, f"fault: {kind}: {reason}")  # first: the feed never runs above programmed unseen
-        self._safe(lambda: log.error("fault", kind=kind, reason=reason, dump=self._diagnostics(), traceback=tb))
-        self._safe(lambda: self._interlock.beat(self._healthy(), stopping=self.state == "stopping"))
+        safe(self._afc_safe, f"fault: {kind}: {reason}")  # first: the feed never runs above programmed unseen
+        safe(lambda: log.error("fault", kind=kind, reason=reason, dump=self._diagnostics(), traceback=tb))
+        safe(lambda: self._interlock.beat(self._healthy(), stopping=self.state == "stopping"))
         if kind in DAQ_FAULTS:
-            self._safe(self._daq_alarm, False)
+            safe(self._daq_alarm, False)
         if kind in BLIND_KINDS:  # and again per block: a `signals` fault waits for a turning spindle
-            self._safe(self.check_blind)
-        self._safe(lambda: self._notify(status=f"degraded: {kind}: {reason}"))
+            safe(self.check_blind)
+        safe(lambda: self._notify(status=f"degraded: {kind}: {reason}"))
 
     def recover(self, kind: str) -> None:
         with self._lock:
@@ -97,13 +98,13 @@ class FaultBoard:
                 return
             remaining = bool(self.faults)
         if kind in DAQ_FAULTS and not any(k in self.faults for k in DAQ_FAULTS):
-            self._safe(self._daq_alarm, True)
+            safe(self._daq_alarm, True)
         if not remaining and self.state == "degraded":
             self.state = "running"
         log.info("recovered", kind=kind)
         if kind in BLIND_KINDS:
-            self._safe(self.check_blind)
-        self._safe(self._afc_release)
+            safe(self.check_blind)
+        safe(self._afc_release)
 
     def verdict(self, source: str, verdict: str | None) -> None:
         """A wiring or stream check's verdict (verdict.py) on fault `signals`, from `source`."""
@@ -129,9 +130,9 @@ class FaultBoard:
             if self.faults.get(kind) in (None, still):
                 return
             self.faults[kind] = still
-        self._safe(lambda: log.warning("fault.reason_changed", kind=kind, reason=still, cleared=source,
+        safe(lambda: log.warning("fault.reason_changed", kind=kind, reason=still, cleared=source,
                                        detail="one cause cleared; the fault stays for the other"))
-        self._safe(lambda: self._notify(status=f"degraded: {kind}: {still}"))
+        safe(lambda: self._notify(status=f"degraded: {kind}: {still}"))
 
     def check_blind(self) -> None:
         """on_blind: a blind condition while the spindle turns holds the feed ("hold") or only warns ("alarm").
@@ -163,7 +164,7 @@ class FaultBoard:
                                 detail='[interlock] on_blind = "alarm": the machine runs unwatched')
                     events.append((AlarmEvent("warning", kind, None, None, None, live.last_seq), None))
         for ev, held in events:
-            self._safe(self._publish_alarm, ev, held if ev.level != "clear" else self._held())
+            safe(self._publish_alarm, ev, held if ev.level != "clear" else self._held())
 
     def _daq_alarm(self, ok: bool) -> None:
         with self._alarm_lock:
@@ -173,18 +174,3 @@ class FaultBoard:
             self._publish_alarm(ev, self._held())
         if lost is not None:
             self._publish_step(lost)
-
-    @staticmethod
-    def _safe(fn: Callable[..., Any], *args: Any) -> None:
-        safe(fn, *args)
-
-
-def safe(fn: Callable[..., Any], *args: Any) -> None:
-    """A handler on a fault or status path: one that raises is logged, never stops its caller."""
-    try:
-        fn(*args)
-    except Exception as exc:  # noqa: BLE001
-        try:
-            log.error("fault_handler_failed", handler=getattr(fn, "__name__", "?"), error=f"{type(exc).__name__}: {exc}")
-        except Exception:  # noqa: BLE001
-            pass

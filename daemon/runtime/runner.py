@@ -65,6 +65,7 @@ import structlog
 from millsense.daemon.afc.supervisor import AfcSupervisor
 from millsense.daemon.audit import AuditLog
 from millsense.daemon.events import AlarmEvent
+from millsense.daemon.guarded import safe
 from millsense.daemon.learning import context_auth
 from millsense.daemon.pipeline.alarms import alarm_payload
 from millsense.daemon.pipeline.loss_check import LossCheck
@@ -75,7 +76,7 @@ from millsense.daemon.pipeline.run_core import PipelineCore, Step, estimate_payl
 from millsense.daemon.publish.alarm_state import ActiveAlarms
 from millsense.daemon.runtime.blocks import arrival, merged
 from millsense.daemon.runtime.controls import OperatorControls
-from millsense.daemon.runtime.faults import DAQ_FAULTS, FaultBoard, safe
+from millsense.daemon.runtime.faults import DAQ_FAULTS, FaultBoard
 from millsense.daemon.runtime.frame_guard import FrameGuard
 from millsense.daemon.runtime.interlock import Interlock, ResetCheck, trip_reason
 from millsense.daemon.runtime.ports import DescriptorCheck, Driver, EstimatorFactory, History, LatchStore, Sink
@@ -248,7 +249,7 @@ class Runner:
         """Stop the threads. Feed hold is left exactly as it is; the caller closes sink and driver."""
         if self.board.state != "stopping":
             self.board.state = "stopping"
-            self._safe(lambda: self._notify(stopping=True, status="stopping"))
+            safe(lambda: self._notify(stopping=True, status="stopping"))
             log.info("daemon.stopping", interlock=self.interlock.state)
         self.afc.safe("daemon stopping")  # the heartbeat stops too: the DAQ's watchdog would do it later
         self._stop.set()
@@ -256,8 +257,8 @@ class Runner:
         for t in self.threads:
             t.join(max(0.0, deadline - time.monotonic()))
         if self.latch_store is not None:
-            self._safe(self.latch_store.close, max(0.2, deadline - time.monotonic()))
-        self._safe(self.audit.flush)
+            safe(self.latch_store.close, max(0.2, deadline - time.monotonic()))
+        safe(self.audit.flush)
 
     def _restore_latch(self) -> None:
         """A latch persisted by an earlier run is asserted again, and the log says why and since when."""
@@ -301,7 +302,7 @@ class Runner:
             now = time.monotonic()
             self._loop_mono = now
             if self.controls.contexts_waiting:
-                self._safe(self._take_zenoh_contexts)
+                safe(self._take_zenoh_contexts)
             if not any(isinstance(ev, SampleBlock) for ev, _ in events):
                 self.check_stall(now)
             for ev, parts in events:
@@ -310,7 +311,7 @@ class Runner:
                 except Exception as exc:  # noqa: BLE001 - one bad block must not kill the loop
                     self.board.fault("estimator", f"{type(exc).__name__}: {exc}", tb=traceback.format_exc())
             if self.afc.enabled:
-                self._safe(self.afc.idle, time.monotonic())
+                safe(self.afc.idle, time.monotonic())
 
     def handle(self, ev: Any, now: float, parts: list[tuple[int, int, float]] | None = None) -> None:
         """One event from the driver's queue, as the estimator thread handles it (a block, the link, the
@@ -423,11 +424,11 @@ class Runner:
                 for payload in stored:
                     self.history.add_revolution(payload)
         self._after_step(step)
-        self._safe(self._check_phase, block)
+        safe(self._check_phase, block)
         if not self.ready.is_set():
             board.state = "running" if not board.faults else "degraded"
             self.ready.set()
-            self._safe(lambda: self._notify(ready=True, status="running: DAQ streaming, Zenoh open"))
+            safe(lambda: self._notify(ready=True, status="running: DAQ streaming, Zenoh open"))
             log.info("daemon.ready", machine=self.machine, interlock=self.interlock.state)
 
     def _newest_pinned(self) -> str | None:
@@ -567,8 +568,8 @@ class Runner:
             # A DAQ that restarted forgot its watchdog and maybe the latched output; its override is 100 %, or
             # (a link that only dropped) still what it was: set again at its first STATUS.
             self.afc.on_link_up()
-            self._safe(self.interlock.start)
-            self._safe(self.interlock.reassert)
+            safe(self.interlock.start)
+            safe(self.interlock.reassert)
         else:
             self.board.fault("daq_link", f"lost communication with the DAQ: {ev.reason}")
 
@@ -607,8 +608,6 @@ class Runner:
         d["interlock"] = self.interlock.state_dict()
         d["last_estimate"] = self.live.last_estimate
         return d
-
-    _safe = staticmethod(safe)
 
     # ------------------------------------------------------------------ health, heartbeat
     def healthy(self, now: float | None = None) -> bool:
@@ -650,19 +649,19 @@ class Runner:
         while not self._stop.wait(tick):
             now = time.monotonic()
             if wd and self.progressing(now):
-                self._safe(lambda: self._notify(watchdog=True))
+                safe(lambda: self._notify(watchdog=True))
             if now < next_status:
                 continue
             next_status += 1.0
             status = self.report.payload()
             line = status_line(status)
-            self._safe(self.sink.status, status)
-            self._safe(lambda: self._notify(status=line))
-            self._safe(lambda: log.debug("stats", **{k: v for k, v in status.items() if k not in ("machine", "version")}))
+            safe(self.sink.status, status)
+            safe(lambda: self._notify(status=line))
+            safe(lambda: log.debug("stats", **{k: v for k, v in status.items() if k not in ("machine", "version")}))
             if self._on_second is not None:
                 with self._alarm_lock:
                     alarm_state = self.core.summary()
-                self._safe(self._on_second, status, self.live.last_estimate, alarm_state)
+                safe(self._on_second, status, self.live.last_estimate, alarm_state)
 
 
 class _RefusalLog:
