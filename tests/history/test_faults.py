@@ -108,14 +108,20 @@ def test_locked_database_is_a_clear_fault_and_add_never_blocks(tmp_path):
     assert count(path) == store.stats()["written"]["revolutions"]  # what was not dropped is there
 
 
-def test_locked_at_start_is_a_fault_the_runner_hears_and_the_writer_retries(tmp_path):
-    """The daemon builds the store, starts it, and only then hands it the runner's callbacks."""
-    path = tmp_path / "history.sqlite3"
+def _made_and_locked(path) -> sqlite3.Connection:
+    """A history file made by a store, then held under another connection's write lock (COMMIT releases it)."""
     first = HistoryStore(path, machine="m1")
     first.start()
     first.close()
     other = sqlite3.connect(path, isolation_level=None, timeout=0)
     other.execute("BEGIN EXCLUSIVE")
+    return other
+
+
+def test_locked_at_start_is_a_fault_the_runner_hears_and_the_writer_retries(tmp_path):
+    """The daemon builds the store, starts it, and only then hands it the runner's callbacks."""
+    path = tmp_path / "history.sqlite3"
+    other = _made_and_locked(path)
     try:
         store = HistoryStore(path, machine="m1")
         store.start()  # returns: a fault, never an exception
@@ -139,11 +145,7 @@ def test_locked_at_start_is_a_fault_the_runner_hears_and_the_writer_retries(tmp_
 def test_a_callback_that_raises_is_logged_and_never_stops_the_store(tmp_path):
     """The runner's fault callback failing (`guarded.call_quietly`): logged, and the store goes on writing."""
     path = tmp_path / "history.sqlite3"
-    first = HistoryStore(path, machine="m1")
-    first.start()
-    first.close()
-    other = sqlite3.connect(path, isolation_level=None, timeout=0)
-    other.execute("BEGIN EXCLUSIVE")
+    other = _made_and_locked(path)
     heard: list[str] = []
 
     def boom(reason: str) -> None:
