@@ -31,6 +31,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench.against_base import PACKAGES, package_dir  # noqa: E402
+from bench.against_base import loaded_from as where_imported  # noqa: E402
 from bench.daemon_budget import _BARE_RECV, thread_cpu  # noqa: E402
 from tests.conftest import free_tcp_port  # noqa: E402
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for, write_config  # noqa: E402
@@ -39,28 +41,24 @@ from tests.procstat import proc_cpu_s  # noqa: E402
 
 
 def export_base(rev: str, into: Path) -> Path:
-    """`daemon/`, `drivers/` and `sim/` of `rev`, laid out as the package `millsense` (what setuptools' package-dir
-    maps them to); returns the directory to put on PYTHONPATH."""
+    """The packages of `rev` (`daemon/`, `drivers/`, and `sim/` where it has one), laid out as the package
+    `millsense` (against_base.package_dir); returns the directory to put on PYTHONPATH."""
     tree = into / "tree"
     tree.mkdir()
-    archive = subprocess.run(["git", "-C", str(REPO), "archive", "--format=tar", rev, "daemon", "drivers", "sim"],
-                             check=True, capture_output=True).stdout
+    listed = subprocess.run(["git", "-C", str(REPO), "ls-tree", "--name-only", rev], check=True,
+                            capture_output=True, text=True).stdout.split()
+    archive = subprocess.run(["git", "-C", str(REPO), "archive", "--format=tar", rev,
+                              *[p for p in PACKAGES if p in listed]], check=True, capture_output=True).stdout
     tar_path = into / "base.tar"
     tar_path.write_bytes(archive)
     with tarfile.open(tar_path) as tar:
         tar.extractall(tree, filter="data")
-    pkg = into / "pkg"
-    (pkg / "millsense").mkdir(parents=True)
-    for sub in ("daemon", "drivers", "sim"):
-        (pkg / "millsense" / sub).symlink_to(tree / sub, target_is_directory=True)
-    return pkg
+    return package_dir(tree, into)
 
 
 def loaded_from(pythonpath: str | None) -> str:
     """Where `millsense.daemon` is imported from under that PYTHONPATH (the check that the base is the base)."""
-    env = None if pythonpath is None else {**os.environ, "PYTHONPATH": pythonpath}
-    return subprocess.run([CMD[0], "-c", "import millsense.daemon as d; print(d.__file__)"], check=True,
-                          capture_output=True, text=True, env=env).stdout.strip()
+    return where_imported({**os.environ, "PYTHONPATH": pythonpath} if pythonpath is not None else dict(os.environ))
 
 
 def one_run(pkg: Path, seconds: float, scenario: str) -> dict:
