@@ -188,6 +188,8 @@ def test_a_cnc_that_does_not_follow_the_override_down_holds_the_feed(rig, monkey
     assert runner.afc.feed_out.sent_pct <= 100.0 and not runner.interlock.latched
     wait_for(lambda: runner.interlock.latched, 5 + OVERRIDE_FOLLOW_S, "the feed held")
     assert runner.interlock.reason.startswith("afc: the CNC applies a ") and "nothing controls it" in runner.interlock.reason
+    # the hold is written first, the alarm published just after it by the same thread: wait for it
+    wait_for(lambda: [a for a, _ in sink.of("alarm") if a.get("quantity") == "feed_override_pct"], 5, "the alarm")
     alarm = [a for a, _ in sink.of("alarm") if a.get("quantity") == "feed_override_pct"]
     assert alarm and alarm[-1]["level"] == "overload" and alarm[-1]["value"] > 105.0
     runner.board.recover("history")
