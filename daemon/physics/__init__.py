@@ -13,6 +13,7 @@ papers ([P] spindle power → force; [D] average forces → depth of cut); see
 - ``validity``: where a depth and a cut may be claimed at all (feed per tooth,
   speed, the tool's geometry, a spindle running up or braking)
 - ``calibration``: least-squares friction and C_f ([P] §4.2)
+- ``expected``: the load a programmed cut should take (the milling model run forwards)
 - ``table3``: [D] Table 3 polynomial, for comparison only
 - ``numbers``: one formula for a plain float (the live revolution) and arrays
 """
