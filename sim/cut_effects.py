@@ -16,7 +16,8 @@ projected as [D] eqs. (2)-(4). ``k_s·h^ks_exp`` is Kienzle's k_c = k_c1.1·h^(�
 at h = 1 mm, ks_exp = −m_c) at the *instantaneous* chip, not [D] eq. (9)'s at t_a; the edge force
 (ploughing, rubbing on the flank) is per unit of engaged edge and independent of the chip; one tooth is
 ρ out radially (runout: it takes a chip ρ thicker, the tooth after it one ρ thinner); the tool bends
-under the force normal to the wall, so a side-milling cut's engaged radial depth is ae − F_n/k; a tool
+under the force normal to the wall, so a side-milling cut's engaged radial depth is ae − F_n/k (down
+milling pushes the tool off the wall, up milling pulls it in); a tool
 used up to a fraction L of its life cuts with edge forces × (1 + g_e·L) and chip forces × (1 + g_c·L)
 (flank wear rubs: the edge term grows most).
 
@@ -70,7 +71,7 @@ class CutEffects:
     edge_tangential_n_mm: float = 20.0  # K_te, N per mm of engaged edge
     edge_radial_n_mm: float = 30.0      # K_re, N per mm of engaged edge
     runout_um: float = 5.0              # ρ of tooth 0, µm (radially out)
-    deflection: bool = True             # the engaged radial depth shrinks by F_n/k (down, up milling)
+    deflection: bool = True             # the engaged radial depth is ae − F_n/k (down, up milling)
     overhang_ratio: float = 3.0         # tool stick-out / diameter
     life_used: float = 0.0              # fraction of the tool's life used, 0..1
     wear_edge_gain: float = 0.25        # edge coefficients × (1 + gain·life_used)
@@ -207,12 +208,14 @@ def effect_forces(geom, theta_rad, position_mm, feed_per_tooth_mm, chip_factors,
                              engagement_rad)
     if eff.deflection and geom.mode in ("down", "up"):
         # quasi-static: the tool's first bending mode (kHz) is far above the tooth frequency, so the tool
-        # stands where the force at this instant puts it; the wall side loses F_n/k of its radial depth
-        sign = -1.0 if geom.mode == "down" else 1.0  # down: the wall at y = −R; up: at y = +R
-        push_mm = np.maximum(sign * forces["fy_n"], 0.0) / geom.stiffness_n_mm
-        forces = _element_forces(geom, th, pos[rows], tc[rows], m[rows], np.maximum(radial[rows] - push_mm, 0.0),
-                                 eff, _edge_depth_mm, engagement_rad)
-        forces["deflection_mm"] = np.maximum(sign * forces["fy_n"], 0.0) / geom.stiffness_n_mm
+        # stands where the force at this instant puts it, F_n/k off the wall: down milling pushes it away
+        # (the cut loses radial depth, an undercut), up milling pulls it in (an overcut), the classic
+        # surface-error result (Kline & DeVor 1983; Altintas ch. 2)
+        sign = -1.0 if geom.mode == "down" else 1.0  # the wall: down at y = −R, up at y = +R
+        away_mm = sign * forces["fy_n"] / geom.stiffness_n_mm  # > 0: the tool bent away from the wall
+        ae_mm = np.clip(radial[rows] - away_mm, 0.0, tool.diameter_mm)
+        forces = _element_forces(geom, th, pos[rows], tc[rows], m[rows], ae_mm, eff, _edge_depth_mm, engagement_rad)
+        forces["deflection_mm"] = sign * forces["fy_n"] / geom.stiffness_n_mm
     return {k: v.reshape(n, s).mean(axis=1) for k, v in forces.items()}
 
 
