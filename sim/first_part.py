@@ -28,7 +28,7 @@ import math
 
 from millsense.sim.cut_effects import CutEffects
 from millsense.sim.machine import MATERIALS, TOOL_D, TOOL_F, TOOL_P, Tool
-from millsense.sim.program import Operation, PartProgram
+from millsense.sim.program import PROGRAMS, Operation, PartProgram
 
 TOOL_M = Tool(12.0, 3, 35.0, "phi12 3-flute carbide end mill")
 # the magazine of every first-part program, by the CNC's tool number
@@ -132,6 +132,7 @@ def _with_length(op: Operation, end_mm: float) -> Operation:
 
 
 FIRST_PART_PROGRAMS: dict[str, PartProgram] = _programs()
+PROGRAMS.update(FIRST_PART_PROGRAMS)  # the emulator, write_capture and ProgramPlant find them by name
 
 
 def programmed_cut(program: PartProgram, op: Operation) -> dict:
@@ -155,8 +156,6 @@ def programmed_cut(program: PartProgram, op: Operation) -> dict:
 def operations_config(program: PartProgram | str) -> dict[str, dict]:
     """The daemon's ``[operations]`` tables of a program, keyed "PROGRAM/TOOL/OPERATION" (TOML-ready)."""
     if isinstance(program, str):
-        from millsense.sim.program import PROGRAMS
-
         program = PROGRAMS[program]
     return {f"{program.number}/{op.tool_number}/{op.number}": programmed_cut(program, op)
             for op in program.operations}

@@ -38,6 +38,18 @@ Faults (``ProgramFaults``), each confined to what it names:
 - wrong tool (part, T): the CNC reports T, the spindle holds the operation's
   ``wrong_cutter`` (another diameter and flute count), sharp (factor 1).
 
+and, in every part, the plant cutting something other than programmed (issue 41's first parts,
+``first_part.py``; the operation's programmed cut, hence the daemon's config, stays):
+
+- axial / radial scale (operation, K): the operation cuts K times its programmed axial
+  (radial) depth; a slot scaled radially becomes a down-milling cut K·D wide.
+- life used (T, fraction): with the program's cutting effects, T cuts with the forces of a
+  tool that has used that fraction of its life (``cut_effects.CutEffects.life_used``).
+
+A program's ``effects`` (``cut_effects.CutEffects``; None in program 1001, set in the first-part
+programs) make the plant cut what [D]'s average model approximates, and its
+``material_offset_pct`` makes the plant's material that many % off ``material`` (the config's).
+
 ``program_plant.ProgramPlant`` runs a program; this module only describes it.
 Nothing here imports ``millsense.daemon``: this is the machine, not the model.
 """
@@ -305,10 +317,7 @@ def _build() -> dict[str, PartProgram]:
 
 
 PROGRAMS: dict[str, PartProgram] = _build()
-
-from millsense.sim.first_part import FIRST_PART_PROGRAMS  # noqa: E402 (it builds on the classes above)
-
-PROGRAMS.update(FIRST_PART_PROGRAMS)
+# the first-part programs (first_part.py) add themselves here; the package (sim/__init__.py) imports them
 
 
 def list_programs() -> list[str]:
