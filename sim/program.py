@@ -205,7 +205,8 @@ class PartProgram:
         return Scenario(self.name, self.description, self.duration_s(parts), op.tool, self.material,
                         op.mode or self.mode,
                         tuple((0.0, o.rpm) for o in self.operations), ((-math.inf, op.feed_mm_min),),
-                        op.axial_profile, (), self.feed_travel_mm(op)[0], extra_channels=self.extra_channels,
+                        op.axial_profile, () if (op.mode or self.mode) == "slot" else op.radial_profile,
+                        self.feed_travel_mm(op)[0], extra_channels=self.extra_channels,
                         filter_cutoff_hz=self.filter_cutoff_hz, machine=self.machine)
 
 
