@@ -124,7 +124,8 @@ def main(argv: list[str]) -> int:
           "SS41 of the config)\n")
     if not quick:
         base = variant(NONE, 0.0, CORRECT)
-        print(f"baseline, every effect off ([D]'s model in the plant): torque {fmt(stats([r['torque'] for r in base]))}")
+        print("baseline, every effect off ([D]'s model in the plant): "
+              f"torque {fmt(stats([r['torque'] for r in base]))}")
         print(f"{'':>60}force  {fmt(stats([r['force'] for r in base]))}")
         for label, eff in STAGES.items():
             rows = variant(eff, 0.0, CORRECT)

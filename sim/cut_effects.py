@@ -23,8 +23,9 @@ used up to a fraction L of its life cuts with edge forces × (1 + g_e·L) and ch
 
 The handbook's law is what test cuts measured: the chip term's scale and exponent are fitted so that
 slots at the two feeds ``reference_fz_mm`` (one tooth, a fresh tool, no runout) have exactly [D] eq. (9)'s
-mean tangential and radial force (``calibration``). Elsewhere (other feeds, modes, depths) the plant departs from the average
-law by what the average law approximates, which is what bench/first_part.py measures.
+mean tangential and radial force (``calibration``). Elsewhere (other feeds, modes, depths) the plant
+departs from the average law by what the average law approximates, which is what bench/first_part.py
+measures.
 
 Nothing here imports ``millsense.daemon``: this is the machine, not the model.
 """
@@ -117,7 +118,8 @@ def runout_offsets_mm(flutes: int, effects: CutEffects) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ChipLaw:
-    """The chip term of the element model: dF_t = c_t·k_s·max(h, h_min)^q_t·h·dz, dF_r = c_r·r₁·max(h, h_min)^q_r·dF_t."""
+    """The element model's chip term: dF_t = c_t·k_s·max(h, h_min)^q_t·h·dz, dF_r = c_r·r₁·max(h, h_min)^q_r·dF_t
+    (the edge term added apart)."""
 
     c_t: float
     q_t: float  # −m_c of the chip term alone (Kienzle)

@@ -79,8 +79,11 @@ def test_a_scaled_depth_is_cut_while_the_programmed_one_stays():
     assert np.mean([r["axial_depth_mm"] for r in deep]) == pytest.approx(1.8 * before["4101/1/10"]["ap_mm"])
     assert np.mean([r["radial_depth_mm"] for r in half]) == pytest.approx(0.5 * before["4101/1/20"]["ae_mm"])
     reference = _run(program)
-    ratio_deep = np.mean([r["torque_nm"] for r in deep]) / np.mean([r["torque_nm"] for r in _steady(reference, "4101/1/10")])
-    ratio_half = np.mean([r["torque_nm"] for r in half]) / np.mean([r["torque_nm"] for r in _steady(reference, "4101/1/20")])
+    def torque(revs):
+        return np.mean([r["torque_nm"] for r in revs])
+
+    ratio_deep = torque(deep) / torque(_steady(reference, "4101/1/10"))
+    ratio_half = torque(half) / torque(_steady(reference, "4101/1/20"))
     assert ratio_deep == pytest.approx(1.8, rel=0.03)  # the load follows the real depth
     assert ratio_half == pytest.approx(0.5, rel=0.05)  # half a slot in down milling: half the chips
 
