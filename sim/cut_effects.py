@@ -52,17 +52,17 @@ class CutEffects:
       h^(−m_c) would grow without bound while a real edge (radius 5-20 µm) only ploughs, which the edge
       term carries. The coefficient is held at its value at h_min below it.
     - ``edge_tangential_n_mm`` K_te 20 N/mm, ``edge_radial_n_mm`` K_re 30 N/mm: mechanistic calibrations
-      of steels and titanium give edge coefficients of a few tens of N/mm, K_re above K_te (Budak,
-      Altintas & Armarego, J. Manuf. Sci. Eng. 118, 1996, Ti6Al4V: K_te ≈ 24, K_re ≈ 43 N/mm; Altintas
-      ch. 2 for steels of the same order).
+      of steels and titanium alloys by the average-force method give edge coefficients of some tens of
+      N/mm, K_re usually above K_te (Budak, Altintas & Armarego, J. Manuf. Sci. Eng. 118, 1996; Altintas
+      ch. 2); the values here are of that order, not one paper's figure.
     - ``runout_um`` 5 µm on tooth 0: a good shrink-fit or hydraulic holder keeps total indicated runout
       within 3-10 µm (holder makers' catalogues; Kline & DeVor, Int. J. Mach. Tool Des. Res. 23, 1983).
     - ``overhang_ratio`` 3 (L/D) and the tool's modulus (``Tool.youngs_gpa``: solid carbide 600, HSS
       210 GPa) with the fluted section's equivalent diameter 0.8·D (Kivanc & Budak, Int. J. Mach. Tools
       Manuf. 44, 2004): cantilever stiffness k = 3EI/L³, I = π(0.8D)⁴/64 (about 27 kN/mm for φ20
       carbide, 6.6 kN/mm for φ16 HSS, 11 kN/mm for φ8 carbide).
-    - ``wear_edge_gain`` 0.25, ``wear_chip_gain`` 0.02: flank wear grows the rubbing (edge) force most
-      (Smith & Tlusty, J. Eng. Ind. 113, 1991; Altintas ch. 2); at the end of its life the edge force is
+    - ``wear_edge_gain`` 0.25, ``wear_chip_gain`` 0.02: a flank wear land rubs on the cut surface, so wear
+      grows the edge (ploughing) term most and the chip term little; at the end of its life the edge force is
       taken 1.25 × a sharp one's and the chip force 2 % higher, so a tool at 80 % of its life cuts with
       a few % more force (5-10 % in bench/first_part.py's cuts, more where the chip is thin).
     """
