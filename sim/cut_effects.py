@@ -60,11 +60,12 @@ class CutEffects:
     - ``overhang_ratio`` 3 (L/D) and the tool's modulus (``Tool.youngs_gpa``: solid carbide 600, HSS
       210 GPa) with the fluted section's equivalent diameter 0.8·D (Kivanc & Budak, Int. J. Mach. Tools
       Manuf. 44, 2004): cantilever stiffness k = 3EI/L³, I = π(0.8D)⁴/64 (about 27 kN/mm for φ20
-      carbide, 6.6 kN/mm for φ16 HSS, 11 kN/mm for φ8 carbide).
-    - ``wear_edge_gain`` 0.25, ``wear_chip_gain`` 0.02: a flank wear land rubs on the cut surface, so wear
-      grows the edge (ploughing) term most and the chip term little; at the end of its life the edge force is
-      taken 1.25 × a sharp one's and the chip force 2 % higher, so a tool at 80 % of its life cuts with
-      a few % more force (5-10 % in bench/first_part.py's cuts, more where the chip is thin).
+      carbide, 7.5 kN/mm for φ16 HSS, 11 kN/mm for φ8 carbide).
+    - ``wear_edge_gain`` 0.25, ``wear_chip_gain`` 0.02: a flank wear land rubs on the cut surface, so
+      wear grows the edge (ploughing) term most and the chip term little; at the end of its life the edge
+      force is taken 1.25 × a sharp one's and the chip force 2 % higher, so a tool at 80 % of its life
+      cuts with a few % more force (about 6 % in bench/first_part.py's worn cuts, more where the chip
+      is thin).
     """
 
     size_effect: bool = True            # Kienzle at the instantaneous chip (False: at the average chip)
