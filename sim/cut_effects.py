@@ -119,8 +119,8 @@ def runout_offsets_mm(flutes: int, effects: CutEffects) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ChipLaw:
-    """The element model's chip term: dF_t = c_t·k_s·max(h, h_min)^q_t·h·dz, dF_r = c_r·r₁·max(h, h_min)^q_r·dF_t
-    (the edge term added apart)."""
+    """The element model's chip term (the edge term is added apart):
+    dF_t = c_t·k_s·max(h, h_min)^q_t·h·dz,  dF_r = c_r·r₁·max(h, h_min)^q_r·dF_t."""
 
     c_t: float
     q_t: float  # −m_c of the chip term alone (Kienzle)
