@@ -16,6 +16,10 @@ average chip thickness ``t_a`` of the current engagement (of each tooth).  That
 is the quantity [D] Table 2 was identified against, so with one coefficient set
 per instant the model's per-tooth-period averages are exactly [D] eq. (7).
 
+With ``CutGeometry.effects`` set, the plant models what that average approximates instead
+(``cut_effects.py``): the size effect at the instantaneous chip, edge forces, runout of one
+tooth, static tool deflection and wear.
+
 The axial depth is looked up where the cutting edge is, ``x = s + R·sin φ``
 (s = tool centre along the path), so a tool entering a step or the part meets
 the new depth gradually over its radius instead of in one jump.
@@ -28,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from millsense.sim.cut_effects import CutEffects, calibration, effect_forces, runout_offsets_mm, tool_stiffness_n_mm
 from millsense.sim.machine import Material, Tool
 
 MIN_SLICES = 20
@@ -83,6 +88,7 @@ class CutGeometry:
     radial_xp_mm: np.ndarray  # radial depth profile at the tool centre
     radial_fp_mm: np.ndarray
     max_axial_mm: float
+    effects: CutEffects | None = None  # None: [D]'s average model exactly; else the plant's (cut_effects.py)
 
     def __post_init__(self) -> None:
         self.slices = max(MIN_SLICES, math.ceil(self.max_axial_mm / MAX_SLICE_MM))
@@ -92,6 +98,10 @@ class CutGeometry:
         r = self.tool.radius_mm
         self.lag_rad = z_mid * math.tan(math.radians(self.tool.helix_deg)) / r
         self.tooth_rad = np.arange(self.tool.flutes) * 2 * math.pi / self.tool.flutes
+        if self.effects is not None:
+            self.chip_law = calibration(self.material, self.effects)
+            self.runout_mm = runout_offsets_mm(self.tool.flutes, self.effects)
+            self.stiffness_n_mm = tool_stiffness_n_mm(self.tool, self.effects)
 
     def axial_depth_mm(self, x_mm: np.ndarray) -> np.ndarray:
         return np.interp(x_mm, self.axial_xp_mm, self.axial_fp_mm, left=0.0, right=0.0)
@@ -173,7 +183,12 @@ def cutting_forces(
     (down milling), and they are the box-filtered force a sampler should see.
 
     Cutting torque at the spindle is ``R·ft_n`` ([P] eq. 15).  ``chip_factors`` is
-    (N,) or (n, N) (tooth breakage mid-block).  Work is (n, N, slices) elements."""
+    (N,) or (n, N) (tooth breakage mid-block).  Work is (n, N, slices) elements.
+
+    A geometry with ``effects`` is computed by ``cut_effects.effect_forces`` instead (the size effect at
+    the instantaneous chip, edge forces, runout, deflection, wear), with the same outputs."""
+    if geom.effects is not None:
+        return effect_forces(geom, theta_rad, position_mm, feed_per_tooth_mm, chip_factors, dtheta_rad)
     tool, mat = geom.tool, geom.material
     r = tool.radius_mm
     theta = np.asarray(theta_rad, dtype=float)

@@ -97,6 +97,7 @@ class Tool:
     flutes: int
     helix_deg: float = 30.0
     name: str = ""
+    youngs_gpa: float = 600.0  # the cutter's modulus (solid carbide ~600, HSS ~210): its bending (cut_effects.py)
 
     @property
     def radius_mm(self) -> float:
@@ -124,7 +125,7 @@ MATERIALS = {
 }
 
 TOOL_P = Tool(20.0, 2, 30.0, "phi20 2-flute flat end mill [P]")
-TOOL_D = Tool(16.0, 4, 30.0, "phi16 4-flute HSS end mill [D]")
+TOOL_D = Tool(16.0, 4, 30.0, "phi16 4-flute HSS end mill [D]", youngs_gpa=210.0)
 TOOL_F = Tool(8.0, 3, 35.0, "phi8 3-flute carbide finishing end mill")
 
 MCH10 = Machine()

@@ -27,6 +27,7 @@ import math
 import numpy as np
 
 from millsense.drivers.protocol import Descriptor
+from millsense.sim.cut_effects import material_batch
 from millsense.sim.cutting import CutGeometry, cutting_forces, tooth_chip_factors
 from millsense.sim.motor import motor_waveforms
 from millsense.sim.scenarios import Scenario, get_scenario
@@ -83,13 +84,14 @@ class Plant:
         self._sigma = noise_scale * np.array([s.noise_sigma for s in self._analog])
         self._offset = noise_scale * np.array([rng.uniform(-1, 1) * s.max_offset for s in self._analog])
         tool = sc.tool
+        material, effects = material_batch(sc.material, sc.effects, sc.material_offset_pct)
         self.geometry = CutGeometry(
-            tool, sc.material, sc.mode,
+            tool, material, sc.mode,
             np.array([x for x, _ in sc.axial_profile] or [0.0, 1.0]),
             np.array([d for _, d in sc.axial_profile] or [0.0, 0.0]),
             np.array([x for x, _ in sc.radial_profile] or [0.0, 1.0]),
             np.array([d for _, d in sc.radial_profile] or [tool.diameter_mm] * 2),
-            sc.max_axial_mm,
+            sc.max_axial_mm, effects,
         )
         self._sound = tooth_chip_factors(tool.flutes)
         self._broken = tooth_chip_factors(tool.flutes, (sc.breakage[1],)) if sc.breakage else self._sound

@@ -38,6 +38,18 @@ Faults (``ProgramFaults``), each confined to what it names:
 - wrong tool (part, T): the CNC reports T, the spindle holds the operation's
   ``wrong_cutter`` (another diameter and flute count), sharp (factor 1).
 
+and, in every part, the plant cutting something other than programmed (issue 41's first parts,
+``first_part.py``; the operation's programmed cut, hence the daemon's config, stays):
+
+- axial / radial scale (operation, K): the operation cuts K times its programmed axial
+  (radial) depth; a slot scaled radially becomes a down-milling cut K·D wide.
+- life used (T, fraction): with the program's cutting effects, T cuts with the forces of a
+  tool that has used that fraction of its life (``cut_effects.CutEffects.life_used``).
+
+A program's ``effects`` (``cut_effects.CutEffects``; None in program 1001, set in the first-part
+programs) make the plant cut what [D]'s average model approximates, and its
+``material_offset_pct`` makes the plant's material that many % off ``material`` (the config's).
+
 ``program_plant.ProgramPlant`` runs a program; this module only describes it.
 Nothing here imports ``millsense.daemon``: this is the machine, not the model.
 """
@@ -45,8 +57,9 @@ Nothing here imports ``millsense.daemon``: this is the machine, not the model.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
+from millsense.sim.cut_effects import CutEffects
 from millsense.sim.machine import MATERIALS, MCH10, TOOL_D, TOOL_F, TOOL_P, Machine, Material, Tool
 from millsense.sim.scenarios import Scenario, _steps
 
@@ -82,6 +95,14 @@ class Operation:
     # the CNC sets CONTEXT flag bit 2 (adaptive feed allowed) during this cut; a tapping, thread-milling
     # or finishing operation never does (its feed is tied to the spindle, or its finish to the feed)
     afc_allowed: bool = False
+    # first-part operations (sim/first_part.py): the cut as programmed, beside the depths above
+    mode: str | None = None  # slot, down or up; None: the program's
+    radial_mm: float | None = None  # ae of a side-milling cut; None: the cutter's diameter (a slot)
+    axial_points: tuple[tuple[float, float], ...] | None = None  # (x mm, d_a mm): a ramp, instead of the step
+    radial_points: tuple[tuple[float, float], ...] | None = None  # (x mm, ae mm): a pocket's corners
+    feed_kind: str = "vf"  # how the CNC programs the feed: "vf" (mm/min, G94) or "fz" (mm per tooth, G95)
+    engagement: str = "constant"  # "varying" where the radial or axial engagement changes along the cut
+    life_used: float = 0.0  # the fraction of its life the tool has cut (the plant's wear, cut_effects.py)
 
     @property
     def step_mm(self) -> float:
@@ -99,11 +120,30 @@ class Operation:
     @property
     def axial_profile(self) -> tuple[tuple[float, float], ...]:
         """(x mm, d_a mm): the slot's floor; the block goes on past the slot's end (a closed slot)."""
+        if self.axial_points is not None:
+            return self.axial_points
         return _steps([0.0, self.step_mm, self.end_mm + self.tool.diameter_mm], list(self.depths_mm))
 
     @property
+    def radial_profile(self) -> tuple[tuple[float, float], ...]:
+        """(x mm, ae mm) at the tool centre: constant ``radial_mm`` unless ``radial_points`` vary it."""
+        if self.radial_points is not None:
+            return self.radial_points
+        ae = self.tool.diameter_mm if self.radial_mm is None else self.radial_mm
+        return ((0.0, ae), (1.0, ae))
+
+    @property
     def max_axial_mm(self) -> float:
-        return max(self.depths_mm)
+        return max(d for _, d in self.axial_profile)
+
+    @property
+    def max_radial_mm(self) -> float:
+        return max(ae for _, ae in self.radial_profile)
+
+    @property
+    def feed_per_tooth_mm(self) -> float:
+        """The programmed feed per tooth at the programmed speed: vf/(n·N)."""
+        return self.feed_mm_min / (self.rpm * self.tool.flutes)
 
 
 @dataclass(frozen=True)
@@ -120,6 +160,19 @@ class PartProgram:
     # the CNC's feed rate into the DAQ: a closed slot's end stops the feed, and without it the drop of
     # torque there looks like a tool that snapped (pipeline/alarms.py BreakageTrack needs the feed)
     extra_channels: tuple[str, ...] = ("fx_rate",)
+    # the plant's cut: None, [D]'s average model (every program before issue 41); else what it approximates
+    effects: CutEffects | None = None
+    # the plant's material off from ``material`` (what the daemon's config says, the handbook's) by this
+    # percentage: K_s and the edge forces of this batch are (1 + pct/100) times the handbook's
+    material_offset_pct: float = 0.0
+
+    def only(self, *numbers: int) -> PartProgram:
+        """The program with only the operations numbered (a test's short stream), in the program's order."""
+        unknown = sorted(set(numbers) - {op.number for op in self.operations})
+        if unknown or not numbers:
+            raise ValueError(f"operation {unknown[0] if unknown else '(none)'} is not in program {self.number} "
+                             f"(its operations: {', '.join(str(op.number) for op in self.operations)})")
+        return replace(self, operations=tuple(op for op in self.operations if op.number in numbers))
 
     @property
     def tools(self) -> dict[int, Tool]:
@@ -149,9 +202,11 @@ class PartProgram:
     def scenario(self, parts: int) -> Scenario:
         """The plant's view of the program: machine, sensors, material, the first tool; the NC is ProgramPlant's."""
         op = self.operations[0]
-        return Scenario(self.name, self.description, self.duration_s(parts), op.tool, self.material, self.mode,
+        return Scenario(self.name, self.description, self.duration_s(parts), op.tool, self.material,
+                        op.mode or self.mode,
                         tuple((0.0, o.rpm) for o in self.operations), ((-math.inf, op.feed_mm_min),),
-                        op.axial_profile, (), self.feed_travel_mm(op)[0], extra_channels=self.extra_channels,
+                        op.axial_profile, () if (op.mode or self.mode) == "slot" else op.radial_profile,
+                        self.feed_travel_mm(op)[0], extra_channels=self.extra_channels,
                         filter_cutoff_hz=self.filter_cutoff_hz, machine=self.machine)
 
 
@@ -163,6 +218,10 @@ class ProgramFaults:
     broken_flute: tuple[tuple[int, int], ...] = ()  # (part, tool)
     missing_part: tuple[int, ...] = ()
     wrong_tool: tuple[tuple[int, int], ...] = ()  # (part, tool)
+    # the plant cuts another depth than programmed, in every part (the config, from the program, stays):
+    axial_scale: tuple[tuple[int, float], ...] = ()  # (operation, real ap / programmed ap)
+    radial_scale: tuple[tuple[int, float], ...] = ()  # (operation, real ae / programmed ae; a slot: half-slot)
+    life_used: tuple[tuple[int, float], ...] = ()  # (tool, fraction of its life used): cut_effects' wear
 
     def check(self, program: PartProgram, parts: int) -> None:
         """ValueError naming the option when a fault names no tool or part of this run."""
@@ -189,6 +248,23 @@ class ProgramFaults:
                 tool_ok(option, tool)
         for part in self.missing_part:
             part_ok("--missing-part", part)
+        numbers = {op.number for op in program.operations}
+        for option, pairs in (("--axial-scale", self.axial_scale), ("--radial-scale", self.radial_scale)):
+            for op_number, k in pairs:
+                if op_number not in numbers:
+                    raise ValueError(f"{option}: operation {op_number} is not in program {program.number} "
+                                     f"(its operations: {', '.join(str(n) for n in sorted(numbers))})")
+                if not 0.0 < k <= 3.0:
+                    raise ValueError(f"{option}: {k:g} for operation {op_number}: expected 0 < K <= 3")
+            if len({o for o, _ in pairs}) != len(pairs):
+                raise ValueError(f"{option}: an operation is named twice")
+        for tool, fraction in self.life_used:
+            tool_ok("--life-used", tool)
+            if not 0.0 <= fraction <= 1.0:
+                raise ValueError(f"--life-used: {fraction:g} for tool {tool}: expected a fraction within 0..1")
+            if program.effects is None:
+                raise ValueError(f"--life-used: program {program.name} has no cutting effects to wear "
+                                 "(a first-part program has)")
         both = set(self.broken_flute) & set(self.wrong_tool)
         if both:
             part, tool = sorted(both)[0]
@@ -203,6 +279,10 @@ class ProgramFaults:
         """K_s multiplier of tool in part: (1 + p/100)^(part − 1), compounding."""
         pct = dict(self.wear_pct).get(tool, 0.0)
         return (1.0 + pct / 100.0) ** (part - 1)
+
+    def depth_scales(self, operation: int) -> tuple[float, float]:
+        """(axial, radial): the real depths over the programmed ones of an operation."""
+        return dict(self.axial_scale).get(operation, 1.0), dict(self.radial_scale).get(operation, 1.0)
 
     def fault_of(self, part: int, tool: int) -> str | None:
         if part in self.missing_part:
@@ -238,6 +318,7 @@ def _build() -> dict[str, PartProgram]:
 
 
 PROGRAMS: dict[str, PartProgram] = _build()
+# the first-part programs (first_part.py) add themselves here; the package (sim/__init__.py) imports them
 
 
 def list_programs() -> list[str]:

@@ -26,6 +26,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from millsense.drivers.protocol import CTX_AFC_ALLOWED, CTX_CYCLE, CTX_MONITOR
+from millsense.sim.cut_effects import material_batch
 from millsense.sim.cutting import CutGeometry, tooth_chip_factors
 from millsense.sim.machine import Tool
 from millsense.sim.plant import CUT_PER_SAMPLE, SAMPLE_RATE_HZ, Plant
@@ -315,11 +316,20 @@ class ProgramPlant(Plant):
         cutter = op.wrong_cutter if fault == "wrong_tool" else op.tool
         wear = 1.0 if fault == "wrong_tool" else self.faults.wear_factor(op.tool_number, part)
         material = replace(self.program.material, ks=self.program.material.ks * wear)
+        axial_k, radial_k = self.faults.depth_scales(op.number)
         xp = np.array([x for x, _ in op.axial_profile])
-        fp = np.zeros(len(xp)) if fault == "missing_part" else np.array([d for _, d in op.axial_profile])
-        diameter = [cutter.diameter_mm] * 2
-        self.geometry = CutGeometry(cutter, material, self.program.mode, xp, fp, np.array([0.0, 1.0]),
-                                    np.array(diameter), max(1.0, op.max_axial_mm))
+        fp = np.zeros(len(xp)) if fault == "missing_part" else np.array([d for _, d in op.axial_profile]) * axial_k
+        mode = op.mode or self.program.mode
+        rxp = np.array([x for x, _ in op.radial_profile])
+        rfp = np.array([ae for _, ae in op.radial_profile]) * radial_k
+        if fault == "wrong_tool" and op.radial_mm is None and op.radial_points is None:
+            rfp = np.full(len(rxp), cutter.diameter_mm)  # a slot: as wide as the cutter in the spindle
+        if mode == "slot" and radial_k != 1.0:
+            mode = "down"  # half the slot already gone: the cutter takes ae on one side, in down milling
+        # this batch against the handbook's material (the daemon's config keeps the handbook's)
+        material, effects = material_batch(material, self._effects(op), self.program.material_offset_pct)
+        self.geometry = CutGeometry(cutter, material, mode, xp, fp, rxp, rfp,
+                                    max(1.0, op.max_axial_mm * axial_k), effects)
         self._sound = tooth_chip_factors(cutter.flutes)
         self._broken = tooth_chip_factors(cutter.flutes, (BROKEN_FLUTE,))
         self._pending = (part, op, wear, fault, cutter)
@@ -329,6 +339,14 @@ class ProgramPlant(Plant):
         self._enter("change", k, round(TOOL_CHANGE_S * SAMPLE_RATE_HZ))
         start = self.program.feed_travel_mm(op)[0]  # positioned by the programmed tool's radius
         return start, 0.0
+
+    def _effects(self, op: Operation):
+        """The program's cutting effects with this operation's tool wear (its ``life_used`` or --life-used)."""
+        effects = self.program.effects
+        if effects is None:
+            return None
+        life = dict(self.faults.life_used).get(op.tool_number, op.life_used)
+        return replace(effects, life_used=life) if life != effects.life_used else effects
 
     def _open_process(self, k: int) -> None:
         part, op, wear, fault, cutter = self._pending

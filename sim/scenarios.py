@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 
+from millsense.sim.cut_effects import CutEffects
 from millsense.sim.machine import MATERIALS, MCH10, TOOL_D, TOOL_P, Machine, Material, Tool
 
 STEP_EDGE_MM = 1e-6  # width of a vertical wall in a depth profile (np.interp needs increasing x)
@@ -38,6 +39,10 @@ class Scenario:
     breakage: tuple[float, int] | None = None  # (path position mm, tooth that breaks)
     crash_power_w: float | None = None  # air-gap power marked as a crash
     machine: Machine = field(default=MCH10)
+    # the plant's cut beyond [D]'s average model (sim/cut_effects.py); None in every scenario of this book
+    effects: CutEffects | None = None
+    # the plant's material this many % off ``material`` (the config's, machine_config): this batch
+    material_offset_pct: float = 0.0
 
     @property
     def gear(self):

@@ -7,6 +7,7 @@ Serving, the scenario repeats until stopped (`--once`: one pass); a capture is o
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 
@@ -92,7 +93,28 @@ part programs (--scenario part-program):
      "fault" (null, "broken_flute", "missing_part" or "wrong_tool"), "broken_index" (the
      sample at which the flute broke, else null), "cutter": {"diameter_mm", "flutes"}}
   Revolution lines have "rev", event lines "event" (tool_breakage, scenario_restart, ...).
+
+first-part programs (issue 41; sim/first_part.py): first-part-slot (4101), first-part-down
+  (4102), first-part-up (4103), first-part-pocket (4104), first-part-worn (4105), one part
+  each, cut by a plant with the size effect at the instantaneous chip, edge forces, 5 um
+  runout, tool deflection and wear (sim/cut_effects.py). Each operation has its programmed
+  cut (ae, ap, feed, mode, engagement) for the daemon's [operations."P/T/O"]:
+    --material-offset-pct PCT the plant's material PCT % off the config's (any scenario)
+    --axial-scale OP:K        operation OP cuts K x its programmed axial depth
+    --radial-scale OP:K       ... K x its radial depth (a slot: a down-milling cut K x D wide)
+    --life-used TOOL:FRACTION TOOL has cut FRACTION of its life (its forces grow)
+    --only-operation OP       play only operation OP (repeatable)
 """
+
+
+def _offset_pct(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not -90.0 < value <= 500.0:
+        raise argparse.ArgumentTypeError(f"expected a percentage above -90 and at most 500, got {text!r}")
+    return value
 
 
 def _names_pair(text: str) -> tuple[str, str]:
@@ -203,6 +225,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="part program: no material in PART (repeatable)")
     parser.add_argument("--wrong-tool", type=_pair("PART", "TOOL"), action="append", metavar="PART:TOOL",
                         help="part program: in PART the spindle holds another cutter than TOOL (repeatable)")
+    # issue 41: the plant cutting something else than the config says (sim/first_part.py, sim/cut_effects.py)
+    parser.add_argument("--material-offset-pct", type=_offset_pct, default=None, metavar="PCT",
+                        help="the plant's material is PCT %% off the one the config is given (machine_config): "
+                             "K_s and the edge forces x(1+PCT/100), e.g. -20 or 20 (any scenario)")
+    parser.add_argument("--axial-scale", type=_pair("OP", "K", float), action="append", metavar="OP:K",
+                        help="part program: operation OP cuts K times its programmed axial depth (repeatable)")
+    parser.add_argument("--radial-scale", type=_pair("OP", "K", float), action="append", metavar="OP:K",
+                        help="part program: operation OP cuts K times its programmed radial depth; a slot becomes "
+                             "a down-milling cut K x D wide (repeatable)")
+    parser.add_argument("--life-used", type=_pair("TOOL", "FRACTION", float), action="append",
+                        metavar="TOOL:FRACTION", help="first-part program: TOOL has cut FRACTION (0..1) of its "
+                        "life: its edge and chip forces grow (sim/cut_effects.py; repeatable)")
+    parser.add_argument("--only-operation", type=_uint(0, 65535), action="append", metavar="OP",
+                        help="part program: play only operation OP (repeatable; a short stream)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -26,7 +26,8 @@ def list_text() -> str:
     return "\n".join(f"{name:<{width}} {desc}" for name, desc in sources)
 
 
-PROGRAM_OPTIONS = ("parts", "wear", "broken_flute", "missing_part", "wrong_tool")
+PROGRAM_OPTIONS = ("parts", "wear", "broken_flute", "missing_part", "wrong_tool", "axial_scale", "radial_scale",
+                   "life_used", "only_operation")
 
 
 def _program_options(args) -> dict | None:
@@ -50,8 +51,12 @@ def _program_options(args) -> dict | None:
         broken_flute=tuple(args.broken_flute or ()),
         missing_part=tuple(args.missing_part or ()),
         wrong_tool=tuple(args.wrong_tool or ()),
+        axial_scale=tuple(getattr(args, "axial_scale", None) or ()),
+        radial_scale=tuple(getattr(args, "radial_scale", None) or ()),
+        life_used=tuple(getattr(args, "life_used", None) or ()),
     )
-    return {"parts": args.parts, "faults": faults, "program_number": args.program}
+    return {"parts": args.parts, "faults": faults, "program_number": args.program,
+            "only": tuple(getattr(args, "only_operation", None) or ())}
 
 
 def serve(args) -> int:
@@ -67,6 +72,7 @@ def serve(args) -> int:
             filter_cutoff_hz=args.filter_cutoff_hz,
             noise_scale=args.noise_scale,
             program=program,
+            material_offset_pct=getattr(args, "material_offset_pct", None),
         )
     except SourceError as exc:
         raise EmulatorError(str(exc), 2) from exc

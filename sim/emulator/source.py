@@ -45,20 +45,32 @@ def make_source(
     filter_cutoff_hz: float | None = None,
     noise_scale: float | None = None,
     program: dict | None = None,
+    material_offset_pct: float | None = None,
 ):
     """Build the plant for ``scenario``; only options given are passed on.
 
-    ``program``: for a part program, ``parts``, ``faults`` (a ``ProgramFaults``) and ``program_number``."""
+    ``program``: for a part program, ``parts``, ``faults`` (a ``ProgramFaults``), ``program_number`` and
+    ``only`` (operation numbers to play alone). ``material_offset_pct``: the plant's material that many %
+    off the scenario's (sim/cut_effects.py ``material_batch``)."""
     if scenario == "ramp":
+        if material_offset_pct is not None:
+            raise SourceError("--material-offset-pct: the ramp cuts nothing; choose a scenario of the plant")
         return RampPlant(start_index=start_index)
     if is_program(scenario):
+        from dataclasses import replace
+
+        from millsense.sim.program import PROGRAMS
         from millsense.sim.program_plant import ProgramPlant
 
         options = {k: v for k, v in (program or {}).items() if v is not None}
+        only = options.pop("only", ())
         if noise_scale is not None:
             options["noise_scale"] = noise_scale
         try:
-            return ProgramPlant(scenario, seed=seed, loop=loop, filter_cutoff_hz=filter_cutoff_hz, **options)
+            part_program = PROGRAMS[scenario].only(*only) if only else PROGRAMS[scenario]
+            if material_offset_pct is not None:
+                part_program = replace(part_program, material_offset_pct=material_offset_pct)
+            return ProgramPlant(part_program, seed=seed, loop=loop, filter_cutoff_hz=filter_cutoff_hz, **options)
         except ValueError as exc:
             raise SourceError(str(exc)) from exc
     try:
@@ -77,7 +89,14 @@ def make_source(
         kwargs["filter_cutoff_hz"] = filter_cutoff_hz
     if noise_scale is not None:
         kwargs["noise_scale"] = noise_scale
+    plant_scenario = scenario
+    if material_offset_pct is not None:
+        from dataclasses import replace
+
+        plant_scenario = replace(SCENARIOS[scenario], material_offset_pct=material_offset_pct)
     try:
-        return Plant(scenario, **kwargs)
+        return Plant(plant_scenario, **kwargs)
     except TypeError as exc:
         raise SourceError(f"the plant simulator does not take these options: {exc}") from exc
+    except ValueError as exc:
+        raise SourceError(str(exc)) from exc
