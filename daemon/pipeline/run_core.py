@@ -27,6 +27,7 @@ from typing import Any
 from millsense.daemon.events import AlarmEvent
 from millsense.daemon.learning.context import ContextTrack
 from millsense.daemon.learning.monitor import ProcessMonitor
+from millsense.daemon.learning.expected import ExpectedBand
 from millsense.daemon.pipeline.alarms import AlarmEngine
 from millsense.daemon.pipeline.override_track import OverrideTrack, load_gain
 from millsense.daemon.pipeline.safety_check import SafetyCheck
@@ -125,7 +126,8 @@ class PipelineCore:
         learning = getattr(settings, "learning", None)
         self.monitor: ProcessMonitor | None = (
             ProcessMonitor(learning, limits=limits, tools=tools, first_process=first_process,
-                           gain=load_gain(settings), alarms=getattr(settings, "alarms", None))
+                           gain=load_gain(settings), alarms=getattr(settings, "alarms", None),
+                           expected=ExpectedBand.from_settings(settings))   # [operations] (issue 41)
             if learning is not None and getattr(learning, "enabled", False) else None)
         self._block_end: tuple[int, int] | None = None  # (seq, device index) one past the last block
         self._context_change: int | None = None  # a context change the process monitor has not settled yet
@@ -287,8 +289,8 @@ class PipelineCore:
     def summary(self) -> str:
         """The worst active state in one word ("ok" when none)."""
         states = set(self.active().values())
-        for level in ("crash", "tool_breakage", "overload", "envelope_high", "envelope_low", "daq_lost",
-                      "warning", "wear"):
+        for level in ("crash", "tool_breakage", "overload", "envelope_high", "envelope_low", "expected_high",
+                      "expected_low", "daq_lost", "warning", "wear"):
             if level in states:
                 return level
         return "ok"
