@@ -153,8 +153,10 @@ def include_operations_file(data: dict[str, Any], base_dir: Path) -> list[str]:
 
 
 # ----------------------------------------------------------------------------- the CSV sheet
-def read_operations_csv(text: str, source: str) -> tuple[dict[str, dict[str, Any]], list[str]]:
-    """A CSV sheet of operations → ({key: fields}, problems), each problem naming its row and section.key."""
+def read_operations_csv(text: str, source: str,
+                        row_of: dict[str, int] | None = None) -> tuple[dict[str, dict[str, Any]], list[str]]:
+    """A CSV sheet of operations → ({key: fields}, problems), each problem naming its row and section.key;
+    `row_of` (if given) gets each key's row number (the header is row 1)."""
     from millsense.daemon.config.errors import problems_from
     from millsense.daemon.config.models import OperationSettings, Settings, _operation_key
 
@@ -209,6 +211,8 @@ def read_operations_csv(text: str, source: str) -> tuple[dict[str, dict[str, Any
                             for p in problems_from(Settings, exc, prefix=("operations", key)))
             continue
         out[key] = fields
+        if row_of is not None:
+            row_of[key] = number
     return out, problems
 
 

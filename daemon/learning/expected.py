@@ -17,10 +17,12 @@ STEADY_REVOLUTIONS revolutions. Others neither count nor break a run. An unknown
 - `expected_high`: `high_revolutions` steady revolutions in a row above the band; holds the feed.
 - `expected_low`: `low_revolutions` in a row below it; holds the feed for `engagement = "constant"`, else a
   warning that does not hold (depth steps, corners, ramps). A cut's exit, and any slow decline, goes below the
-  band too: a low run counts only when the cut was below the band from its first steady revolution, or fell
-  below it in one revolution by at least LOW_STEP_OF_TOL × tol of the expected load (a broken flute, a step
-  into missing stock); a gradual decline from inside the band is taken for an exit and not judged until the
-  load is back in the band. `limits low-off KEY` turns it off like envelope_low.
+  band too: a low run counts only when the cut fell below the band in one revolution by at least
+  LOW_STEP_OF_TOL × tol of the expected load (a broken flute, a step into missing stock), or — constant
+  engagement only — was below it from its first steady revolution (a shallower cut, a wrong tool: with varying
+  engagement the cut's own depths lie anywhere below the declared maximum). A gradual decline from inside the
+  band is taken for an exit and not judged until the load is back in the band. `limits low-off KEY` turns it
+  off like envelope_low.
 """
 
 from __future__ import annotations
@@ -254,8 +256,9 @@ class ExpectedBand:
     def _low_counts(self, run: _Run, quantity: str, value: float, expected: float, low: float) -> bool:
         """May this revolution below the band count towards expected_low? (the exit rule, module doc)"""
         prev = run.prev.get(quantity)
-        if prev is None:
-            run.low_armed.setdefault(quantity, True)        # below from the cut's first steady revolution
+        if prev is None:   # below from the cut's first steady revolution: a shallower cut, a wrong tool ...
+            # ... unless the engagement varies: the cut's own depths then lie anywhere below the maximum
+            run.low_armed.setdefault(quantity, self.cut(run.proc.key).engagement == "constant")
         elif not prev[1]:                                    # it left the band in this revolution
             run.low_armed[quantity] = (prev[0] - value) >= LOW_STEP_OF_TOL * self.tol * expected
         return run.low_armed.get(quantity, False)

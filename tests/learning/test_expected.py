@@ -145,14 +145,23 @@ def test_the_entry_is_not_judged_even_far_above_the_band():
     assert cell.events() == []
 
 
+def test_a_varying_operation_cut_shallower_than_its_maximum_raises_nothing():
+    cell = Cell(settings("varying"))
+    cell.process(cell.cut(0.5))
+    cell.process(cell.cut(0.6) + [1.0] * 30 + [0.8] * 30)   # a depth step up, a ramp's shallower stretch
+    assert cell.events() == []
+
+
 def test_constant_engagement_low_holds_the_feed_varying_only_warns():
     for engagement, holds in (("constant", True), ("varying", False)):
         cell = Cell(settings(engagement))
-        cell.process(cell.cut(0.5))
+        # constant: shallower from the start; varying: a sudden loss (a flute) from inside the band
+        cell.process(cell.cut(0.5) if holds else cell.cut(1.0) + [0.5] * 20)
         lows = cell.events("expected_low")
         assert len(lows) == 1, engagement
         assert lows[0].trips is holds
-        assert first_event_rev(cell, "expected_low") == ENTRY_REVS + cell.cfg.learning.low_revolutions - 1
+        at = ENTRY_REVS + cell.cfg.learning.low_revolutions - 1 + (0 if holds else 60 - ENTRY_REVS)
+        assert first_event_rev(cell, "expected_low") == at
         assert "< expected" in dict(lows[0].detail)["reason"]
         cleared = [e for e in cell.events("clear")]
         assert bool(cleared) is (not holds)   # a warning clears when its process ends; a hold latches
