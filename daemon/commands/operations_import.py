@@ -45,9 +45,9 @@ def run(args: argparse.Namespace) -> int:
     except (OSError, UnicodeDecodeError) as exc:
         return _fail(f"{sheet}: cannot be read: {getattr(exc, 'strerror', None) or exc}", EXIT_CONFIG)
     row_of: dict[str, int] = {}
-    rows, problems = read_operations_csv(text, str(sheet), row_of)
-    if problems:
-        return _problems(problems)
+    rows, row_problems = read_operations_csv(text, str(sheet), row_of)
+    if row_problems and not rows:
+        return _problems(row_problems)   # the good rows are checked further: every problem said in one pass
     config = Path(args.config)
     data, problems = read_toml(config, str(config), "a millsense TOML configuration")
     if data is None:
@@ -67,9 +67,9 @@ def run(args: argparse.Namespace) -> int:
         kept = {str(k): dict(v) for k, v in (old.get("operations") or {}).items() if isinstance(v, dict)}
     merged = {**kept, **rows}
     new_text = operations_toml(merged)
-    problems = _check(data, config, target, new_text, row_of, str(sheet))
+    problems = row_problems + _check(data, config, target, new_text, row_of, str(sheet))
     if problems:
-        return _problems(problems)
+        return _problems(sorted(problems, key=_row_number))
     if args.print:
         print(new_text, end="")
         return 0
@@ -106,6 +106,13 @@ def _check(data: dict[str, Any], config: Path, target: Path, new_text: str, row_
             row = next((n for k, n in row_of.items() if p.startswith(f'operations."{k}"')), None)
             problems.append(f"{sheet}: row {row}: {p}" if row is not None else p)
     return problems
+
+
+def _row_number(problem: str) -> int:
+    """Problems in the sheet's order (those of no row first)."""
+    head, sep, rest = problem.partition(": row ")
+    number = rest.split(":", 1)[0]
+    return int(number) if sep and number.isdigit() else 0
 
 
 def _problems(problems: list[str]) -> int:
