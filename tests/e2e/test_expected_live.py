@@ -1,0 +1,127 @@
+"""Issue 41 live: the physics' expected band guards the first part, through the real emulator and daemon.
+
+The emulator plays program 1001 (protocol 2: the CNC's context and applied feed override in its frames) over
+TCP. The daemon's `[operations]` are written from what the program really cuts (sim/program.py: T11's slot
+3 mm then 5 mm deep, 0.2 mm/tooth): a first part raises no expected alarm and teaches. Then the same part
+with T11's operation declaring an axial depth of 1/1.8 of the real one — the cut 1.8× deeper than programmed:
+`expected_high` must hold the feed through the DAQ within 3 revolutions of steady cut (a tool radius of path
+past the entry), its reason saying what the physics expected.
+"""
+
+from __future__ import annotations
+
+import signal
+import tomllib
+
+import pytest
+
+from millsense.sim.program import PROGRAMS
+from tests.conftest import free_tcp_port
+from tests.config.helpers import dumps
+from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for
+from tests.e2e.learning_run import CONFIG
+
+SLOW_S = 120.0    # detects a hang; no budget
+KEY = "1001/11/10"
+DEEPER = 1.8
+
+
+def _operations(t11_ap_mm: float) -> dict[str, dict]:
+    """Every operation of program 1001 as it really cuts (the sim's own description), T11's depth as given."""
+    prog = PROGRAMS["part-program"]
+    out = {}
+    for op in prog.operations:
+        key = f"{prog.number}/{op.tool_number}/{op.number}"
+        fz_mm = op.feed_mm_min / (op.rpm * op.tool.flutes)
+        # each slot's floor steps down once: the deeper floor is the maximum, the engagement varies
+        ap = t11_ap_mm if key == KEY else max(op.depths_mm)
+        out[key] = {"ap_mm": ap, "fz_mm": round(fz_mm, 6), "mode": "slot", "engagement": "varying",
+                    "spindle_rpm": op.rpm}
+    return out
+
+
+def _config(path, daq_port, z_port, machine, operations):
+    doc = tomllib.loads(CONFIG.read_text())
+    doc["machine"] = machine
+    doc["daq"].update(host="127.0.0.1", tcp_port=daq_port)
+    doc["learning"] = {"processes": 2}   # its physics_tolerance_pct stays the default: the settings' value
+    doc["operations"] = operations
+    doc["interlock"] = {"enabled": True, "heartbeat_ms": 50, "watchdog_ms": 1000, "reset": "open"}
+    doc["zenoh"] = {"mode": "peer", "listen": [tcp(z_port)], "connect": [], "multicast_scouting": False}
+    doc["log"] = {"level": "info", "format": "json"}
+    path.write_text(dumps(doc))
+    return path
+
+
+def _run_part(tmp_path, name, operations, until):
+    """One part through emulator and daemon; `until(sub, log_path)` waits for what the case needs."""
+    daq_port, z_port = free_tcp_port(), free_tcp_port()
+    cfg = _config(tmp_path / f"{name}.toml", daq_port, z_port, name, operations)
+    log_path = tmp_path / f"{name}-status.jsonl"
+    with Procs(tmp_path) as procs:
+        procs.start(f"sim-{name}", ["sim", "--scenario", "part-program", "--parts", "1", "--tcp",
+                                    f"127.0.0.1:{daq_port}", "--realtime", "--once", "--watchdog-ms", "1000",
+                                    "--status-log", str(log_path)])
+        wait_for(lambda: "serving" in procs.text(f"sim-{name}"), 60.0, "emulator serving")
+        daemon = procs.start(name, ["run", "--config", str(cfg), "--connect-timeout", "120"])
+        sub = Subscriber([tcp(z_port)], name)
+        try:
+            return until(sub, log_path)
+        finally:
+            sub.close()
+            daemon.send_signal(signal.SIGTERM)
+            daemon.wait(30)
+
+
+def _first_steady_rev(estimates: list[dict], operations: dict) -> int:
+    """The first revolution of T11's cut a tool radius of path past its entry (the first the band judges)."""
+    radius_mm = 10.0   # T11: [P]'s phi20 (config/part-program.toml [tools.11])
+    flutes = 2
+    fz_mm = operations[KEY]["fz_mm"]
+    path_mm = 0.0
+    for e in sorted(estimates, key=lambda e: e["rev"]):
+        if f"{e.get('program')}/{e.get('tool')}/{e.get('operation')}" != KEY or not e.get("cutting"):
+            continue
+        if path_mm >= radius_mm:
+            return e["rev"]
+        path_mm += fz_mm * (e["feed_override_pct"] / 100.0) * flutes
+    raise AssertionError("T11's cut never reached steady")
+
+
+@pytest.mark.slow
+def test_a_first_part_cut_deeper_than_programmed_trips_expected_high_live(tmp_path):
+    real = PROGRAMS["part-program"].operations[0]
+    assert f"1001/{real.tool_number}/{real.number}" == KEY
+
+    # 1. the operations as really cut: the first part raises no expected alarm and teaches every operation
+    right = _operations(max(real.depths_mm))
+
+    def three_processes(sub, _log):
+        done = wait_for(lambda: len(sub.get("process")) >= 3 and sub.get("process"), SLOW_S, "the part's 3 processes")
+        return done, sub.get("alarm"), sub.get("estimate")
+
+    processes, alarms, estimates = _run_part(tmp_path, "exp-right", right, three_processes)
+    assert [a for a in alarms if a["level"].startswith("expected")] == [], alarms
+    assert {p["key"]: p["verdict"] for p in processes} == {k: "learning" for k in right}, processes
+    assert all(e.get("feed_override_pct") is not None for e in estimates if e.get("process_rev") is not None)
+
+    # 2. T11's operation declares 1/1.8 of the depth it really cuts (its first floor): expected_high holds the feed
+    shallow = _operations(min(real.depths_mm) / DEEPER)
+
+    def tripped(sub, log_path):
+        try:
+            alarm = wait_for(lambda: [a for a in sub.get("alarm") if a["level"] == "expected_high"], SLOW_S,
+                             "expected_high on the deeper cut")[0]
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}; alarms {sub.get('alarm')}; processes {sub.get('process')}") from None
+        wait_for(lambda: [e for e in read_jsonl(log_path) if e.get("event") == "outputs" and e.get("feed_hold")],
+                 30.0, "the emulated DAQ's feed-hold output")
+        return alarm, sub.get("estimate")
+
+    alarm, estimates = _run_part(tmp_path, "exp-deep", shallow, tripped)
+    assert alarm["tool"] == 11 and alarm["operation"] == 10 and alarm["interlock"] == "feed_hold", alarm
+    assert alarm["value"] > alarm["limit"] and "> expected" in alarm["reason"], alarm
+    assert f"ap {shallow[KEY]['ap_mm']:g} mm" in alarm["reason"], alarm
+    steady = _first_steady_rev(estimates, shallow)
+    # the first steady revolution and the two after it: at most 3 revolutions of steady cut
+    assert steady <= alarm["rev"] <= steady + 2, (steady, alarm["rev"])
