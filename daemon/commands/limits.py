@@ -193,11 +193,26 @@ def _warnings(entry: dict[str, Any]) -> list[str]:
 
 def _show_lines(machine: str, key: str, reply: dict[str, Any]) -> list[str]:
     body = reply.get("limits") if isinstance(reply.get("limits"), dict) else reply
-    lines = [f"{machine}: limits of {key}"] + _warnings(body)
+    lines = [f"{machine}: limits of {key}"] + _warnings(body) + _expected_lines(body)
     for name, value in body.items():
         if name not in ("ok", "action", "key", "machine"):
             lines.append(f"  {name}: {_value(value)}")
     return lines
+
+
+def _expected_lines(body: dict[str, Any]) -> list[str]:
+    """An operation's expected load beside the learned mean, and their ratio (issue 41), in one line each."""
+    out = []
+    at = body.get("expected_at") if isinstance(body.get("expected_at"), dict) else {}
+    for quantity, unit, name in (("torque_nm", "N·m", "torque"), ("force_n", "N", "force")):
+        if f"expected_{quantity}" not in body:
+            continue
+        exp, mean = body.get(f"expected_{quantity}"), body.get(f"learned_mean_{quantity}")
+        ratio = body.get(f"learned_to_expected_{name}")
+        out.append(f"  expected {name} {_value(exp)} {unit} (at {_value(at.get('spindle_rpm'))} rpm, "
+                   f"{_value(at.get('feed_override_pct'))} %, {at.get('from', '?')}); learned mean {_value(mean)} "
+                   f"{unit}; learned/expected {_value(ratio)}")
+    return out
 
 
 def _change_lines(machine: str, request: dict[str, Any], reply: dict[str, Any]) -> list[str]:

@@ -10,7 +10,9 @@ past the entry), its reason saying what the physics expected.
 
 from __future__ import annotations
 
+import json
 import signal
+import subprocess
 import tomllib
 
 import pytest
@@ -18,7 +20,7 @@ import pytest
 from millsense.sim.program import PROGRAMS
 from tests.conftest import free_tcp_port
 from tests.config.helpers import dumps
-from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for
+from tests.e2e.helpers import CMD, Procs, Subscriber, read_jsonl, tcp, wait_for
 from tests.e2e.learning_run import CONFIG
 
 SLOW_S = 120.0    # detects a hang; no budget
@@ -54,7 +56,8 @@ def _config(path, daq_port, z_port, machine, operations):
 
 
 def _run_part(tmp_path, name, operations, until):
-    """One part through emulator and daemon; `until(sub, log_path)` waits for what the case needs."""
+    """One part through emulator and daemon; `until(sub, log_path, where)` waits for what the case needs
+    (`where`: the CLI's arguments that reach this daemon)."""
     daq_port, z_port = free_tcp_port(), free_tcp_port()
     cfg = _config(tmp_path / f"{name}.toml", daq_port, z_port, name, operations)
     log_path = tmp_path / f"{name}-status.jsonl"
@@ -65,8 +68,9 @@ def _run_part(tmp_path, name, operations, until):
         wait_for(lambda: "serving" in procs.text(f"sim-{name}"), 60.0, "emulator serving")
         daemon = procs.start(name, ["run", "--config", str(cfg), "--connect-timeout", "120"])
         sub = Subscriber([tcp(z_port)], name)
+        where = ["--machine", name, "--connect", tcp(z_port), "--no-scouting", "--timeout", "10"]
         try:
-            return until(sub, log_path)
+            return until(sub, log_path, where)
         finally:
             sub.close()
             daemon.send_signal(signal.SIGTERM)
@@ -96,11 +100,21 @@ def test_a_first_part_cut_deeper_than_programmed_trips_expected_high_live(tmp_pa
     # 1. the operations as really cut: the first part raises no expected alarm and teaches every operation
     right = _operations(max(real.depths_mm))
 
-    def three_processes(sub, _log):
+    def three_processes(sub, _log, where):
         done = wait_for(lambda: len(sub.get("process")) >= 3 and sub.get("process"), SLOW_S, "the part's 3 processes")
-        return done, sub.get("alarm"), sub.get("estimate")
+        # `limits show KEY` through the real CLI: the expected load at the last steady revolution
+        shown = subprocess.run(CMD + ["limits", "show", KEY, "--json", *where], capture_output=True, text=True,
+                               timeout=60)
+        return done, sub.get("alarm"), sub.get("estimate"), shown
 
-    processes, alarms, estimates = _run_part(tmp_path, "exp-right", right, three_processes)
+    processes, alarms, estimates, shown = _run_part(tmp_path, "exp-right", right, three_processes)
+    assert shown.returncode == 0, shown.stderr
+    body = json.loads(shown.stdout)
+    assert body["expected_at"]["from"] == "last steady revolution", body
+    assert body["expected_torque_nm"] > 0 and body["learned_mean_torque_nm"] is None   # one part: nothing learned
+    # the deeper floor, steady, takes what the physics expects within the band
+    deep = [e for e in estimates if e.get("process_rev") is not None and e.get("tool") == 11 and e.get("cutting")]
+    assert deep and max(e["torque_nm"] for e in deep) <= body["expected_high_torque_nm"]
     assert [a for a in alarms if a["level"].startswith("expected")] == [], alarms
     assert {p["key"]: p["verdict"] for p in processes} == {k: "learning" for k in right}, processes
     assert all(e.get("feed_override_pct") is not None for e in estimates if e.get("process_rev") is not None)
@@ -108,7 +122,7 @@ def test_a_first_part_cut_deeper_than_programmed_trips_expected_high_live(tmp_pa
     # 2. T11's operation declares 1/1.8 of the depth it really cuts (its first floor): expected_high holds the feed
     shallow = _operations(min(real.depths_mm) / DEEPER)
 
-    def tripped(sub, log_path):
+    def tripped(sub, log_path, _where):
         try:
             alarm = wait_for(lambda: [a for a in sub.get("alarm") if a["level"] == "expected_high"], SLOW_S,
                              "expected_high on the deeper cut")[0]
