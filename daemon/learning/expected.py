@@ -125,8 +125,9 @@ class _Run:
     runs: dict[str, int] = field(default_factory=dict)           # level:quantity -> steady revolutions in a row
     prev: dict[str, tuple[float, bool]] = field(default_factory=dict)   # quantity -> (value, below) of the last steady
     low_armed: dict[str, bool] = field(default_factory=dict)
-    noted: bool = False
-    outside: bool = False         # a steady revolution outside the band (for the summary)
+    noted: bool = False           # the override was unknown (said once per process)
+    outside: bool = False         # a steady revolution outside the band
+    judged: int = 0               # steady revolutions judged
 
     def leave_cut(self) -> None:
         self.path_mm = 0.0
@@ -225,6 +226,7 @@ class ExpectedBand:
         if path_before < op.tool_radius_mm or est.get("accelerating") or not self._held(run):
             return out
         self.last_seen[proc.key] = (float(rpm), float(ovr))
+        run.judged += 1
         at = k if k is not None else proc.revolutions - 1
         for quantity, expected in (("torque_nm", exp.torque_nm), ("force_n", exp.force_n)):
             value = finite(est.get(quantity))
@@ -297,9 +299,13 @@ class ExpectedBand:
         return (f"{name} {value:.4g} {unit} {side} (ae {c.radial_depth_mm:g} mm, ap {c.axial_depth_mm:g} mm, "
                 f"{feed} ({exp.feed_per_tooth_mm:.3g} mm/tooth cut), {c.mode}, at {rpm:.0f} rpm, {ovr:g} %){hold}")
 
-    def outside(self, proc: Any) -> bool:
-        run = self._run
-        return run is not None and run.proc is proc and run.outside
+    def summary(self, proc: Any) -> dict[str, Any]:
+        """The process payload's `expected_band` (additive): "armed" (steady revolutions were judged; how many in
+        `expected_revolutions`), "unarmed" (the override was unknown), "not_steady" (no revolution was steady)."""
+        run = self._run if self._run is not None and self._run.proc is proc else None
+        judged = 0 if run is None else run.judged
+        state = "armed" if judged else ("unarmed" if run is not None and run.noted else "not_steady")
+        return {"expected_band": state, "expected_revolutions": judged}
 
     # -- `limits show` ----------------------------------------------------------------------------
     def show(self, key: str, learned: dict[str, float | None], widening: ExpectedWidening | None) -> dict[str, Any] | None:

@@ -384,6 +384,8 @@ class ProcessMonitor:
             ratio = proc.energy_j / ks.envelope.energy_mean_j
         wear = self._wear(step, proc, verdict, ratio)
         summary = proc.summary(verdict)
+        if proc.monitored and self.has_operation(proc.key):
+            summary.update(self.expected.summary(proc))   # was the physics' band armed in it (expected.py)
         summary.update({
             "learned": 0 if ks is None else (ks.envelope.n if ks.envelope is not None else len(ks.taught)),
             "learn_target": self.target, "envelope": "learning" if ks is None else ks.state,

@@ -163,3 +163,15 @@ def test_the_example_sheet_imports_into_the_example_config(tmp_path):
     assert out.returncode == 0, out.stderr
     s = load_config(tmp_path / "p.toml")
     assert set(s.operations) == {"1001/11/10", "1001/4/20", "1001/27/30"}
+
+
+@pytest.mark.parametrize("section, change, key", [("learning", {"enabled": False}, "learning.enabled"),
+                                                   ("context", {"source": "off"}, "context.source")])
+def test_operations_that_nothing_can_arm_are_warned(section, change, key):
+    from millsense.daemon.config.warnings import config_warnings
+
+    d = doc()
+    d.setdefault(section, {}).update(change)
+    warned = [w for w in config_warnings(load_config_text(dumps(d))) if "[operations]" in w]
+    assert len(warned) == 1 and warned[0].startswith(key), warned
+    assert not [w for w in config_warnings(load_config_text(dumps(doc()))) if "[operations]" in w]

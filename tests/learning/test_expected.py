@@ -277,3 +277,27 @@ def test_a_key_without_an_operation_behaves_as_before():
     assert with_physics.processes() == plain.processes()
     assert with_physics.estimates == plain.estimates
     assert with_physics.events("envelope_high")   # the learned envelope still guards it
+
+
+def test_each_process_says_whether_its_expected_band_was_armed():
+    cell = Cell()
+    cell.process(cell.cut(1.0))
+    cell.process(cell.cut(1.0), override=None)
+    cell.process(cell.cut(1.0, ENTRY_REVS))   # never a tool radius past its entry
+    states = [(p["expected_band"], p["expected_revolutions"] > 0) for p in cell.processes()]
+    assert states == [("armed", True), ("unarmed", False), ("not_steady", False)]
+
+
+def test_the_expected_state_of_a_key_is_kept_and_a_bad_one_set_aside():
+    cell = Cell(settings(processes=3))
+    cell.process(cell.cut(1.8))
+    cell.monitor.reset()
+    assert cell.monitor.command({"action": "widen", "key": KEY, "pct": 50})["ok"]
+    stored = cell.monitor.export_limits(KEY)
+    again = ProcessMonitor(cell.cfg.learning, limits={KEY: stored}, alarms=cell.cfg.alarms, expected=cell.band)
+    ks = again.keys[KEY]
+    assert ks.expected_widening.high == pytest.approx(1.5) and ks.held_back is not None and ks.kept == 1
+    assert again.command({"action": "accept", "key": KEY})["ok"] and len(again.keys[KEY].taught) == 1
+    bad = dict(stored, expected_widening={"high": 1e9, "low": 1.0})
+    aside = ProcessMonitor(cell.cfg.learning, limits={KEY: bad}, alarms=cell.cfg.alarms, expected=cell.band)
+    assert "expected_widening.high" in aside.keys[KEY].set_aside
