@@ -116,6 +116,16 @@ def operation_cut(settings: Any, key: str) -> OperationCut | None:
     return OperationCut(key, cut, d / 2.0, int(tool.flutes), material, op.engagement, op.spindle_rpm)
 
 
+def operation_cuts(settings: Any) -> dict[str, OperationCut]:
+    """Every operation of `settings` as the physics takes it (learning/expected.py's `ExpectedBand`)."""
+    out = {}
+    for key in getattr(settings, "operations", None) or {}:
+        cut = operation_cut(settings, key)
+        if cut is not None:
+            out[key] = cut
+    return out
+
+
 # ----------------------------------------------------------------------------- the operations file
 def include_operations_file(data: dict[str, Any], base_dir: Path) -> list[str]:
     """Merge `[learning] operations_file`'s `[operations.*]` into `data` (before validation); its problems.

@@ -32,7 +32,6 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from millsense.daemon.config.operations import OperationCut, operation_cut
 from millsense.daemon.events import AlarmEvent, finite
 from millsense.daemon.learning.envelope import LOW_MAX_FRACTION, MAX_WIDENING, WideningCapped, setting
 from millsense.daemon.physics.expected import ExpectedLoad, expected_load
@@ -146,34 +145,29 @@ class Judged:
 
 
 class ExpectedBand:
-    """The physics check of every operation a configuration declares. One owner (the monitor's thread)."""
+    """The physics check of every operation a configuration declares. One owner (the monitor's thread).
 
-    def __init__(self, settings: Any):
-        self.settings = settings
-        learning = getattr(settings, "learning", None)
+    `cuts`: key → the operation as the physics takes it (`config.operations.OperationCut`: cut, tool_radius_mm,
+    flutes, material, engagement, spindle_rpm; resolved by the caller, `config.operations.operation_cuts`).
+    """
+
+    def __init__(self, cuts: dict[str, Any], learning: Any = None, alarms: Any = None):
         self.tolerance_pct = float(setting(learning, "physics_tolerance_pct", DEFAULT_TOLERANCE_PCT))
         self.high_revolutions = max(1, int(setting(learning, "high_revolutions", 3)))
         self.low_revolutions = max(1, int(setting(learning, "low_revolutions", 3)))
-        alarms = getattr(settings, "alarms", None)
         self.ceilings = {"torque_nm": setting(alarms, "torque_limit_nm", None),
                          "force_n": setting(alarms, "force_limit_n", None)}
-        self.cuts: dict[str, OperationCut | None] = {}
+        self.cuts: dict[str, Any] = dict(cuts)
         self.last_seen: dict[str, tuple[float, float]] = {}   # key -> (spindle_rpm, override_pct) of its last steady rev
         self._run: _Run | None = None
-
-    @classmethod
-    def from_settings(cls, settings: Any) -> "ExpectedBand | None":
-        """None where no operation is declared: everything behaves as before."""
-        return cls(settings) if getattr(settings, "operations", None) else None
 
     @property
     def tol(self) -> float:
         return self.tolerance_pct / 100.0
 
-    def cut(self, key: str) -> OperationCut | None:
-        if key not in self.cuts:
-            self.cuts[key] = operation_cut(self.settings, key)
-        return self.cuts[key]
+    def cut(self, key: str) -> Any:
+        """The operation of `key`, None when it has none (it behaves as before)."""
+        return self.cuts.get(key)
 
     def expected(self, key: str, spindle_rpm: float | None, override_pct: float | None) -> ExpectedLoad | None:
         op = self.cut(key)
@@ -265,7 +259,7 @@ class ExpectedBand:
             run.low_armed[quantity] = (prev[0] - value) >= LOW_STEP_OF_TOL * self.tol * expected
         return run.low_armed.get(quantity, False)
 
-    def _side(self, out: Judged, run: _Run, proc: Any, op: OperationCut, est: dict[str, Any], exp: ExpectedLoad,
+    def _side(self, out: Judged, run: _Run, proc: Any, op: Any, est: dict[str, Any], exp: ExpectedLoad,
               at: int, quantity: str, level: str, value: float, expected: float, limit: float, outside: bool,
               hold: bool) -> None:
         name = f"{level}:{quantity}"
@@ -283,7 +277,7 @@ class ExpectedBand:
                                                                      ("reason", reason)))
         out.events.append((ev, dict(proc.outside[name])))
 
-    def reason(self, op: OperationCut, est: dict[str, Any], exp: ExpectedLoad, quantity: str, level: str,
+    def reason(self, op: Any, est: dict[str, Any], exp: ExpectedLoad, quantity: str, level: str,
                value: float, expected: float, limit: float) -> str:
         """What the physics expected and what was measured, in one line (the alarm's `reason`)."""
         unit = _UNITS[quantity]

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from millsense.daemon.config.load import load_config_text
-from millsense.daemon.learning.expected import KEPT_WARNING_PROCESSES, ExpectedBand
+from millsense.daemon.learning.expected import KEPT_WARNING_PROCESSES
+from millsense.daemon.pipeline.run_core import expected_band
 from millsense.daemon.learning.envelope import MAX_WIDENING
 from millsense.daemon.learning.monitor import ProcessMonitor
 from tests.config.helpers import base, dumps
@@ -37,7 +38,7 @@ def settings(engagement: str = "constant", operations: dict | None = None, **lea
     return load_config_text(dumps(d))
 
 
-REFERENCE = ExpectedBand(settings())
+REFERENCE = expected_band(settings())
 
 
 class Cell:
@@ -45,7 +46,7 @@ class Cell:
 
     def __init__(self, cfg=None, noise_pct: float = 1.0, seed: int = 3):
         self.cfg = cfg or settings()
-        self.band = ExpectedBand.from_settings(self.cfg)
+        self.band = expected_band(self.cfg)
         self.monitor = ProcessMonitor(self.cfg.learning, alarms=self.cfg.alarms, expected=self.band)
         self.rng = np.random.default_rng(seed)
         self.noise = noise_pct / 100.0
