@@ -173,8 +173,14 @@ class ExpectedBand:
         op = self.cut(key)
         if op is None or spindle_rpm is None:
             return None
-        return expected_load(op.cut, tool_radius_mm=op.tool_radius_mm, flutes=op.flutes, material=op.material,
-                             spindle_rpm=spindle_rpm, override_pct=override_pct)
+        try:
+            exp = expected_load(op.cut, tool_radius_mm=op.tool_radius_mm, flutes=op.flutes, material=op.material,
+                                spindle_rpm=spindle_rpm, override_pct=override_pct)
+        except (ValueError, ArithmeticError):
+            return None   # nothing can be expected: nothing armed (never an error on the estimator thread)
+        if exp is None or not (math.isfinite(exp.torque_nm) and math.isfinite(exp.feed_per_tooth_mm)):
+            return None
+        return exp
 
     def limits(self, quantity: str, expected: float, widening: ExpectedWidening | None) -> tuple[float, float]:
         low_f, high_f = (widening or ExpectedWidening()).fractions(self.tol)

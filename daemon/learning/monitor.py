@@ -362,7 +362,7 @@ class ProcessMonitor:
         if env is not None and "envelope_low" not in proc.raised and not proc.too_damaged and self._low_check(proc):
             self._end_checks(step, proc, env)
         verdict = self._verdict(proc, ks, incomplete)
-        if verdict in EXPECTED_LEVELS and proc.teaches:
+        if verdict in EXPECTED_LEVELS and proc.teaches and not proc.fixed_alarm:
             ks = self._keep_from_teaching(step, proc, ks)
         elif verdict == "learning" and ks is not None:
             ks.kept = 0

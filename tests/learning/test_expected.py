@@ -302,3 +302,20 @@ def test_the_expected_state_of_a_key_is_kept_and_a_bad_one_set_aside():
     bad = dict(stored, expected_widening={"high": 1e9, "low": 1.0})
     aside = ProcessMonitor(cell.cfg.learning, limits={KEY: bad}, alarms=cell.cfg.alarms, expected=cell.band)
     assert "expected_widening.high" in aside.keys[KEY].set_aside
+
+
+def test_a_process_with_a_fixed_alarm_too_is_not_kept_for_accept():
+    """accept teaches a process kept back by the physics only: one a fixed limit also fired in never teaches."""
+    from millsense.daemon.events import AlarmEvent
+
+    cell = Cell()
+    context = ctx(1001, 5, 1)
+    for _ in range(3):
+        cell.feed(cell.est(0.0, cutting=False), context)
+    for i, f in enumerate(cell.cut(1.8)):
+        cell.feed(cell.est(f), context)
+        if i == ENTRY_REVS + 5:
+            cell.monitor.note_alarm(AlarmEvent("overload", "torque_nm", 9.5, 9.0))
+    cell.steps.append(cell.monitor.on_context(replace(context, cycle=False), cell.rev * 100))
+    assert cell.processes()[-1]["verdict"] == "expected_high"
+    assert cell.monitor.keys.get(KEY) is None or cell.monitor.keys[KEY].held_back is None
