@@ -165,7 +165,7 @@ def test_the_example_sheet_imports_into_the_example_config(tmp_path):
     assert set(s.operations) == {"1001/11/10", "1001/4/20", "1001/27/30"}
     checked = subprocess.run(CMD + ["check-config", str(tmp_path / "p.toml")], capture_output=True, text=True,
                              timeout=60)
-    assert checked.returncode == 0 and "3 operations with an expected band (±25 %)" in checked.stdout, checked
+    assert checked.returncode == 0 and f"3 operations with an expected band (±{s.learning.physics_tolerance_pct:g} %)" in checked.stdout, checked
 
 
 @pytest.mark.parametrize("section, change, key", [("learning", {"enabled": False}, "learning.enabled"),

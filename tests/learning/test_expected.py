@@ -39,6 +39,7 @@ def settings(engagement: str = "constant", operations: dict | None = None, **lea
 
 
 REFERENCE = expected_band(settings())
+TOL = REFERENCE.tolerance_pct / 100.0   # the settings' tolerance (the lead sets its default): factors follow it
 
 
 class Cell:
@@ -149,7 +150,7 @@ def test_the_entry_is_not_judged_even_far_above_the_band():
 def test_a_varying_operation_cut_shallower_than_its_maximum_raises_nothing():
     cell = Cell(settings("varying"))
     cell.process(cell.cut(0.5))
-    cell.process(cell.cut(0.6) + [1.0] * 30 + [0.8] * 30)   # a depth step up, a ramp's shallower stretch
+    cell.process(cell.cut(0.6) + [1.0] * 30 + [1.0 - 0.6 * TOL] * 30)   # a depth step up, then a step down within the band
     assert cell.events() == []
 
 
@@ -157,7 +158,8 @@ def test_constant_engagement_low_holds_the_feed_varying_only_warns():
     for engagement, holds in (("constant", True), ("varying", False)):
         cell = Cell(settings(engagement))
         # constant: shallower from the start; varying: a sudden loss (a flute) from inside the band
-        cell.process(cell.cut(0.5) if holds else cell.cut(1.0) + [0.5] * 20)
+        below = 1.0 - 2.0 * TOL
+        cell.process(cell.cut(below) if holds else cell.cut(1.0) + [below] * 20)
         lows = cell.events("expected_low")
         assert len(lows) == 1, engagement
         assert lows[0].trips is holds
@@ -170,10 +172,11 @@ def test_constant_engagement_low_holds_the_feed_varying_only_warns():
 
 def test_a_flute_lost_mid_cut_trips_low_but_a_gradual_exit_does_not():
     cell = Cell()
-    exit_ramp = [1.0 - 0.04 * i for i in range(1, 25)]   # the engagement shrinking as the tool leaves
+    # the engagement shrinking as the tool leaves: a fraction of the tolerance per revolution, down to nothing
+    exit_ramp = [1.0 - 0.16 * TOL * i for i in range(1, int(1 / (0.16 * TOL)))]
     cell.process(cell.cut(1.0) + exit_ramp)
     assert cell.events("expected_low") == []
-    cell.process(cell.cut(1.0) + [0.55] * 10)             # one revolution from inside the band to far below it
+    cell.process(cell.cut(1.0) + [1.0 - 1.8 * TOL] * 10)  # one revolution from inside the band to far below it
     assert len(cell.events("expected_low")) == 1
 
 
@@ -218,14 +221,15 @@ def test_a_process_outside_the_band_does_not_teach_and_accept_teaches_it():
 
 def test_false_alarm_widens_the_expected_band_and_teaches_the_process():
     cell = Cell()
-    cell.process(cell.cut(1.4))
+    above = 1.0 + 1.6 * TOL   # outside the band, within what a false alarm may widen it to (4x)
+    cell.process(cell.cut(above))
     assert len(cell.events("expected_high")) == 1
     cell.monitor.reset()
     reply = cell.monitor.command({"action": "false_alarm", "key": KEY})
     assert reply["ok"], reply
     assert len(cell.monitor.keys[KEY].taught) == 1
     n = len(cell.events())
-    cell.process(cell.cut(1.4))
+    cell.process(cell.cut(above))
     assert cell.events()[n:] == []
     assert cell.processes()[-1]["verdict"] == "learning"
 
@@ -255,11 +259,11 @@ def test_show_gives_the_expected_load_beside_the_learned_mean_and_their_ratio():
     assert shown["expected_torque_nm"] == pytest.approx(exp.torque_nm, rel=1e-3)
     assert shown["expected_at"]["from"] == "programmed" and shown["learned_mean_torque_nm"] is None
     for _ in range(2):   # long cuts: the learned mean is over the whole cut, its entry's growing load included
-        cell.process(cell.cut(1.1, 400))
+        cell.process(cell.cut(1.0 + 0.4 * TOL, 400))
     shown = cell.monitor.command({"action": "show", "key": KEY})
     assert shown["ok"] and shown["state"] == "active"
     assert shown["expected_at"]["from"] == "last steady revolution"
-    assert shown["learned_to_expected_torque"] == pytest.approx(1.1, rel=0.03)
+    assert shown["learned_to_expected_torque"] == pytest.approx(1.0 + 0.4 * TOL, rel=0.03)
 
 
 def test_a_key_without_an_operation_behaves_as_before():
