@@ -139,3 +139,28 @@ def test_a_first_part_cut_deeper_than_programmed_trips_expected_high_live(tmp_pa
     steady = _first_steady_rev(estimates, shallow)
     # the first steady revolution and the two after it: at most 3 revolutions of steady cut
     assert steady <= alarm["rev"] <= steady + 2, (steady, alarm["rev"])
+
+
+@pytest.mark.slow
+def test_a_first_part_cut_shallower_in_a_constant_slot_trips_expected_low_live(tmp_path):
+    """T11's operation declared constant engagement at twice the depth its first floor really has: the cut
+    is half the expected load from its first steady revolution, and `expected_low` holds the feed."""
+    real = PROGRAMS["part-program"].operations[0]
+    ops = _operations(2.0 * min(real.depths_mm))
+    ops[KEY]["engagement"] = "constant"
+
+    def tripped(sub, log_path, _where):
+        try:
+            alarm = wait_for(lambda: [a for a in sub.get("alarm") if a["level"] == "expected_low"], SLOW_S,
+                             "expected_low on the shallower cut")[0]
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}; alarms {sub.get('alarm')}; processes {sub.get('process')}") from None
+        wait_for(lambda: [e for e in read_jsonl(log_path) if e.get("event") == "outputs" and e.get("feed_hold")],
+                 30.0, "the emulated DAQ's feed-hold output")
+        return alarm, sub.get("estimate")
+
+    alarm, estimates = _run_part(tmp_path, "exp-low", ops, tripped)
+    assert alarm["tool"] == 11 and alarm["interlock"] == "feed_hold", alarm
+    assert alarm["value"] < alarm["limit"] and "< expected" in alarm["reason"], alarm
+    steady = _first_steady_rev(estimates, ops)
+    assert steady <= alarm["rev"] <= steady + 2, (steady, alarm["rev"])
