@@ -139,18 +139,24 @@ def _false_alarm(m: "ProcessMonitor", key: str, ks: KeyState) -> dict[str, Any]:
             ks.expected_widening = ks.expected_widening or ExpectedWidening()
             tol = m.expected.tol if m.expected is not None else 0.25
             if not ks.expected_widening.fit(a["level"], list(a["observed"].values()), tol):
-                bounded.append(a["quantity"])
+                bounded.append(f"{a['level']} {a['quantity']}")
         elif ks.envelope is not None and not ks.envelope.false_alarm(a["level"], a["quantity"], a["observed"]):
             bounded.append(a["quantity"])
+    extra: dict[str, Any] = {}
     if ks.held_back is not None:
         m.teach_held_back(key)   # the alarm was false: the process it kept from teaching teaches
+        extra["taught"] = "the process kept from teaching by the expected band"
     ks.last_alarms = []
-    extra: dict[str, Any] = {}
+    if ks.expected_widening is not None:
+        extra["expected_widening"] = {"high": round(ks.expected_widening.high, 3),
+                                      "low": round(ks.expected_widening.low, 3)}
     if bounded:   # what was seen does not fit within the bounds: say so, the alarm may come again
         extra["bounded"] = (
             f"{', '.join(sorted(set(bounded)))}: the band reached its bounds (at most {MAX_WIDENING:g}× the learned "
             f"width, the high side under the fixed [alarms] limit, the low side at most {LOW_MAX_FRACTION:.0%} below "
-            f"the mean); the same alarm may come again: relearn {key}, or low-off {key} for envelope_low")
+            f"the mean; an expected band at most {MAX_WIDENING:g}× [learning] physics_tolerance_pct, its low side at "
+            f"most max(tolerance, {LOW_MAX_FRACTION:.0%}) below the expected load); the same alarm may come again: "
+            f"relearn {key}, check its [operations] entry, or low-off {key} for envelope_low and expected_low")
     return _done(m, "false_alarm", key, alarms=[{k: a[k] for k in ("level", "quantity", "process")} for a in alarms],
                  **extra)
 

@@ -11,6 +11,7 @@ past the entry), its reason saying what the physics expected.
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import tomllib
@@ -56,8 +57,8 @@ def _config(path, daq_port, z_port, machine, operations):
 
 
 def _run_part(tmp_path, name, operations, until):
-    """One part through emulator and daemon; `until(sub, log_path, where)` waits for what the case needs
-    (`where`: the CLI's arguments that reach this daemon)."""
+    """One part through emulator and daemon; `until(sub, log_path, at)` waits for what the case needs
+    (`at`: where the CLI reaches this daemon: `where` over Zenoh, `local` at the machine, `env`, `state`)."""
     daq_port, z_port = free_tcp_port(), free_tcp_port()
     cfg = _config(tmp_path / f"{name}.toml", daq_port, z_port, name, operations)
     log_path = tmp_path / f"{name}-status.jsonl"
@@ -66,11 +67,14 @@ def _run_part(tmp_path, name, operations, until):
                                     f"127.0.0.1:{daq_port}", "--realtime", "--once", "--watchdog-ms", "1000",
                                     "--status-log", str(log_path)])
         wait_for(lambda: "serving" in procs.text(f"sim-{name}"), 60.0, "emulator serving")
-        daemon = procs.start(name, ["run", "--config", str(cfg), "--connect-timeout", "120"])
+        state = tmp_path / f"{name}-state"
+        env = {"STATE_DIRECTORY": str(state)}
+        daemon = procs.start(name, ["run", "--config", str(cfg), "--connect-timeout", "120"], env_extra=env)
         sub = Subscriber([tcp(z_port)], name)
-        where = ["--machine", name, "--connect", tcp(z_port), "--no-scouting", "--timeout", "10"]
+        at = {"where": ["--machine", name, "--connect", tcp(z_port), "--no-scouting", "--timeout", "10"],
+              "local": ["--local", "--config", str(cfg)], "env": env, "state": state}
         try:
-            return until(sub, log_path, where)
+            return until(sub, log_path, at)
         finally:
             sub.close()
             daemon.send_signal(signal.SIGTERM)
@@ -100,11 +104,11 @@ def test_a_first_part_cut_deeper_than_programmed_trips_expected_high_live(tmp_pa
     # 1. the operations as really cut: the first part raises no expected alarm and teaches every operation
     right = _operations(max(real.depths_mm))
 
-    def three_processes(sub, _log, where):
+    def three_processes(sub, _log, at):
         done = wait_for(lambda: len(sub.get("process")) >= 3 and sub.get("process"), SLOW_S, "the part's 3 processes")
         # `limits show KEY` through the real CLI: the expected load at the last steady revolution
-        shown = subprocess.run(CMD + ["limits", "show", KEY, "--json", *where], capture_output=True, text=True,
-                               timeout=60)
+        shown = subprocess.run(CMD + ["limits", "show", KEY, "--json", *at["where"]], capture_output=True,
+                               text=True, timeout=60)
         return done, sub.get("alarm"), sub.get("estimate"), shown
 
     processes, alarms, estimates, shown = _run_part(tmp_path, "exp-right", right, three_processes)
@@ -122,7 +126,7 @@ def test_a_first_part_cut_deeper_than_programmed_trips_expected_high_live(tmp_pa
     # 2. T11's operation declares 1/1.8 of the depth it really cuts (its first floor): expected_high holds the feed
     shallow = _operations(min(real.depths_mm) / DEEPER)
 
-    def tripped(sub, log_path, _where):
+    def tripped(sub, log_path, at):
         try:
             alarm = wait_for(lambda: [a for a in sub.get("alarm") if a["level"] == "expected_high"], SLOW_S,
                              "expected_high on the deeper cut")[0]
@@ -130,9 +134,22 @@ def test_a_first_part_cut_deeper_than_programmed_trips_expected_high_live(tmp_pa
             raise AssertionError(f"{exc}; alarms {sub.get('alarm')}; processes {sub.get('process')}") from None
         wait_for(lambda: [e for e in read_jsonl(log_path) if e.get("event") == "outputs" and e.get("feed_hold")],
                  30.0, "the emulated DAQ's feed-hold output")
-        return alarm, sub.get("estimate")
+        # the operator's false-alarm on the expected band: never open over Zenoh, granted at the machine, audited
+        env = dict(os.environ, **at["env"])
+        cli = ["limits", "false-alarm", KEY, "--json"]
+        remote = subprocess.run(CMD + cli + at["where"], capture_output=True, text=True, timeout=60, env=env)
+        local = subprocess.run(CMD + cli + at["local"], capture_output=True, text=True, timeout=60, env=env)
+        return alarm, sub.get("estimate"), remote, local, at["state"]
 
-    alarm, estimates = _run_part(tmp_path, "exp-deep", shallow, tripped)
+    alarm, estimates, remote, local, state = _run_part(tmp_path, "exp-deep", shallow, tripped)
+    assert remote.returncode != 0, remote.stdout
+    assert local.returncode == 0, local.stdout + local.stderr
+    reply = json.loads(local.stdout)
+    assert reply["ok"] and {a["level"] for a in reply["alarms"]} == {"expected_high"}, reply   # torque, force
+    tol = reply["expected_widening"]["high"]
+    assert tol > 1.0, reply   # widened so that the 1.8x seen fits (within the bounds, or said `bounded`)
+    audit = [json.loads(line) for line in (state / "audit.log").read_text().splitlines()]
+    assert [a["granted"] for a in audit if a.get("command") == "limits"][-1] is True, audit
     assert alarm["tool"] == 11 and alarm["operation"] == 10 and alarm["interlock"] == "feed_hold", alarm
     assert alarm["value"] > alarm["limit"] and "> expected" in alarm["reason"], alarm
     assert f"ap {shallow[KEY]['ap_mm']:g} mm" in alarm["reason"], alarm
@@ -149,7 +166,7 @@ def test_a_first_part_cut_shallower_in_a_constant_slot_trips_expected_low_live(t
     ops = _operations(2.0 * min(real.depths_mm))
     ops[KEY]["engagement"] = "constant"
 
-    def tripped(sub, log_path, _where):
+    def tripped(sub, log_path, _at):
         try:
             alarm = wait_for(lambda: [a for a in sub.get("alarm") if a["level"] == "expected_low"], SLOW_S,
                              "expected_low on the shallower cut")[0]
