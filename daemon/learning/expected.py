@@ -253,7 +253,7 @@ class ExpectedBand:
             top = max(abs(v) for v in known)
             if top > 0 and (max(known) - min(known)) > STEADY_FEED_PCT / 100.0 * top:
                 return False
-        return len(run.overrides) >= min(STEADY_REVOLUTIONS, 1)
+        return len(run.overrides) >= STEADY_REVOLUTIONS   # a whole window seen
 
     def _low_counts(self, run: _Run, quantity: str, value: float, expected: float, low: float) -> bool:
         """May this revolution below the band count towards expected_low? (the exit rule, module doc)"""
