@@ -12,7 +12,8 @@ Only *steady* revolutions in cut are judged (docs/validation.md's steady): valid
 changing speed, a tool radius of path past the (re-)entry into the cut (the engagement still growing before
 it), the override and the measured feed per tooth each held within STEADY_FEED_PCT over the last
 STEADY_REVOLUTIONS revolutions. Others neither count nor break a run. An unknown override arms nothing
-(said once per process, `learning.expected_unarmed`).
+(a note per process, `learning.expected_unarmed`, which the runner logs once a run; the process payload
+says `expected_band: "unarmed"`).
 
 - `expected_high`: `high_revolutions` steady revolutions in a row above the band; holds the feed.
 - `expected_low`: `low_revolutions` in a row below it; holds the feed for `engagement = "constant"`, else a
