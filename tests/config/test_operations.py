@@ -178,3 +178,15 @@ def test_operations_that_nothing_can_arm_are_warned(section, change, key):
     warned = [w for w in config_warnings(load_config_text(dumps(d))) if "[operations]" in w]
     assert len(warned) == 1 and warned[0].startswith(key), warned
     assert not [w for w in config_warnings(load_config_text(dumps(doc()))) if "[operations]" in w]
+
+
+def test_import_refuses_a_key_the_main_configuration_already_has(tmp_path):
+    d = doc()
+    keep = dict(d["operations"])
+    d["learning"] = {"operations_file": "ops.toml"}
+    (tmp_path / "c.toml").write_text(dumps(d))
+    (tmp_path / "ops.csv").write_text(f"{HEADER}\n1001,5,1,,1,0.1,,slot,varying,,\n")
+    out = subprocess.run(CMD + ["limits", "import-operations", str(tmp_path / "ops.csv"), "--config",
+                                str(tmp_path / "c.toml")], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 78 and f'operations."{KEY}": also in' in out.stderr, out.stderr
+    assert not (tmp_path / "ops.toml").exists() and tomllib.loads((tmp_path / "c.toml").read_text())["operations"] == keep
