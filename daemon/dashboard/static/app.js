@@ -168,6 +168,8 @@ function alarmWords(a) {
     return " " + a.quantity + (parts.length ? " (" + parts.join(", ") + ")" : "");
   }
   if (typeof a.value !== "number" && typeof a.limit !== "number") return " " + a.quantity; // daq_lost: no number
+  // the physics' expected band (issue 41): its one-line reason says what was expected and what was measured
+  if ((a.level === "expected_high" || a.level === "expected_low") && typeof a.reason === "string") return " " + a.reason;
   const side = (a.level === "envelope_low" || a.level === "expected_low") ? " < " : " > ";
   return " " + a.quantity + " " + fmt(a.value, 2) + side + fmt(a.limit, 2);
 }
