@@ -46,9 +46,19 @@ def run_command(m: "ProcessMonitor", args: Any) -> dict[str, Any]:
     if ks is None and operation and action in ("widen", "narrow", "low_off", "low_on", "false_alarm", "accept"):
         if len(m.keys) >= MAX_KEYS_FOR_ACTIONS:
             return _refused(f"{key}: no room for another key ({len(m.keys)} kept)")
-        ks = m.keys[key] = KeyState()   # an operation's expected band, before anything was learned
+        m.keys[key] = KeyState()   # an operation's expected band, before anything was learned
+        reply = _on_key(m, action, key, m.keys[key], operation, args)
+        if not reply.get("ok"):
+            del m.keys[key]   # refused: nothing changed, not even a key made for it
+        return reply
     if ks is None:
         return _refused(f"no learned limits for {key} (known: {', '.join(sorted(m.keys)) or 'none'})")
+    return _on_key(m, action, key, ks, operation, args)
+
+
+def _on_key(m: "ProcessMonitor", action: str, key: str, ks: KeyState, operation: bool,
+            args: dict[str, Any]) -> dict[str, Any]:
+    """An action on one key's state."""
     if action == "show":
         return {"ok": True, "action": action, **m.show(key)}
     if action == "relearn":   # the operator's low-off stays (its own command turns it on); a set-aside row is kept

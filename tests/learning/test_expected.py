@@ -323,3 +323,13 @@ def test_a_process_with_a_fixed_alarm_too_is_not_kept_for_accept():
     cell.steps.append(cell.monitor.on_context(replace(context, cycle=False), cell.rev * 100))
     assert cell.processes()[-1]["verdict"] == "expected_high"
     assert cell.monitor.keys.get(KEY) is None or cell.monitor.keys[KEY].held_back is None
+
+
+def test_a_refused_action_on_an_operation_makes_no_key():
+    cell = Cell()
+    for args in ({"action": "accept", "key": KEY}, {"action": "false_alarm", "key": KEY},
+                 {"action": "low_on", "key": KEY}, {"action": "widen", "key": KEY, "pct": 900}):
+        reply = cell.monitor.command(args)
+        assert not reply["ok"] and reply["changed_keys"] == [], (args, reply)
+        assert KEY not in cell.monitor.keys
+    assert cell.monitor.command({"action": "show", "key": KEY})["ok"] and KEY not in cell.monitor.keys
