@@ -16,7 +16,10 @@ from typing import Any
 TRIP_LEVELS = frozenset({"overload", "crash", "tool_breakage"})
 # Learned limits (issue 14, daemon/learning): envelope alarms hold the feed as `[learning] hold_high` /
 # `hold_low` say (the event's `hold`); a wear warning never does.
-LEVELS = ("warning", "overload", "crash", "tool_breakage", "daq_lost", "clear", "envelope_high", "envelope_low", "wear")
+# The physics' expected band of an [operations] entry (issue 41, learning/expected.py): `expected_high` holds the
+# feed, `expected_low` holds it for a constant-engagement operation, else warns (the event's `hold`).
+LEVELS = ("warning", "overload", "crash", "tool_breakage", "daq_lost", "clear", "envelope_high", "envelope_low", "wear",
+          "expected_high", "expected_low")
 
 
 @dataclass(frozen=True)

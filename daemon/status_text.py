@@ -19,7 +19,7 @@ def _fmt(value: Any, spec: str) -> str:
 
 # The alarm levels whose alarm, sent with `"interlock": "feed_hold"`, is the trip itself (pipeline/alarms.py,
 # TRIP_LEVELS; envelope alarms hold as `[learning]` says): a display may show the hold from it at once.
-TRIP_LEVELS = ("overload", "crash", "tool_breakage", "envelope_high", "envelope_low")
+TRIP_LEVELS = ("overload", "crash", "tool_breakage", "envelope_high", "envelope_low", "expected_high", "expected_low")
 
 
 def hold_of(status: dict[str, Any]) -> tuple[str, float | None] | None:

@@ -41,6 +41,10 @@ def summary(settings) -> str:
     ]
     if settings.calibration:
         parts.append(f"calibration {settings.calibration}")
+    if settings.operations:   # issue 41: the physics' expected band of each (docs/learning.md)
+        n = len(settings.operations)
+        parts.append(f"{n} operation{'s' if n != 1 else ''} with an expected band "
+                     f"(±{settings.learning.physics_tolerance_pct:g} %)")
     parts.append(_command_policy(settings))
     return ", ".join(parts)
 

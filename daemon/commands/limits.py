@@ -37,21 +37,33 @@ ACTIONS_HELP = """\
     millsense limits narrow KEY --pct N        narrow it by N % (never below the configured floors)
     millsense limits false-alarm KEY           the last alarm of KEY was false: widen the band where it fired
     millsense limits new-tool TOOL             a new cutter in T<TOOL>: its life count and wear start again
-    millsense limits low-off KEY               stop checking KEY's envelope_low (a broken flute or a missing
-                                               tool then goes unseen by it; audited); low-on KEY: check it again
+    millsense limits low-off KEY               stop checking KEY's envelope_low and expected_low (a broken flute
+                                               or a missing tool then goes unseen by them; audited); low-on KEY:
+                                               check them again
+    millsense limits import-operations FILE --config CONFIG [--print]
+                                               a CSV sheet of operations (program,tool,operation,ae_mm,ap_mm,
+                                               fz_mm,vf_mm_min,mode,engagement,material,spindle_rpm) merged into
+                                               CONFIG's [learning] operations_file; checked as check-config
+                                               (exit 78); restart the daemon to arm them
+With an [operations] entry for KEY, widen / narrow / false-alarm also act on its expected band (the physics'),
+accept / false-alarm teach the process it kept from teaching, and show gives the expected load beside the
+learned one.
 """
 # The CLI's words (hyphens, as the other subcommands) -> the action of cmd/limits.
 ACTIONS = {"list": "list", "show": "show", "accept": "accept", "relearn": "relearn", "widen": "widen",
            "narrow": "narrow", "false-alarm": "false_alarm", "new-tool": "new_tool", "low-off": "low_off",
-           "low-on": "low_on"}
+           "low-on": "low_on", "import-operations": "import_operations"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("action", choices=list(ACTIONS), help="what to do (see below)")
-    parser.add_argument("target", nargs="?", default=None, metavar="KEY|TOOL",
-                        help="the process key program/tool/operation (e.g. 1234/12/3); for new-tool the tool number")
+    parser.add_argument("target", nargs="?", default=None, metavar="KEY|TOOL|FILE",
+                        help="the process key program/tool/operation (e.g. 1234/12/3); for new-tool the tool number; "
+                             "for import-operations the CSV file")
     parser.add_argument("--pct", type=int, default=None, metavar="N",
                         help="widen / narrow: by how many whole percent of the band")
+    parser.add_argument("--print", action="store_true",
+                        help="import-operations: print the merged operations file instead of writing it")
     COMMAND.add_arguments(parser)
     parser.epilog = ACTIONS_HELP
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -85,6 +97,11 @@ def request_args(action_word: str, target: str | None, pct: int | None) -> dict[
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.action == "import-operations":   # a local file, not a command to the daemon
+        from millsense.daemon.commands import operations_import
+        return operations_import.run(args)
+    if args.print:
+        return _fail("error: --print is for import-operations", EXIT_USAGE)
     try:
         request = request_args(args.action, args.target, args.pct)
     except ValueError as exc:
@@ -176,11 +193,26 @@ def _warnings(entry: dict[str, Any]) -> list[str]:
 
 def _show_lines(machine: str, key: str, reply: dict[str, Any]) -> list[str]:
     body = reply.get("limits") if isinstance(reply.get("limits"), dict) else reply
-    lines = [f"{machine}: limits of {key}"] + _warnings(body)
+    lines = [f"{machine}: limits of {key}"] + _warnings(body) + _expected_lines(body)
     for name, value in body.items():
         if name not in ("ok", "action", "key", "machine"):
             lines.append(f"  {name}: {_value(value)}")
     return lines
+
+
+def _expected_lines(body: dict[str, Any]) -> list[str]:
+    """An operation's expected load beside the learned mean, and their ratio (issue 41), in one line each."""
+    out = []
+    at = body.get("expected_at") if isinstance(body.get("expected_at"), dict) else {}
+    for quantity, unit, name in (("torque_nm", "N·m", "torque"), ("force_n", "N", "force")):
+        if f"expected_{quantity}" not in body:
+            continue
+        exp, mean = body.get(f"expected_{quantity}"), body.get(f"learned_mean_{quantity}")
+        ratio = body.get(f"learned_to_expected_{name}")
+        out.append(f"  expected {name} {_value(exp)} {unit} (at {_value(at.get('spindle_rpm'))} rpm, "
+                   f"{_value(at.get('feed_override_pct'))} %, {at.get('from', '?')}); learned mean {_value(mean)} "
+                   f"{unit}; learned/expected {_value(ratio)}")
+    return out
 
 
 def _change_lines(machine: str, request: dict[str, Any], reply: dict[str, Any]) -> list[str]:

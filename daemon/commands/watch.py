@@ -234,7 +234,7 @@ class _TtyView:
         alarm = f"{level} {a.get('quantity', '')} {_num(a.get('value'), '.1f')}".strip() if level not in ("none", "clear") else level
         if level == "clear" and a.get("quantity"):  # a clear reads as one: what it ends, never "value > limit"
             alarm += f" {a['quantity']}" + (f" (was {a['was']})" if a.get("was") else "")
-        if level in ("envelope_high", "envelope_low", "wear"):
+        if level in ("envelope_high", "envelope_low", "expected_high", "expected_low", "wear"):
             alarm += f" {_process_key(a)}" + (f" rev {a['process_rev']}" if a.get("process_rev") is not None else "")
         if a.get("interlock"):
             alarm += f" [{a['interlock']}]"

@@ -36,6 +36,7 @@ from millsense.daemon.config.checks import (
     read_toml,
 )
 from millsense.daemon.config.errors import ConfigError, problems_from
+from millsense.daemon.config.operations import include_operations_file, operation_problems
 from millsense.daemon.config.models import (
     AlarmSettings,
     ChannelSettings,
@@ -150,7 +151,7 @@ def _resolve(base_dir: Path, value: str) -> Path:
 
 
 def _settings_from(data: dict[str, Any], base_dir: Path) -> Settings:
-    problems: list[str] = []
+    problems: list[str] = include_operations_file(data, base_dir)   # [learning] operations_file (issue 41)
     settings: Settings | None = None
     try:
         settings = Settings.model_validate(data)
@@ -193,6 +194,7 @@ def _settings_from(data: dict[str, Any], base_dir: Path) -> Settings:
         reset = "open" if loopback_only(parts["zenoh"]) and not interlock.token() else "token"
         updates["interlock"] = interlock.model_copy(update={"reset": reset})
     problems.extend(cross_problems(parts))
+    problems.extend(operation_problems(parts))
     if problems or settings is None:
         raise ConfigError(list(dict.fromkeys(problems)))
     return settings.model_copy(update=updates) if updates else settings

@@ -542,6 +542,12 @@ class LearningSettings(_Section):
     hold_low: bool = True
     wear_rise_pct: float = Field(15.0, gt=0, le=500)
     wear_window: int = Field(3, ge=1, le=100)
+    # (issue 41, additive) the expected band around the physics' load of an `[operations]` entry, ± this %;
+    # provisional default until the plant's measured spread of the coefficients sets it (docs/learning.md)
+    physics_tolerance_pct: float = Field(25.0, gt=0, le=200)
+    # (issue 41, additive) a TOML file of `[operations.*]` tables only, written by `millsense limits
+    # import-operations`; relative to the config file's folder. "" = none
+    operations_file: str = ""
 
 
 class HistorySettings(_Section):
@@ -564,6 +570,59 @@ class LogSettings(_Section):
 
     level: Literal["debug", "info", "warning", "error", "critical"] = "info"
     format: Literal["auto", "json", "console"] = "auto"
+
+
+# --------------------------------------------------------------------------- [operations.*], [materials.*]
+MATERIAL_NAME_PATTERN = r"^[A-Za-z0-9_-]{1,32}$"
+
+
+def _operation_key(value: Any) -> Any:
+    """An `[operations."P/T/O"]` name: the learned limits' key, program/tool/operation as the CNC reports them."""
+    text = str(value)
+    parts = text.split("/")
+    if (len(parts) != 3 or not all(p.isascii() and p.isdigit() and len(p) <= 10 for p in parts)
+            or int(parts[0]) > 0xFFFFFFFF or int(parts[1]) > 0xFFFFFFFF or int(parts[2]) > 0xFFFF):
+        raise ValueError(f"{text!r} is not PROGRAM/TOOL/OPERATION (program and tool 0 … 4294967295, operation "
+                         f"0 … 65535, as \"1234/12/3\")")
+    return "/".join(str(int(p)) for p in parts)
+
+
+OperationKey = Annotated[str, BeforeValidator(_operation_key)]
+MaterialName = Annotated[str, Field(pattern=MATERIAL_NAME_PATTERN)]
+
+
+class OperationSettings(_Section):
+    """`[operations."PROGRAM/TOOL/OPERATION"]` (issue 41, additive): one operation's programmed cut.
+
+    The physics' expected load of its steady revolutions guards it from the first part (docs/learning.md).
+    `ae_mm` / `ap_mm` are the maximum depths; exactly one of `fz_mm` (per tooth, G95-like) and
+    `vf_mm_min` (feed rate, G94-like). With `mode = "slot"` the radial depth is the tool's diameter:
+    `ae_mm` may be left out, and if given must equal it (checked against the tool). `material` names a
+    `[materials.NAME]` section; left out, `[material]`. `spindle_rpm` (optional): the programmed speed,
+    for `limits show` before a revolution was seen.
+    """
+
+    ae_mm: float | None = Field(None, gt=0)
+    ap_mm: float = Field(gt=0)
+    fz_mm: float | None = Field(None, gt=0)
+    vf_mm_min: float | None = Field(None, gt=0)
+    mode: Literal["slot", "up", "down"]
+    engagement: Literal["constant", "varying"]
+    material: str | None = Field(None, pattern=MATERIAL_NAME_PATTERN)
+    spindle_rpm: float | None = Field(None, gt=0)
+
+    @model_validator(mode="after")
+    def _one_feed(self) -> OperationSettings:
+        problems = []
+        if (self.fz_mm is None) == (self.vf_mm_min is None):
+            problems.append(("fz_mm", "give exactly one of fz_mm (feed per tooth, mm) and vf_mm_min (feed rate, "
+                                      f"mm/min), not {'both' if self.fz_mm is not None else 'neither'}"))
+        if self.ae_mm is None and self.mode != "slot":
+            problems.append(("ae_mm", f'missing (mode = "{self.mode}" needs the maximum radial depth, mm; only a '
+                                      'slot takes the tool\'s diameter)'))
+        if problems:
+            raise problems_error(problems)
+        return self
 
 
 # --------------------------------------------------------------------------- [afc]
@@ -648,6 +707,8 @@ class Settings(_Section):
     tool: ToolSettings
     tools: dict[ToolNumber, ToolTableSettings] = Field(default_factory=dict)
     material: MaterialSettings = Field(default_factory=MaterialSettings)
+    materials: dict[MaterialName, MaterialSettings] = Field(default_factory=dict)   # (issue 41, additive)
+    operations: dict[OperationKey, OperationSettings] = Field(default_factory=dict)   # (issue 41, additive)
     cut: CutSettings = Field(default_factory=CutSettings)
     depth: DepthSettings = Field(default_factory=DepthSettings)
     feed_force: dict[ChannelName, FeedForceSettings] = Field(default_factory=dict)

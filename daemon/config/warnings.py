@@ -22,7 +22,22 @@ def config_warnings(settings: Any, path: str | os.PathLike[str] | None = None) -
     out += _learning_warnings(settings)
     out += _afc_warnings(settings)
     out += _context_authority_warnings(settings, Path(path) if path is not None else None)
+    out += _operations_warnings(settings)
     return out
+
+
+def _operations_warnings(settings: Any) -> list[str]:
+    """[operations] declared where nothing can arm their expected band (issue 41): it needs processes."""
+    if not getattr(settings, "operations", None):
+        return []
+    learning, context = getattr(settings, "learning", None), getattr(settings, "context", None)
+    if learning is not None and not learning.enabled:
+        return ["learning.enabled: false, so the [operations] entries arm no expected band (it is checked per "
+                "process, like the learned limits); only the fixed [alarms] limits guard the first parts"]
+    if context is not None and context.source == "off":
+        return ['context.source: "off", so no process has a key and the [operations] entries arm no expected band; '
+                'only the fixed [alarms] limits guard the first parts']
+    return []
 
 
 def _context_authority_warnings(settings: Any, path: Path | None) -> list[str]:

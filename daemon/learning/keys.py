@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from millsense.daemon.learning.envelope import Envelope, Taught, Widths, json_list
+from millsense.daemon.learning.expected import ExpectedWidening
 from millsense.daemon.learning.process import ProcessRun
 
 # A key's fields are the CONTEXT frame's (docs/protocol.md): program and tool uint32, operation uint16.
@@ -17,7 +18,7 @@ UINT16_MAX = 2**16 - 1
 KEY_RE = re.compile(r"^([0-9]{1,10})/([0-9]{1,10})/([0-9]{1,5})\Z")
 
 
-LEVELS = ("envelope_high", "envelope_low")
+LEVELS = ("envelope_high", "envelope_low", "expected_high", "expected_low")
 QUANTITIES = ("torque_nm", "force_n", "entry", "cutting_energy_j")
 
 
@@ -32,6 +33,11 @@ class KeyState:
     low_check: bool = True          # envelope_low checked (`limits low-off KEY` / `low-on KEY`, audited)
     set_aside: str | None = None    # why its stored state was set aside at start (shown until it is learned again)
     set_aside_row: Any = None       # that stored state as it was read (kept, so nothing is lost)
+    # issue 41 (expected.py): the operator's widening of the key's expected band; the last process kept from
+    # teaching by it (accept / false-alarm teach it); how many in a row were kept
+    expected_widening: ExpectedWidening | None = None
+    held_back: Taught | None = None
+    kept: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         out = {"state": self.state, "taught": [t.to_dict() for t in self.taught],
@@ -41,6 +47,12 @@ class KeyState:
                "low_check": self.low_check}
         if self.set_aside is not None or self.set_aside_row is not None:
             out["set_aside"] = {"reason": self.set_aside, "row": self.set_aside_row}
+        if self.expected_widening is not None:
+            out["expected_widening"] = self.expected_widening.to_dict()
+        if self.held_back is not None:
+            out["held_back"] = self.held_back.to_dict()
+        if self.kept:
+            out["kept"] = self.kept
         return out
 
     @classmethod
@@ -64,9 +76,16 @@ class KeyState:
         aside = d.get("set_aside")
         if aside is not None and not (isinstance(aside, dict) and isinstance(aside.get("reason"), (str, type(None)))):
             raise ValueError("set_aside: not an object with a reason")
+        widening = d.get("expected_widening")
+        held = d.get("held_back")
+        kept = d.get("kept", 0)
+        if isinstance(kept, bool) or not isinstance(kept, int) or not 0 <= kept <= 10**9:
+            raise ValueError(f"kept: {kept!r} is not a count")
         return cls(state, [Taught.from_dict(t, f"taught[{i}]") for i, t in enumerate(taught)], envelope,
                    _last_alarms(d.get("last_alarms", [])), low_check,
-                   None if aside is None else aside.get("reason"), None if aside is None else aside.get("row"))
+                   None if aside is None else aside.get("reason"), None if aside is None else aside.get("row"),
+                   None if widening is None else ExpectedWidening.from_dict(widening),
+                   None if held is None else Taught.from_dict(held, "held_back"), kept)
 
 
 def _last_alarms(alarms: Any) -> list[dict[str, Any]]:
@@ -77,7 +96,7 @@ def _last_alarms(alarms: Any) -> list[dict[str, Any]]:
     for i, a in enumerate(alarms):
         where = f"last_alarms[{i}]"
         if not isinstance(a, dict) or a.get("level") not in LEVELS or a.get("quantity") not in QUANTITIES:
-            raise ValueError(f"{where}: not an envelope alarm (level, quantity)")
+            raise ValueError(f"{where}: not an envelope or expected alarm (level, quantity)")
         observed = a.get("observed")
         if not isinstance(observed, dict):
             raise ValueError(f"{where}.observed: not an object")
@@ -102,6 +121,8 @@ def key_summary(key: str, ks: KeyState, target: int) -> dict[str, Any]:
         "length": None, "energy_baseline_j": None, "energy_std_j": None, "entry_rev": None, "adjustments": [],
         "low_check": ks.low_check, "widening": None, "set_aside": ks.set_aside,
     }
+    if ks.kept:   # (issue 41, additive) processes in a row kept from teaching by the expected band
+        out["kept_from_teaching"] = ks.kept
     if env is not None:
         out.update({"length": env.length, "energy_baseline_j": round(env.energy_mean_j, 3),
                     "energy_std_j": round(env.energy_std_j, 3), "entry_rev": round(env.entry_mean, 2),

@@ -44,6 +44,8 @@ from millsense.daemon.events import AlarmEvent, finite
 from millsense.daemon.learning.actions import ACTIONS, run_command
 from millsense.daemon.learning.context import Ctx
 from millsense.daemon.learning.envelope import Envelope, Taught, Widths, learn, setting
+from millsense.daemon.learning.expected import KEPT_WARNING_PROCESSES, ExpectedBand
+from millsense.daemon.learning.expected import LEVELS as EXPECTED_LEVELS
 from millsense.daemon.learning.keys import KEY_RE, UINT16_MAX, UINT32_MAX, KeyState, key_show, key_summary, seen_outside
 from millsense.daemon.learning.process import ProcessRun
 from millsense.daemon.learning.wear import ToolWear
@@ -77,8 +79,10 @@ class ProcessMonitor:
     """All learning state of one machine. Not thread-safe: one owner (the estimator thread)."""
 
     def __init__(self, learning: Any, limits: dict[str, Any] | None = None, tools: Any = None,
-                 first_process: int = 1, gain: float = 1.0, alarms: Any = None):
+                 first_process: int = 1, gain: float = 1.0, alarms: Any = None, expected: Any = None):
         self.learning = learning
+        # the physics' expected band of the configured [operations] (expected.py); None: none declared
+        self.expected: ExpectedBand | None = expected
         self.gain = float(gain)   # load ~ feed^gain (override_track.load_gain): the programmed-feed normalisation
         self.enabled = bool(setting(learning, "enabled", True))
         self.target = int(setting(learning, "processes", 5))
@@ -196,6 +200,8 @@ class ProcessMonitor:
         if proc.monitored:
             est["process_rev"] = k
             self._check(step, proc, est, k)
+            if self.expected is not None:
+                self._physics(step, proc, est, k)
         return step
 
     def on_context(self, ctx: Ctx | None, seq: int | None = None) -> MonitorStep:
@@ -306,6 +312,17 @@ class ProcessMonitor:
             self._judge(step, proc, "envelope_low", quantity, value, norm, low, scale,
                         low_check and norm is not None and low is not None and low > 0 and norm < low, k)
 
+    def _physics(self, step: MonitorStep, proc: ProcessRun, est: dict[str, Any], k: int | None) -> None:
+        """The expected band of the key's operation (expected.py), every part; its alarms latch like the envelope's."""
+        ks = self.keys.get(proc.key)
+        judged = self.expected.judge(proc, est, k, None if ks is None else ks.expected_widening, self._low_check(proc))
+        step.notes.extend(judged.notes)
+        for ev, _observed in judged.events:
+            proc.raised[ev.level] = ev
+            if ev.hold:
+                self._latched.append(ev)
+            step.events.append(ev)
+
     def _judge(self, step: MonitorStep, proc: ProcessRun, level: str, quantity: str, value: float | None,
                norm: float | None, limit: float | None, scale: float, outside: bool, k: int) -> None:
         """`norm`, `limit`: at the programmed feed; `value` as cut (`scale` = (ovr/100)^gain between them)."""
@@ -345,6 +362,10 @@ class ProcessMonitor:
         if env is not None and "envelope_low" not in proc.raised and not proc.too_damaged and self._low_check(proc):
             self._end_checks(step, proc, env)
         verdict = self._verdict(proc, ks, incomplete)
+        if verdict in EXPECTED_LEVELS and proc.teaches and not proc.fixed_alarm:
+            ks = self._keep_from_teaching(step, proc, ks)
+        elif verdict == "learning" and ks is not None:
+            ks.kept = 0
         if verdict == "learning" and ks is None and proc.teaches:   # a key for a process that teaches, no other
             ks = self._new_key(step, proc.key)
         if verdict == "learning" and ks is not None and ks.state == "learning":
@@ -363,6 +384,8 @@ class ProcessMonitor:
             ratio = proc.energy_j / ks.envelope.energy_mean_j
         wear = self._wear(step, proc, verdict, ratio)
         summary = proc.summary(verdict)
+        if proc.monitored and self.has_operation(proc.key):
+            summary.update(self.expected.summary(proc))   # was the physics' band armed in it (expected.py)
         summary.update({
             "learned": 0 if ks is None else (ks.envelope.n if ks.envelope is not None else len(ks.taught)),
             "learn_target": self.target, "envelope": "learning" if ks is None else ks.state,
@@ -394,7 +417,7 @@ class ProcessMonitor:
             return "incomplete"
         if not proc.monitored:
             return "unmonitored"
-        for level in ("envelope_high", "envelope_low"):
+        for level in ("envelope_high", "envelope_low") + EXPECTED_LEVELS:
             if level in proc.raised:
                 return level
         if proc.fixed_alarm:
@@ -420,12 +443,44 @@ class ProcessMonitor:
                 "detail": "new process keys or tools are not learned: is a CNC adapter putting a new program, tool "
                           "or operation number every cycle? The keys learned so far keep their limits"}))
 
+    def _keep_from_teaching(self, step: MonitorStep, proc: ProcessRun, ks: KeyState | None) -> KeyState | None:
+        """A process outside its expected band does not teach: kept back (accept / false-alarm teach it);
+        KEPT_WARNING_PROCESSES in a row are warned once (`learning.kept_from_teaching`)."""
+        ks = ks if ks is not None else self._new_key(step, proc.key)
+        if ks is None or ks.state != "learning":
+            return ks
+        torque, force = proc.arrays()
+        ks.held_back = Taught(torque, force, proc.entry_progress, proc.energy_j)
+        ks.kept += 1
+        step.changed_keys.add(proc.key)
+        if ks.kept == KEPT_WARNING_PROCESSES:
+            step.notes.append(("learning.kept_from_teaching", {
+                "key": proc.key, "processes": ks.kept,
+                "detail": "processes in a row outside the physics' expected band do not teach: check the "
+                          "operation's [operations] entry (depths, feed, material) and the tool; `limits accept "
+                          "KEY` or `limits false-alarm KEY` teaches the last one"}))
+        return ks
+
+    def teach_held_back(self, key: str) -> bool:
+        """The operator accepted the process kept from teaching (or marked its alarm false): it teaches now."""
+        ks = self.keys.get(key)
+        if ks is None or ks.held_back is None or ks.state != "learning":
+            return False
+        taught, ks.held_back, ks.kept = ks.held_back, None, 0
+        self._add_taught(ks, taught)
+        self.changed_by_command(keys={key})
+        return True
+
     def _teach(self, step: MonitorStep, proc: ProcessRun, ks: KeyState) -> None:
         if not proc.teaches:
             return  # nothing cut, or too little seen: it would teach a wrong footprint
         torque, force = proc.arrays()
-        ks.taught.append(Taught(torque, force, proc.entry_progress, proc.energy_j))
+        self._add_taught(ks, Taught(torque, force, proc.entry_progress, proc.energy_j))
         step.changed_keys.add(proc.key)
+
+    def _add_taught(self, ks: KeyState, taught: Taught) -> None:
+        ks.taught.append(taught)
+        ks.held_back = None
         if len(ks.taught) >= self.target:
             ks.envelope = learn(ks.taught, self.learning)
             ks.envelope.set_ceilings(*self.ceilings)
@@ -507,11 +562,20 @@ class ProcessMonitor:
         return sum(cut) / len(cut) if cut else None
 
     def show(self, key: str) -> dict[str, Any]:
-        """One key's summary and its band along process_rev (None where there is none)."""
+        """One key's summary and its band along process_rev (None where there is none); for a key with an
+        operation also its expected load beside the learned mean, and their ratio (expected.py)."""
         ks = self.keys.get(key)
-        if ks is None:
+        op = None if self.expected is None else self.expected.cut(key)
+        if ks is None and op is None:
             raise KeyError(key)
-        return key_show(key, ks, self.target)
+        out = key_show(key, ks if ks is not None else KeyState(), self.target)
+        if op is not None:
+            learned = {q: self.learned_mean(key, q) for q in ("torque_nm", "force_n")}
+            out.update(self.expected.show(key, learned, None if ks is None else ks.expected_widening) or {})
+        return out
+
+    def has_operation(self, key: str) -> bool:
+        return self.expected is not None and self.expected.cut(key) is not None
 
     def export_limits(self, key: str) -> dict[str, Any]:
         """One key's whole state, JSON-safe (the `limits` argument takes it back)."""

@@ -41,7 +41,7 @@ MT_PROCESS_IRREGULARITY_CLASS = 55  # ProcessIrregularityConditionClassType
 MAX_TOOLS = 256  # tool numbers shown per machine; memory stays bounded whatever a payload says
 
 SEVERITY = {"crash": 1000, "tool_breakage": 900, "overload": 800, "daq_lost": 700, "envelope_high": 600,
-            "envelope_low": 600, "warning": 400, "wear": 300, "clear": 100}
+            "envelope_low": 600, "expected_high": 600, "expected_low": 600, "warning": 400, "wear": 300, "clear": 100}
 
 ALARM_FIELDS = [("Level", ua.VariantType.String), ("Quantity", ua.VariantType.String),
                 ("Value", ua.VariantType.Double), ("Limit", ua.VariantType.Double),
@@ -88,7 +88,7 @@ def condition_class(level: str, quantity: str, mt: int) -> tuple[ua.NodeId, str]
     """The condition class an alarm level belongs to: 40501's where one fits, else Part 9's."""
     if level == "tool_breakage":
         return ua.NodeId(MT_TOOL_BREAKAGE_CLASS, mt), "ToolBreakageConditionClassType"
-    if level in ("envelope_high", "envelope_low"):
+    if level in ("envelope_high", "envelope_low", "expected_high", "expected_low"):
         return ua.NodeId(MT_PROCESS_IRREGULARITY_CLASS, mt), "ProcessIrregularityConditionClassType"
     if level == "wear":
         return ua.NodeId(ua.ObjectIds.MaintenanceConditionClassType), "MaintenanceConditionClassType"

@@ -27,6 +27,8 @@ from typing import Any
 from millsense.daemon.events import AlarmEvent
 from millsense.daemon.learning.context import ContextTrack
 from millsense.daemon.learning.monitor import ProcessMonitor
+from millsense.daemon.learning.expected import ExpectedBand
+from millsense.daemon.config.operations import operation_cuts
 from millsense.daemon.pipeline.alarms import AlarmEngine
 from millsense.daemon.pipeline.override_track import OverrideTrack, load_gain
 from millsense.daemon.pipeline.safety_check import SafetyCheck
@@ -109,6 +111,12 @@ def process_payload(summary: dict[str, Any], machine: str, t: float | None) -> d
     return out
 
 
+def expected_band(settings: Any) -> ExpectedBand | None:
+    """The physics' expected band of the configured [operations]; None without any (everything as before)."""
+    cuts = operation_cuts(settings) if getattr(settings, "operations", None) else {}
+    return ExpectedBand(cuts, getattr(settings, "learning", None), getattr(settings, "alarms", None)) if cuts else None
+
+
 class PipelineCore:
     """Owns the estimator (re-made when the descriptor changes) and the alarm engine."""
 
@@ -125,7 +133,8 @@ class PipelineCore:
         learning = getattr(settings, "learning", None)
         self.monitor: ProcessMonitor | None = (
             ProcessMonitor(learning, limits=limits, tools=tools, first_process=first_process,
-                           gain=load_gain(settings), alarms=getattr(settings, "alarms", None))
+                           gain=load_gain(settings), alarms=getattr(settings, "alarms", None),
+                           expected=expected_band(settings))   # [operations] (issue 41)
             if learning is not None and getattr(learning, "enabled", False) else None)
         self._block_end: tuple[int, int] | None = None  # (seq, device index) one past the last block
         self._context_change: int | None = None  # a context change the process monitor has not settled yet
@@ -287,8 +296,8 @@ class PipelineCore:
     def summary(self) -> str:
         """The worst active state in one word ("ok" when none)."""
         states = set(self.active().values())
-        for level in ("crash", "tool_breakage", "overload", "envelope_high", "envelope_low", "daq_lost",
-                      "warning", "wear"):
+        for level in ("crash", "tool_breakage", "overload", "envelope_high", "envelope_low", "expected_high",
+                      "expected_low", "daq_lost", "warning", "wear"):
             if level in states:
                 return level
         return "ok"

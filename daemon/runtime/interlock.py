@@ -436,5 +436,5 @@ def wait_ms(done: Callable[[], bool], t0: float, wait_s: float) -> float | None:
 
 def trip_reason(ev: Any) -> str:
     """The interlock's reason for a hold: the alarm, its value and the limit it crossed (from below or above)."""
-    side = "<" if ev.level == "envelope_low" else ">"
+    side = "<" if ev.level in ("envelope_low", "expected_low") else ">"
     return f"{ev.level} {ev.quantity} {ev.value} {side} {ev.limit}"

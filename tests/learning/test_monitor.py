@@ -594,4 +594,5 @@ def test_the_fixed_levels_tested_above_are_every_level_of_the_fixed_limits():
     from millsense.daemon.events import LEVELS
 
     tested = {"warning", "overload", "crash", "tool_breakage", "daq_lost"}
-    assert tested == set(LEVELS) - {"clear", "envelope_high", "envelope_low", "wear"}
+    assert tested == set(LEVELS) - {"clear", "envelope_high", "envelope_low", "wear",
+                                        "expected_high", "expected_low"}

@@ -9,7 +9,7 @@ const LATENCY_KEPT = 50000;
 const DRAW_EVERY_MS = 250; // plots are redrawn at most 4 times a second; the numbers at once
 const LIMIT_LINES = 8;     // learned-limits warnings shown per tile
 // The alarm levels that trip the interlock (pipeline/alarms.py; envelope alarms as [learning] says).
-const TRIP_LEVELS = ["overload", "crash", "tool_breakage", "envelope_high", "envelope_low"];
+const TRIP_LEVELS = ["overload", "crash", "tool_breakage", "envelope_high", "envelope_low", "expected_high", "expected_low"];
 
 const machines = new Map(); // name -> {tile, estimates, dirty, lastAlarm, hold}
 let resetOffered = false;
@@ -107,7 +107,7 @@ function holdFromAlarm(m, a) {
   if (a.interlock !== "feed_hold" || m.hold) return;
   const t = typeof a.t === "number" ? a.t : null;
   // The runner's reason for a trip (runner._trip_reason): the alarm, its value and the limit crossed.
-  const side = a.level === "envelope_low" ? " < " : " > ";
+  const side = (a.level === "envelope_low" || a.level === "expected_low") ? " < " : " > ";
   const trip = TRIP_LEVELS.includes(a.level); // a warning or a clear sent while held: held, not why
   const reason = trip ? a.level + " " + a.quantity + " " + a.value + side + a.limit : "latched";
   m.hold = { reason, since: t, alarmT: t };
@@ -168,7 +168,9 @@ function alarmWords(a) {
     return " " + a.quantity + (parts.length ? " (" + parts.join(", ") + ")" : "");
   }
   if (typeof a.value !== "number" && typeof a.limit !== "number") return " " + a.quantity; // daq_lost: no number
-  const side = a.level === "envelope_low" ? " < " : " > ";
+  // the physics' expected band (issue 41): its one-line reason says what was expected and what was measured
+  if ((a.level === "expected_high" || a.level === "expected_low") && typeof a.reason === "string") return " " + a.reason;
+  const side = (a.level === "envelope_low" || a.level === "expected_low") ? " < " : " > ";
   return " " + a.quantity + " " + fmt(a.value, 2) + side + fmt(a.limit, 2);
 }
 
