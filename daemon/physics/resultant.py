@@ -114,6 +114,17 @@ def overlap_table(flutes: int) -> np.ndarray:
     return table
 
 
+_ROWS: dict[int, list[list[float]]] = {}   # overlap_table as lists, for the float path
+_PER_SPAN = SPAN_STEPS / math.pi
+_PER_LAG = 1.0 / LAG_STEP_RAD
+_LAG_LAST = round(LAG_MAX_RAD / LAG_STEP_RAD) - 1e-9
+
+
+def _rows(flutes: int) -> list[list[float]]:
+    rows = _ROWS[flutes] = overlap_table(int(flutes)).tolist()
+    return rows
+
+
 def helix_lag_rad(axial_depth_mm, helix_deg: float | None, tool_radius_mm: float):
     """ψ = d_a·tan β/R: how far the edge at the top of the cut trails its tip (0: helix or depth unknown)."""
     if helix_deg is None:
@@ -132,19 +143,20 @@ def overlap_factor(flutes: int, span_rad, lag_rad):
 
     nan for a span outside (0, π]; a lag beyond the table's LAG_MAX_RAD is computed by quadrature.
     """
-    table = overlap_table(int(flutes))
     span, lag = values(span_rad), values(lag_rad)
-    if isinstance(span, float) and isinstance(lag, float):
+    if isinstance(span, float) and isinstance(lag, float):   # one revolution: plain floats and lists, no numpy
+        rows = _ROWS.get(flutes) or _rows(flutes)
         if not 0.0 < span <= math.pi + 1e-12 or not lag >= 0.0:
             return math.nan
         if lag > LAG_MAX_RAD:
             return float(exact_overlap_factor(int(flutes), math.pi - span, math.pi, lag))
-        x = min(span / (math.pi / SPAN_STEPS), SPAN_STEPS - 1e-9)
-        y = min(lag / LAG_STEP_RAD, table.shape[1] - 1 - 1e-9)
+        x = min(span * _PER_SPAN, SPAN_STEPS - 1e-9)
+        y = min(lag * _PER_LAG, _LAG_LAST)
         i, j = int(x), int(y)
         fx, fy = x - i, y - j
-        row0, row1 = table[i], table[i + 1]
-        return float((row0[j] * (1 - fy) + row0[j + 1] * fy) * (1 - fx) + (row1[j] * (1 - fy) + row1[j + 1] * fy) * fx)
+        row0, row1 = rows[i], rows[i + 1]
+        return (row0[j] * (1 - fy) + row0[j + 1] * fy) * (1 - fx) + (row1[j] * (1 - fy) + row1[j + 1] * fy) * fx
+    table = overlap_table(int(flutes))
     span, lag = np.broadcast_arrays(np.asarray(span, dtype=float), np.asarray(lag, dtype=float))
     ok = (span > 0.0) & (span <= math.pi + 1e-12) & (lag >= 0.0)
     x = np.clip(np.where(ok, span, 0.0) / (math.pi / SPAN_STEPS), 0.0, SPAN_STEPS - 1e-9)
