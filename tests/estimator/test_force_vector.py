@@ -18,8 +18,9 @@ Bounds, from the physics, never from a measured error:
 
 Cases: the [P] step cut at 1200 rpm (SS41, 300 mm/min, 1/2/3 mm steps) with the [D] φ16
 4-flute and a φ8 3-flute end mill instead of [P]'s 2-flute one (η = π/4 and 0.83–0.85, where
-today's √(1 + r₁²) is 20–27 % high), and [D]'s Fig. 5 (4-flute down milling, radial depth
-1 → 8 mm estimated from the feed drive, d_a 16 mm: η 0.94–1).
+√(1 + r₁²) alone is 20–27 % high); [D]'s Fig. 5 (4-flute down milling, radial depth 1 → 8 mm
+estimated from the feed drive, d_a 16 mm: η 0.94–1); [D]'s Fig. 6 as up milling at a radial depth
+of 12 mm, configured (600 rpm, the low gear; d_a 6/11/16 mm estimated from the torque: η 0.88–0.91).
 """
 
 from __future__ import annotations
@@ -111,3 +112,25 @@ def test_fig5_wide_immersion_with_the_radial_depth_estimated(tmp):
     for e, t in pairs:
         assert abs(e["force_n"] - t["force_n"]) <= _bound_n(e, t, 8.0), (
             e["force_n"], t["force_n"], t["radial_depth_mm"])
+
+
+def test_up_milling_with_the_radial_depth_configured(tmp):
+    """[D] Fig. 6's cut as up milling, R_r = 1.5 (three teeth's arcs overlap), the radial depth given in
+    `[cut]` and the axial depth estimated from the torque: each steady revolution within the budget."""
+    from millsense.sim.scenarios import SCENARIOS
+
+    scenario = replace(SCENARIOS["fig6"], name="fig6-up-12", mode="up", radial_profile=((0.0, 12.0), (150.0, 12.0)),
+                       extra_channels=())
+    cap, truth_path = _capture(tmp, scenario, seed=11)
+    m = scenario.material
+    settings = configs.load(tmp, name="fig6-up-12.toml", tool=(16.0, 4, 30.0),
+                            material=(m.ks, m.ks_exp, m.r1, m.r1_exp, m.r2, m.r2_exp), mode="up", cf="auto",
+                            feed_mm_min=scenario.feed_segments[0][1], method="torque-only", radial_depth_mm=12.0)
+    est, _ = simcase.run(cap, settings)
+    truth = simcase.read_truth(truth_path)
+    pairs = [(e, t) for e, t in simcase.match(est, truth, 1) if t["steady"] and t["cutting"] and e["valid"]
+             and e["depth_status"] == "ok"]
+    assert len(pairs) >= 100, len(pairs)
+    assert {round(t["axial_depth_mm"]) for _, t in pairs} == {6, 11, 16}
+    for e, t in pairs:
+        assert abs(e["force_n"] - t["force_n"]) <= _bound_n(e, t, 8.0), (e["force_n"], t["force_n"], t["axial_depth_mm"])
