@@ -10,11 +10,11 @@ helix and the axial depth (estimated, else configured).
 Bounds, from the physics, never from a measured error:
 
 * the torque: docs/accuracy.md's 2 % + 0.03 N·m, carried through C_f/R;
-* η's table: bilinear interpolation and a 64-point quadrature, within ETA_TABLE_REL of a fine
+* η's table: bilinear interpolation and 6-point Gauss pieces, within ETA_TABLE_REL of a fine
   quadrature (tests/physics/test_resultant.py holds that);
-* the helix lag ψ is taken from the estimated axial depth (the torque's 2 % + 0.03 N·m) and
-  moves η by at most |dη/dψ|·Δψ ≤ Δψ/2 (|∂|H|/∂ψ| ≤ mean |g| ≤ 1/2 of the tangential mean):
-  a 2 % depth error is under 0.6 % of η at these depths; the bound uses it as it comes.
+* the helix lag ψ comes from the estimated axial depth, as off as the torque; its effect on η is
+  not given an allowance of its own (η moves slowly with ψ: C_f alone stays within 0.1 % of the
+  plant's in these cases, bench/force_accuracy.py), so a wrong ψ would show here.
 
 Cases: the [P] step cut at 1200 rpm (SS41, 300 mm/min, 1/2/3 mm steps) with the [D] φ16
 4-flute and a φ8 3-flute end mill instead of [P]'s 2-flute one (η = π/4 and 0.83–0.85, where

@@ -21,7 +21,7 @@ from tests.physics.instant_model import instantaneous_forces
 pytestmark = pytest.mark.quick
 
 FINE = 32                 # Gauss points on each smooth piece for the reference quadrature
-# the table's bilinear interpolation (π/48 in span, π/24 in lag) and its 64-point quadrature against
+# the table's bilinear interpolation (π/48 in span, π/24 in lag) and its 6-point Gauss pieces against
 # FINE: the grid holds the kinks at multiples of π/2, π/3, π/4; 0.1 % is 1/20 of the 2 % force budget
 ETA_TABLE_REL = 1e-3
 
