@@ -72,6 +72,38 @@ def _errors(tmp, scenario, extra, cf, helix=True, ratio=False):
     return np.array(e)
 
 
+def _part_program(tmp: Path) -> dict:
+    """The part program (three tools by number, each with its `[tools.N]` helix) through replay's path, by
+    operation: config/part-program.toml as shipped (cf = 1.075) and with its cf lines removed (the default)."""
+    import bisect
+    import json
+    import re
+    import subprocess
+
+    from millsense.sim import write_capture
+
+    cap, truth_path = tmp / "pp.bin", tmp / "pp.truth"
+    write_capture("part-program", str(cap), str(truth_path), seed=11, parts=1)
+    truth = [t for t in simcase.read_truth(truth_path) if "index_end" in t]
+    ends = [t["t_end_s"] for t in truth]
+    shipped = (REPO / "config" / "part-program.toml").read_text()
+    out = {}
+    for label, text in (("1.075", shipped), ("auto", re.sub(r"(?m)^cf = .*$", "", shipped))):
+        cfg = tmp / f"pp-{label}.toml"
+        cfg.write_text(text)
+        lines = subprocess.run([sys.executable, "-m", "millsense.daemon", "replay", "--config", str(cfg), str(cap)],
+                               capture_output=True, text=True, check=True).stdout.splitlines()
+        for e in (json.loads(x) for x in lines):
+            if e.get("type") != "estimate" or not e["valid"] or e["force_n"] is None:
+                continue
+            i = bisect.bisect_left(ends, e["t"] - 0.0015)        # replay's t: seconds after the first sample
+            if i >= len(ends) or abs(ends[i] - e["t"]) > 0.0015 or not (truth[i]["steady"] and truth[i]["cutting"]):
+                continue
+            key = (label, round(truth[i]["spindle_rpm"], -2))
+            out.setdefault(key, []).append(100.0 * (e["force_n"] / truth[i]["force_n"] - 1.0))
+    return {k: np.array(v) for k, v in out.items()}
+
+
 def _row(e) -> str:
     if e.size == 0:
         return f"{'-':>5} {'null':>21}"
@@ -94,6 +126,12 @@ def main() -> int:
             if extra.get("method") != "off" and cf_only.size:
                 worst = max(worst, float(np.max(np.abs(cf_only))))
             print(f"{label:<26} {_row(auto)}   {_row(const)}   {_row(no_helix)}   {_row(cf_only)}")
+        print("part program 1001, one part, replay (T11 phi20 2 fl 1500 rpm, T4 phi16 4 fl 1200 rpm, "
+              "T27 phi8 3 fl 2000 rpm; slots, depth steps)")
+        pp = _part_program(tmp)
+        for rpm, tool in ((1500, "T11"), (1200, "T4"), (2000, "T27")):
+            print(f"  {f'{tool} {rpm} rpm':<24} {_row(pp.get(('auto', rpm), np.array([])))}   "
+                  f"{_row(pp.get(('1.075', rpm), np.array([])))}")
     print(f"worst |e| of C_f with cf = auto where the engagement is known: {worst:.2f} %")
     return 0 if math.isfinite(worst) else 1
 
