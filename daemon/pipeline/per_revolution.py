@@ -242,7 +242,7 @@ class RevolutionPhysics:
         self.pole_pairs = int(pp) if pp else None
         self.tool, self.tools = tool_geometries(settings)
         for geometry in (self.tool, *self.tools.values()):
-            if geometry.cf_model:    # η's table: built here (0.1–0.3 s a flute count), never in a revolution
+            if geometry.cf_model:    # η's table: built here (0.1–0.5 s a flute count), never in a revolution
                 overlap_table(geometry.flutes)
         m = settings.material
         self.material = Material(float(m.ks), float(m.ks_exp), float(m.r1), float(m.r1_exp), float(m.r2), float(m.r2_exp))
