@@ -87,11 +87,12 @@ def feed_levels(revs: list[dict]) -> list[list[dict]]:
     return levels
 
 
-def _collect(captures, settings) -> list[dict]:
+def _collect(captures, settings) -> tuple[list[dict], int]:
+    """The steady cutting revolutions of every capture, and how many cutting revolutions had no feed per tooth."""
     from millsense.daemon.commands.capture_reader import CaptureError, iter_capture_blocks
     from millsense.daemon.pipeline.estimator import Estimator
 
-    steady = []
+    steady, feedless = [], 0
     for path in captures:
         est, descriptor, revs = None, None, []
         for desc, block in iter_capture_blocks(path):
@@ -100,8 +101,10 @@ def _collect(captures, settings) -> list[dict]:
             elif desc != descriptor:
                 raise CaptureError(f"{path}: the DAQ descriptor changes inside the capture; split it")
             revs.extend(est.process(block).estimates)
-        steady += steady_cut([r for r in revs if r["valid"] and r["torque_nm"] is not None])
-    return steady
+        good = [r for r in revs if r["valid"] and r["torque_nm"] is not None]
+        feedless += sum(1 for r in good if r["cutting"] and not r["feed_per_tooth_mm"])
+        steady += steady_cut(good)
+    return steady, feedless
 
 
 def run(args: argparse.Namespace) -> int:
@@ -128,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"millsense calibrate: {path}: no such capture file", file=sys.stderr)
             return 1
     try:
-        steady = _collect(args.captures, settings)
+        steady, feedless = _collect(args.captures, settings)
     except CaptureError as exc:
         print(f"millsense calibrate: {exc}", file=sys.stderr)
         return 1
@@ -157,6 +160,10 @@ def run(args: argparse.Namespace) -> int:
         levels.append((fz, chip, ks, len(group), torque))
         print(f"  f_z {fz:.4f} mm: t_a {chip:.4f} mm, torque {torque:.4g} N·m (median of {len(group)}), "
               f"K_s {ks:.5g} N/mm²")
+    if not levels and not refusals and feedless and not steady:
+        refusals.append(Refusal("material", f"{feedless} cutting revolutions but no feed per tooth (no feed-rate "
+                                            f"channel, no [cut] feed_mm_min)", "the test cut with [cut] feed_mm_min "
+                                            "set to its programmed feed, or with the DAQ's feed-rate channel"))
     if not levels and not refusals:
         refusals.append(Refusal("material", f"no feed level with {MATERIAL_MIN_REVS} or more steady cutting "
                                             f"revolutions ({len(steady)} steady in all)", RECORD))

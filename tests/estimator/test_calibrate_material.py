@@ -191,3 +191,12 @@ def test_a_test_cut_not_described_is_a_usage_error(tmp_path, millsense_cmd, extr
                               "--config", str(_config(tmp_path, feed_mm_min=300.0, channels="")), "--out", str(out)])
     assert code == 2 and says in err and "Traceback" not in err, stdout + err
     assert not out.exists()
+
+
+def test_a_cut_without_a_feed_per_tooth_is_refused_saying_so(tmp_path, millsense_cmd):
+    """No feed-rate channel and no `[cut] feed_mm_min`: K_s cannot be had from the torque (eq. 7 needs t_c)."""
+    cap, _ = _capture(_test_cut("feeds-1800"))
+    out = tmp_path / "material.toml"
+    code, stdout, err = _calibrate(millsense_cmd, cap, _config(tmp_path, feed_mm_min=None, channels=""), out, "2")
+    _refused(code, stdout, err, out)
+    assert "but no feed per tooth" in err
