@@ -29,6 +29,10 @@ that is negative or poorly determined. All of them are reported at once.
 With `--dynamometer` (captures with fx, fy channels), revolutions the
 dynamometer sees as cutting are kept out of the friction fit and used to fit
 `C_f` of [P] eq. (18) against the measured mean resultant force.
+
+With `--material --ae-mm A --ap-mm P [--mode M]` (additive), the captures are a
+test cut instead, and the fit is the material's K_s law of [D] eq. (9), written
+as a `[material]` section: `calibrate_material.py`.
 """
 
 from __future__ import annotations
@@ -56,6 +60,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="FILE", help="calibration TOML file to write")
     parser.add_argument("--dynamometer", action="store_true",
                         help="captures carry fx, fy: exclude cutting revolutions from the friction fit and fit C_f")
+    from millsense.daemon.commands import calibrate_material
+
+    calibrate_material.add_arguments(parser)
 
 
 def plateaus(rpm: list[float], t_s: list[float]) -> list[tuple[int, int]]:
@@ -188,6 +195,10 @@ def run(args: argparse.Namespace) -> int:
     if out_problem:  # before the fitting: a typo in --out should not cost the whole run
         print(f"millsense calibrate: error: {out_problem}", file=sys.stderr)
         return 2
+    if getattr(args, "material", False):   # a material from a test cut (calibrate_material.py)
+        from millsense.daemon.commands import calibrate_material
+
+        return calibrate_material.run(args)
     settings = load_config(args.config)
     for path in args.captures:
         if not Path(path).is_file():

@@ -24,7 +24,9 @@ from pydantic_core import PydanticCustomError
 
 MACHINE_PATTERN = r"^[A-Za-z0-9_-]+$"
 CHANNEL_NAME_PATTERN = r"^[A-Za-z0-9_]{1,8}$"  # daq-protocol.md: ≤ 8 ASCII letters, digits, '_'
-CF_RANGE = (0.9, 1.5)  # [P] found 1.03–1.11; √(1+r1²) for r1 ≤ 1.1 stays below 1.5
+# [P] found 1.03–1.11; √(1+r1²) for r1 ≤ 1.1 stays below 1.5. With several teeth in cut the forces add as
+# vectors and C_f falls to π/4·√(1+r1²) in a many-flute slot (physics/resultant.py): 0.75 admits a fitted one.
+CF_RANGE = (0.75, 1.5)
 TRANSPORTS = ("serial", "tcp", "modbus-tcp", "modbus-rtu", "sim")
 
 # Zenoh endpoints: <protocol>/<address>[?metadata][#config]
@@ -195,8 +197,8 @@ GearList = Annotated[list[GearSettings], Field(min_length=1), AfterValidator(_ch
 # --------------------------------------------------------------------------- [tool], [material], [cut], [depth]
 def _cf_value(value: Any) -> Any:
     lo, hi = CF_RANGE
-    expected = f'a number from {lo} to {hi}, or "model"'
-    if value == "model" and isinstance(value, str):
+    expected = f'a number from {lo} to {hi}, "model" or "auto"'
+    if value in ("model", "auto") and isinstance(value, str):
         return value
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ValueError(f"{json.dumps(value) if isinstance(value, str) else type(value).__name__} is neither a number nor \"model\" ({expected})")
@@ -206,11 +208,13 @@ def _cf_value(value: Any) -> Any:
 
 
 class ToolSettings(_Section):
-    """`[tool]`: the end mill. `cf` is C_f of [P] eq. (18), or "model" to follow r_1(t_a)."""
+    """`[tool]`: the end mill. `cf` is C_f of [P] eq. (18) (a fitted number), "model" (the engaged teeth's
+    forces added as vectors with r_1(t_a)), or "auto" (the default, additive: "model" where the cut's
+    engagement and chip are known, [P]'s 1.075 for what is not; docs/physics.md §5)."""
 
     diameter_mm: float = Field(gt=0)
     flutes: int = Field(ge=1)
-    cf: Annotated[float | Literal["model"], BeforeValidator(_cf_value)] = 1.075
+    cf: Annotated[float | Literal["model", "auto"], BeforeValidator(_cf_value)] = "auto"
     helix_deg: float | None = Field(None, gt=0, lt=90)
     flute_length_mm: float | None = Field(None, gt=0)   # (additive) unset: 2 × diameter_mm (physics/validity.py)
 
@@ -224,7 +228,8 @@ class ToolTableSettings(_Section):
 
     diameter_mm: float = Field(gt=0)
     flutes: int = Field(ge=1)
-    cf: Annotated[float | Literal["model"] | None, BeforeValidator(lambda v: v if v is None else _cf_value(v))] = None
+    cf: Annotated[float | Literal["model", "auto"] | None,
+                  BeforeValidator(lambda v: v if v is None else _cf_value(v))] = None
     helix_deg: float | None = Field(None, gt=0, lt=90)
     flute_length_mm: float | None = Field(None, gt=0)   # (additive) unset: 2 × this tool's diameter_mm
 

@@ -226,3 +226,76 @@ def fit_cf(mean_resultant_force_n, torque_nm, tool_radius_mm: float) -> CfFit:
     cf = float(np.dot(x, force)) / sxx
     residuals = force - cf * x
     return CfFit(cf, residuals, _r2(force, residuals), int(force.size))
+
+
+# ----------------------------------------------------------------------------- the material of a test cut
+# K_s = k·t_a^p ([D] eq. 9) from the steady torque of a cut with known a_e, a_p and feed per tooth: eq. (7)'s
+# F_at = (N/2π)·K_s(t_a)·t_c·d_a·c, with F_at = T_c/R ([P] eq. 16), solved for K_s at the cut's t_a (eq. 8).
+# Several feeds give K_s at several chips: log K_s = log k + p·log t_a, a line (least squares). One feed gives
+# K_s at one chip only: p is borrowed (the nearest ISO group's −m_c) and k = K_s/t_a^p.
+MATERIAL_MIN_REVS = 8          # steady revolutions a feed level needs (its median torque; tooth ripple averaged)
+MATERIAL_MIN_CHIP_RATIO = 1.25  # feed levels whose chips span less than this give one K_s, not a slope
+# A level's torque at least this: docs/accuracy.md's steady torque budget is 2 % + 0.03 N·m, the 0.03 N·m
+# being what noise (eq. 20) and friction leave in air; at 1.5 N·m that floor is 2 % more of K_s, beyond
+# which a level says more about the floor than the material. (σ_T of a revolution is no floor in a cut:
+# it carries the tooth ripple, 0.483·T/√samples, docs/accuracy.md.)
+MATERIAL_MIN_TORQUE_NM = 1.5
+MATERIAL_EXP_RANGE = (-0.8, 0.0)  # p of every published law: m_c 0.14–0.45 (tool-makers' tables), [D] −0.44
+
+
+class MaterialFit(NamedTuple):
+    ks: float                  # k of [D] eq. 9, N/mm² at t_a = 1 mm
+    ks_exp: float              # p
+    levels: int                # feed levels (distinct chips) used
+    chips_mm: np.ndarray       # t_a of each level
+    ks_n_mm2: np.ndarray       # K_s measured at each level
+    residuals_rel: np.ndarray  # K_s measured / fitted − 1, per level
+    exp_borrowed: bool         # True: one level, p given
+
+
+def specific_force_from_torque(torque_nm, feed_per_tooth_mm, radial_ratio, axial_depth_mm, tool_radius_mm: float,
+                               flutes: int, mode: str):
+    """(t_a in mm, K_s in N/mm²) of a cut from its mean cutting torque: [D] eqs. 7–8 with [P] eq. 16 solved for K_s.
+
+    ``K_s = 2π·T_c / (R·N·t_c·d_a·c)``, R in metres for T_c/R (N), c = cos θ₁ − cos θ₂ of the engagement.
+    """
+    from millsense.daemon.physics.milling import average_chip_thickness_mm, engagement_angles_rad
+
+    entry, exit_ = engagement_angles_rad(radial_ratio, mode)
+    c = np.cos(entry) - np.cos(exit_)
+    t_c = np.asarray(feed_per_tooth_mm, dtype=float)
+    tangential_n = np.asarray(torque_nm, dtype=float) / (tool_radius_mm * 1e-3)             # [P] eq. 16
+    ks = 2.0 * np.pi * tangential_n / (flutes * t_c * axial_depth_mm * c)                    # [D] eq. 7
+    return average_chip_thickness_mm(t_c, entry, exit_), ks                                  # [D] eq. 8
+
+
+def fit_material(chips_mm, ks_n_mm2, borrowed_exp: float | None = None) -> MaterialFit:
+    """k, p of K_s = k·t_a^p from K_s measured at chips t_a (one per feed level).
+
+    Two or more chips: least squares on log K_s = log k + p·log t_a. One chip: p = ``borrowed_exp`` (required).
+    """
+    t = np.asarray(chips_mm, dtype=float).ravel()
+    ks = np.asarray(ks_n_mm2, dtype=float).ravel()
+    if t.size == 0 or t.size != ks.size or not (np.all(t > 0) and np.all(ks > 0)):
+        raise ValueError("fit_material: needs positive chips and K_s, one each per feed level")
+    if t.size == 1:
+        if borrowed_exp is None:
+            raise ValueError("fit_material: one feed level fixes K_s at one chip only; give the exponent")
+        p = float(borrowed_exp)
+        k = float(ks[0] / t[0] ** p)
+    else:
+        design = np.column_stack([np.ones_like(t), np.log(t)])
+        (log_k, p), *_ = np.linalg.lstsq(design, np.log(ks), rcond=None)
+        k, p = float(np.exp(log_k)), float(p)
+    residuals = ks / (k * t**p) - 1.0
+    return MaterialFit(k, p, int(t.size), t, ks, residuals, t.size == 1)
+
+
+def judge_material(fit: MaterialFit, record: str) -> list[Refusal]:
+    """A slope outside every published law's range says the levels hold something besides the material."""
+    lo, hi = MATERIAL_EXP_RANGE
+    if fit.exp_borrowed or lo <= fit.ks_exp <= hi:
+        return []
+    return [Refusal("material", f"K_s = {fit.ks:.4g}·t_a^{fit.ks_exp:.3f}: an exponent outside {lo}…{hi} "
+                                f"(published m_c 0.14–0.45): the feed levels do not follow one material law",
+                    record)]

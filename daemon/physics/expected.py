@@ -16,10 +16,8 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-from millsense.daemon.physics.force import cf_model
-from millsense.daemon.physics.milling import (
-    Material, average_chip_thickness_mm, average_forces_n, check_mode, engagement_angles_rad,
-)
+from millsense.daemon.physics.force import P_MEAN_CF, engaged_cf
+from millsense.daemon.physics.milling import Material, average_forces_n, check_mode
 
 
 class ProgrammedCut(NamedTuple):
@@ -65,12 +63,16 @@ def expected_load(
     material: Material,
     spindle_rpm: float,
     override_pct: float | None,
+    helix_deg: float | None = None,
 ) -> ExpectedLoad | None:
     """Expected mean cutting torque (N·m) and resultant force (N) of one revolution, or None.
 
     Torque: ``T = F_at·R`` ([P] eq. 16) with F_at the average tangential force of [D] eq. (7) at the
     chip thickness of eq. (8) and the coefficients of eq. (9). Force: ``C_f·F_at`` ([P] eq. 18) with
-    C_f = √(1 + r₁²) from r₁(t_a) ([P] eq. 17, [D] eq. 9).
+    the estimator's C_f of the engaged teeth, ``η·√(1 + r₁(t_a)²)`` (``force.engaged_cf``: [P] eq. 17,
+    [D] eq. 9, the teeth's forces added as vectors, resultant.py eq. R2) at the programmed depths;
+    ``helix_deg`` None (unknown) takes straight flutes, the largest force the cut can have. A feed per
+    tooth outside the chip model's range (validity.py) takes [P]'s mean 1.075 for √(1 + r₁²).
     None where nothing can be expected (unknown override, spindle stopped, no feed, a radial depth the
     mode cannot have).
     """
@@ -84,9 +86,8 @@ def expected_load(
     tangential_n = float(forces.tangential_n)
     if not math.isfinite(tangential_n):
         return None
-    entry, exit_ = engagement_angles_rad(radial_ratio, cut.mode)
-    t_a = float(average_chip_thickness_mm(t_c, entry, exit_))
-    cf = float(cf_model(t_a, material.r1, material.r1_exp))
+    cf = float(engaged_cf(cut.mode, flutes, tool_radius_mm, helix_deg, float(t_c), cut.radial_depth_mm,
+                          cut.axial_depth_mm, material, P_MEAN_CF))
     return ExpectedLoad(
         torque_nm=tangential_n * tool_radius_mm * 1e-3,   # [P] eq. 16, R in metres
         force_n=cf * tangential_n,                        # [P] eq. 18

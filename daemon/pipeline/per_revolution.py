@@ -34,16 +34,10 @@ import numpy as np
 
 from millsense.daemon.physics import depth as depth_mod
 from millsense.daemon.physics import validity
-from millsense.daemon.physics.force import cf_model, resultant_force_magnitudes_n
-from millsense.daemon.physics.milling import (
-    SCALAR,
-    Material,
-    average_chip_thickness_mm,
-    chip_xp,
-    engagement_angles_rad,
-    engagement_xp,
-)
+from millsense.daemon.physics.force import P_MEAN_CF, engaged_cf, resultant_force_magnitudes_n
+from millsense.daemon.physics.milling import Material
 from millsense.daemon.physics.power import air_gap_power_w, butterworth_power_gain
+from millsense.daemon.physics.resultant import overlap_table
 from millsense.daemon.physics.torque import (
     cutting_torque_nm,
     inertia_torque_nm,
@@ -163,8 +157,10 @@ class ToolGeometry:
 
     radius_mm: float
     flutes: int
-    cf: float | None            # C_f of [P] eq. (18); None: "model", from r_1(t_a) ([D] eq. 9)
+    cf: float | None            # C_f of [P] eq. (18); None: "model"/"auto", η·√(1 + r_1(t_a)²) (force.engaged_cf)
     flute_length_mm: float = math.inf   # the deepest axial depth this tool can cut (validity.within_tool)
+    helix_deg: float | None = None      # None: unknown, the straight-flute η (an upper bound)
+    cf_fallback: float | None = None    # "auto": [P]'s 1.075 where the model lacks the chip or the engagement
 
     @property
     def cf_model(self) -> bool:
@@ -176,22 +172,25 @@ class ToolGeometry:
 
     @classmethod
     def of(cls, diameter_mm: float, flutes: int, cf: float | str,
-           flute_length_mm: float | None = None) -> ToolGeometry:
+           flute_length_mm: float | None = None, helix_deg: float | None = None) -> ToolGeometry:
         length = validity.default_flute_length_mm(diameter_mm) if flute_length_mm is None else float(flute_length_mm)
-        return cls(float(diameter_mm) / 2.0, int(flutes), None if isinstance(cf, str) else float(cf), length)
+        return cls(float(diameter_mm) / 2.0, int(flutes), None if isinstance(cf, str) else float(cf), length,
+                   None if helix_deg is None else float(helix_deg), P_MEAN_CF if cf == "auto" else None)
 
 
 def tool_geometries(settings) -> tuple[ToolGeometry, dict[int, ToolGeometry]]:
-    """`[tool]` and every `[tools.N]` by number; a `[tools.N]` without `cf` takes `[tool]`'s, one without
-    `flute_length_mm` twice its own diameter (validity.FLUTE_LENGTH_PER_DIAMETER)."""
+    """`[tool]` and every `[tools.N]` by number; a `[tools.N]` without `cf` or `helix_deg` takes `[tool]`'s,
+    one without `flute_length_mm` twice its own diameter (validity.FLUTE_LENGTH_PER_DIAMETER)."""
     default = settings.tool
+    default_helix = getattr(default, "helix_deg", None)
     listed = {
         int(number): ToolGeometry.of(t.diameter_mm, t.flutes, default.cf if t.cf is None else t.cf,
-                                     getattr(t, "flute_length_mm", None))
+                                     getattr(t, "flute_length_mm", None),
+                                     default_helix if getattr(t, "helix_deg", None) is None else t.helix_deg)
         for number, t in (getattr(settings, "tools", None) or {}).items()
     }
     return ToolGeometry.of(default.diameter_mm, default.flutes, default.cf,
-                           getattr(default, "flute_length_mm", None)), listed
+                           getattr(default, "flute_length_mm", None), default_helix), listed
 
 
 @dataclass(frozen=True)
@@ -242,6 +241,9 @@ class RevolutionPhysics:
         pp = getattr(settings.motor, "pole_pairs", None)
         self.pole_pairs = int(pp) if pp else None
         self.tool, self.tools = tool_geometries(settings)
+        for geometry in (self.tool, *self.tools.values()):
+            if geometry.cf_model:    # η's table: built here (0.1–0.5 s a flute count), never in a revolution
+                overlap_table(geometry.flutes)
         m = settings.material
         self.material = Material(float(m.ks), float(m.ks_exp), float(m.r1), float(m.r1_exp), float(m.r2), float(m.r2_exp))
         cut = settings.cut
@@ -336,7 +338,7 @@ class RevolutionPhysics:
                 status, radial_mm, axial_mm = d.status, _known(d.radial_depth_mm), _known(d.axial_depth_mm)
                 if not validity.within_tool(radial_mm, axial_mm, geometry.diameter_mm, geometry.flute_length_mm):
                     status, radial_mm, axial_mm = validity.OUTSIDE_TOOL, None, None
-        force_n = self._force_one(geometry, torque_nm, t_c, radial_mm, noise_nm)
+        force_n = self._force_one(geometry, torque_nm, t_c, radial_mm, axial_mm, noise_nm)
         self.last_gain = gain
         self.gains = [gain]
         return {
@@ -372,26 +374,15 @@ class RevolutionPhysics:
         return validity.feed_status(t_c, tool.radius_mm)
 
     def _force_one(self, tool: ToolGeometry, torque_nm: float, t_c: float, radial_mm: float | None,
-                   noise_nm: float) -> float:
+                   axial_mm: float | None, noise_nm: float) -> float:
         """`_force_many` of one revolution on floats: [P] eq. (18), nan where none."""
         cf = tool.cf
-        if tool.cf_model:
-            if self.mode == "slot":
-                radial_mm = 2.0 * tool.radius_mm
-            elif radial_mm is None:
-                radial_mm = self.known_radial_mm
-            if radial_mm is None or not math.isfinite(radial_mm) or not t_c > 0:
+        if tool.cf_model:   # the engaged teeth added as vectors (force.engaged_cf, resultant.py R2)
+            cf = engaged_cf(self.mode, tool.flutes, tool.radius_mm, tool.helix_deg, t_c,
+                            self.known_radial_mm if radial_mm is None else radial_mm,
+                            self.known_axial_mm if axial_mm is None else axial_mm, self.material, tool.cf_fallback)
+            if math.isnan(cf):
                 return math.nan
-            if validity.feed_status(t_c, tool.radius_mm) is not None:
-                return math.nan   # r_1(t_a) only inside the chip model's range ([D] eq. 9)
-            ratio = 2.0 if self.mode == "slot" else radial_mm / tool.radius_mm
-            if not 0.0 < ratio <= 2.0:
-                return math.nan
-            entry, exit_ = engagement_xp(SCALAR, ratio, self.mode)
-            t_a = chip_xp(SCALAR, t_c, entry, exit_)                                           # [D] eq. 8
-            if not (math.isfinite(t_a) and t_a > 0):
-                return math.nan
-            cf = cf_model(t_a, self.material.r1, self.material.r1_exp)                           # [D] eq. 9
         return resultant_force_magnitudes_n(torque_nm, tool.radius_mm, cf, noise_nm)            # [P] eq. 18
 
     def estimate_many(self, c: RevolutionColumns, tools: Sequence[int | None] | None = None) -> dict[str, list]:
@@ -516,7 +507,7 @@ class RevolutionPhysics:
         tangential_n = torque_nm / (tool.radius_mm * 1e-3)                                      # eq. (16)
         radial_mm, axial_mm, status = self._depth_many(tool, torque_nm, tangential_n, force_feed_n, t_c,
                                                        force_x_n, force_y_n, cutting, rpm, ramp)
-        force_n = self._force_many(tool, torque_nm, t_c, radial_mm, noise_nm)
+        force_n = self._force_many(tool, torque_nm, t_c, radial_mm, axial_mm, noise_nm)
         return _ToolPart(t_c, tangential_n, radial_mm, axial_mm, status, force_n)
 
     def _filter_gains(self, f_e_hz: np.ndarray) -> np.ndarray:
@@ -711,22 +702,21 @@ class RevolutionPhysics:
         return self.min_torque_nm + self.FORCE_NOISE_SIGMAS * np.where(np.isfinite(sigma_nm), sigma_nm, 0.0)
 
     def _force_many(self, tool: ToolGeometry, torque_nm: np.ndarray, t_c: np.ndarray, radial_mm: np.ndarray,
-                    noise_nm) -> np.ndarray:
+                    axial_mm: np.ndarray, noise_nm) -> np.ndarray:
         """Resultant in-plane force magnitude, [P] eq. (18), >= 0, nan where none
-        (force.resultant_force_magnitudes_n); C_f constant or from r_1(t_a) ([D] eqs. 8-9)."""
+        (force.resultant_force_magnitudes_n); C_f constant, or of the engaged teeth (force.engaged_cf):
+        the estimated depths, else the configured ones."""
         if not tool.cf_model:
             return resultant_force_magnitudes_n(torque_nm, tool.radius_mm, tool.cf, noise_nm)
-        if self.mode == "slot":
-            radial_mm = np.full(len(torque_nm), 2.0 * tool.radius_mm)
-        elif self.known_radial_mm is not None:
+        if self.known_radial_mm is not None:
             radial_mm = np.where(np.isnan(radial_mm), self.known_radial_mm, radial_mm)
-        low, high = validity.feed_masks(t_c, tool.radius_mm)
-        usable = np.isfinite(radial_mm) & (t_c > 0) & ~low & ~high   # r_1(t_a) only inside the chip model's range
-        entry, exit_ = engagement_angles_rad(np.where(usable, radial_mm, 1.0) / tool.radius_mm, self.mode)
-        t_a = average_chip_thickness_mm(np.where(usable, t_c, 1.0), entry, exit_)                # [D] eq. 8
-        usable &= np.isfinite(t_a) & (t_a > 0)
-        cf = cf_model(np.where(usable, t_a, 1.0), self.material.r1, self.material.r1_exp)        # [D] eq. 9
-        return np.where(usable, resultant_force_magnitudes_n(torque_nm, tool.radius_mm, cf, noise_nm), np.nan)
+        if self.known_axial_mm is not None:
+            axial_mm = np.where(np.isnan(axial_mm), self.known_axial_mm, axial_mm)
+        cf = engaged_cf(self.mode, tool.flutes, tool.radius_mm, tool.helix_deg, t_c, radial_mm, axial_mm,
+                        self.material, tool.cf_fallback)
+        usable = np.isfinite(cf)
+        return np.where(usable, resultant_force_magnitudes_n(torque_nm, tool.radius_mm, np.where(usable, cf, 1.0),
+                                                             noise_nm), np.nan)
 
 
 def _known(value: float | None) -> float | None:

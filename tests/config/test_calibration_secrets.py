@@ -54,7 +54,7 @@ def test_calibration_with_nan_r2_is_accepted(tmp_path):
          'calibration: {cal}: gears[0].name: "third" is not a gear of this config (one of: low-speed, high-speed)'),
         (CALIBRATION.replace("1.712345", "-0.5"),
          "calibration: {cal}: gears[0].friction_torque_nm: must be at least 0, not -0.5 (a number ≥ 0)"),
-        (CALIBRATION.replace("cf = 1.062000", "cf = 7"), "calibration: {cal}: tool.cf: 7 is outside 0.9–1.5"),
+        (CALIBRATION.replace("cf = 1.062000", "cf = 7"), "calibration: {cal}: tool.cf: 7 is outside 0.75–1.5"),
         (CALIBRATION + "\nfriction = 3\n", 'calibration: {cal}: tool.friction: unknown key'),
         ("[[gears]\n", "calibration: TOML syntax error at line 1"),
     ],

@@ -117,10 +117,16 @@ def test_cf_is_a_sane_number_or_model():
     doc = base()
     doc["tool"]["cf"] = "model"
     assert load_config_text(dumps(doc)).tool.cf == "model"
+    doc["tool"]["cf"] = "auto"
+    assert load_config_text(dumps(doc)).tool.cf == "auto"
+    doc["tool"]["cf"] = 0.8                 # a 4-flute slot's fitted C_f (physics/resultant.py: π/4·√(1 + r₁²))
+    assert load_config_text(dumps(doc)).tool.cf == 0.8
     doc["tool"]["cf"] = 2.0
-    assert problems_of(doc)[0].startswith("tool.cf: 2.0 is outside 0.9–1.5")
+    assert problems_of(doc)[0].startswith("tool.cf: 2.0 is outside 0.75–1.5")
     doc["tool"]["cf"] = "modle"
     assert problems_of(doc)[0].startswith('tool.cf: "modle" is neither a number nor "model"')
+    del doc["tool"]["cf"]
+    assert load_config_text(dumps(doc)).tool.cf == "auto"     # the default (additive): docs/physics.md §5
 
 
 def test_nan_and_infinity_are_refused():

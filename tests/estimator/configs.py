@@ -58,7 +58,7 @@ def toml_text(
     extra_channels: str = "",
     winding: str = "delta",
     pole_pairs: int | None = 2,
-    tool: tuple[float, int] = (20.0, 2),
+    tool: tuple[float, int] | tuple[float, int, float] = (20.0, 2),   # (diameter, flutes[, helix_deg])
     cf: float | str = 1.075,
     material: tuple[float, ...] = (760.0, -0.40, 0.25, -0.25, 0.12, 0.17),
     mode: str = "slot",
@@ -101,6 +101,7 @@ filter_order = 2
 diameter_mm = {tool[0]}
 flutes = {tool[1]}
 cf = {cf_text}
+{f"helix_deg = {tool[2]}" if len(tool) > 2 else ""}
 
 [material]
 ks = {ks}

@@ -16,9 +16,9 @@ separately from the physics, never from a measured error:
   over an arc of lag = d_a·tan β/R, so their resultant is at least cos(lag/2) of
   their sum. Hence ``cos(lag/2) ≤ C_f,true/C_f,model ≤ 1``.
 
-Slot scenarios only: with overlapping teeth (the 4-flute side cuts of [D]) eq. 17
-is not exact (daemon/physics/force.py). Three seeds; both gears; a diagonal path
-(the in-plane resultant does not depend on the feed direction).
+Slot scenarios with [P]'s 2-flute cutter and no `helix_deg` configured (so the daemon's η is 1,
+straight flutes); overlapping teeth and the helix: tests/estimator/test_force_vector.py. Three seeds;
+both gears; a diagonal path (the in-plane resultant does not depend on the feed direction).
 """
 
 from __future__ import annotations

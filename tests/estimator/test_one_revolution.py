@@ -42,6 +42,11 @@ CASES = {
                                                    gears=configs.GEARS_WITH_INERTIA), True, None),
     "tools by number, known axial": (dict(mode="down", axial_depth_mm=5.0, method="torque-only",
                                           extra_toml=TOOLS), False, None),
+    # issue 41: the engaged teeth's C_f with a helix, ψ from the estimated axial depth (slot) or the known one
+    "slot, C_f auto, 4 flutes, helix": (dict(cf="auto", tool=(16.0, 4, 30.0)), False, None),
+    "up, C_f auto, helix, known depths": (dict(mode="up", cf="auto", tool=(16.0, 3, 40.0), radial_depth_mm=10.0,
+                                               axial_depth_mm=12.0, method="off"), False, None),
+    "down, C_f auto, nothing known": (dict(mode="down", cf="auto", method="off"), False, None),
 }
 
 

@@ -151,3 +151,34 @@ def test_inertia_judged_by_the_same_rule_set():
     for bad in (ok._replace(inertia_kgm2=-0.3), ok._replace(sigma_kgm2=0.3)):
         (refusal,) = judge_inertia("low-speed", bad, "run-ups")
         assert refusal.gear == "low-speed" and refusal.record == "run-ups" and "inertia J" in refusal.problem
+
+
+# ----------------------------------------------------------------------------- the material of a test cut
+@pytest.mark.parametrize("mode, ae_mm", [("slot", 16.0), ("down", 5.0), ("up", 11.0)])
+def test_specific_force_from_torque_inverts_the_forward_model(mode, ae_mm):
+    """[D] eqs. 7–8 solved for K_s give back the law the forward model cut with, at its chip."""
+    from millsense.daemon.physics.calibration import specific_force_from_torque
+    from millsense.daemon.physics.expected import ProgrammedCut, expected_load
+    from millsense.daemon.physics.milling import SB40_TABLE2
+
+    for fz in (0.05, 0.12, 0.3):
+        load = expected_load(ProgrammedCut(ae_mm, 4.0, mode, feed_per_tooth_mm=fz), tool_radius_mm=8.0, flutes=4,
+                             material=SB40_TABLE2, spindle_rpm=900.0, override_pct=100.0)
+        chip, ks = specific_force_from_torque(load.torque_nm, fz, ae_mm / 8.0, 4.0, 8.0, 4, mode)
+        assert float(ks) == pytest.approx(SB40_TABLE2.ks * float(chip) ** SB40_TABLE2.ks_exp, rel=1e-12)
+
+
+def test_fit_material_recovers_a_power_law_and_borrows_an_exponent_for_one_chip():
+    from millsense.daemon.physics.calibration import fit_material, judge_material
+
+    chips = np.array([0.05, 0.1, 0.2])
+    fit = fit_material(chips, 760.0 * chips ** -0.4)
+    assert (fit.ks, fit.ks_exp, fit.levels, fit.exp_borrowed) == (pytest.approx(760.0), pytest.approx(-0.4), 3, False)
+    assert np.max(np.abs(fit.residuals_rel)) < 1e-12 and judge_material(fit, "x") == []
+    one = fit_material([0.1], [760.0 * 0.1 ** -0.4], borrowed_exp=-0.25)
+    assert one.exp_borrowed and one.ks_exp == -0.25 and one.ks * 0.1 ** -0.25 == pytest.approx(760.0 * 0.1 ** -0.4)
+    with pytest.raises(ValueError, match="give the exponent"):
+        fit_material([0.1], [1000.0])
+    rising = fit_material(chips, 500.0 * chips ** 0.3)     # K_s rising with the chip: no material does that
+    refusals = judge_material(rising, "a test cut")
+    assert len(refusals) == 1 and "exponent outside" in refusals[0].problem
