@@ -548,8 +548,9 @@ class LearningSettings(_Section):
     wear_rise_pct: float = Field(15.0, gt=0, le=500)
     wear_window: int = Field(3, ge=1, le=100)
     # (issue 41, additive) the expected band around the physics' load of an `[operations]` entry, ± this %;
-    # provisional default until the plant's measured spread of the coefficients sets it (docs/learning.md)
-    physics_tolerance_pct: float = Field(25.0, gt=0, le=200)
+    # the default from the measured spread: 30 first parts, material batches ±20 %, tools at 80 % life
+    # (docs/validation.md, "The expected load of a first part")
+    physics_tolerance_pct: float = Field(34.0, gt=0, le=200)
     # (issue 41, additive) a TOML file of `[operations.*]` tables only, written by `millsense limits
     # import-operations`; relative to the config file's folder. "" = none
     operations_file: str = ""

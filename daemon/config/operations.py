@@ -29,9 +29,19 @@ CSV_COLUMNS = ("program", "tool", "operation", "ae_mm", "ap_mm", "fz_mm", "vf_mm
                "material", "spindle_rpm")
 OPERATIONS_HEADER = ("# [operations.*] written by `millsense limits import-operations` (docs/learning.md).\n"
                      "# Rewritten on each import: keep hand edits in the main configuration's [operations].\n")
-# Where a material name is looked up after `[materials.NAME]`: (name, settings) -> a MaterialSettings-like
-# object or None. The ISO groups of physics/materials.py slot in here (one more lookup).
-MATERIAL_LOOKUPS: list[Callable[[str, Any], Any]] = []
+
+
+def _iso_group(name: str, settings: Any) -> Any:
+    """An ISO material group's letter (P, M, K, N, S): its handbook law (physics/materials.py, docs/physics.md §5a)."""
+    from millsense.daemon.physics.materials import ISO_GROUPS
+
+    group = ISO_GROUPS.get(name)
+    return None if group is None else group.material
+
+
+# Where a material name is looked up after `[materials.NAME]` (which comes first, so a plant's own
+# measured "P" wins over the handbook's): (name, settings) -> a MaterialSettings-like object or None.
+MATERIAL_LOOKUPS: list[Callable[[str, Any], Any]] = [_iso_group]
 
 
 class OperationCut(NamedTuple):
@@ -44,6 +54,7 @@ class OperationCut(NamedTuple):
     material: Any            # physics.milling.Material
     engagement: str          # "constant" | "varying"
     spindle_rpm: float | None
+    helix_deg: float | None = None   # the tool's; None counts the flutes straight (the larger force)
 
 
 def _loc(key: str) -> str:
@@ -91,9 +102,11 @@ def operation_problems(parts: Mapping[str, Any]) -> list[str]:
             problems.append(f"{_loc(key)}.ap_mm: {op.ap_mm:g} is above {where}.{given} = {flute:g} "
                             "(an axial depth the flutes can cut)")
         if op.material is not None and materials is not None and material_for(op.material, None, materials) is None:
+            from millsense.daemon.physics.materials import ISO_GROUPS
+
             known = ", ".join(sorted(materials)) or "none"
             problems.append(f"{_loc(key)}.material: {json.dumps(op.material)} is no [materials.NAME] section "
-                            f"(known: {known})")
+                            f"(known: {known}) and no ISO group ({', '.join(ISO_GROUPS)})")
     return problems
 
 
@@ -113,7 +126,8 @@ def operation_cut(settings: Any, key: str) -> OperationCut | None:
     cut = ProgrammedCut(radial_depth_mm=d if op.mode == "slot" else float(op.ae_mm), axial_depth_mm=float(op.ap_mm),
                         mode=op.mode, feed_per_tooth_mm=op.fz_mm, feed_mm_min=op.vf_mm_min)
     material = Material(m.ks, m.ks_exp, m.r1, m.r1_exp, m.r2, m.r2_exp)
-    return OperationCut(key, cut, d / 2.0, int(tool.flutes), material, op.engagement, op.spindle_rpm)
+    return OperationCut(key, cut, d / 2.0, int(tool.flutes), material, op.engagement, op.spindle_rpm,
+                        getattr(tool, "helix_deg", None))
 
 
 def operation_cuts(settings: Any) -> dict[str, OperationCut]:

@@ -38,7 +38,7 @@ from millsense.daemon.learning.envelope import LOW_MAX_FRACTION, MAX_WIDENING, W
 from millsense.daemon.physics.expected import ExpectedLoad, expected_load
 
 LEVELS = ("expected_high", "expected_low")
-DEFAULT_TOLERANCE_PCT = 25.0
+DEFAULT_TOLERANCE_PCT = 34.0   # [learning] physics_tolerance_pct (config/models.py)
 STEADY_REVOLUTIONS = 3        # the override and feed held over this many revolutions (this one included)
 STEADY_FEED_PCT = 2.0         # "held": within this % of the largest of them
 LOW_STEP_OF_TOL = 0.5         # a drop into the low side that counts: at least half the tolerance in one revolution
@@ -176,7 +176,8 @@ class ExpectedBand:
             return None
         try:
             exp = expected_load(op.cut, tool_radius_mm=op.tool_radius_mm, flutes=op.flutes, material=op.material,
-                                spindle_rpm=spindle_rpm, override_pct=override_pct)
+                                spindle_rpm=spindle_rpm, override_pct=override_pct,
+                                helix_deg=getattr(op, "helix_deg", None))
         except (ValueError, ArithmeticError):
             return None   # nothing can be expected: nothing armed (never an error on the estimator thread)
         if exp is None or not (math.isfinite(exp.torque_nm) and math.isfinite(exp.feed_per_tooth_mm)):

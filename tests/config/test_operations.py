@@ -37,6 +37,17 @@ def test_an_operation_loads_with_its_tool_and_material():
     assert s.learning.physics_tolerance_pct > 0
 
 
+def test_an_iso_group_letter_names_the_handbook_law_and_a_section_of_that_name_comes_first():
+    from millsense.daemon.config.operations import operation_cut
+    from millsense.daemon.physics.materials import ISO_GROUPS
+
+    cut = operation_cut(load_config_text(dumps(doc(material="M"))), KEY)
+    assert cut.material == ISO_GROUPS["M"].material and cut.material != ISO_GROUPS["P"].material
+    d = doc(material="M")
+    d["materials"]["M"] = {"ks": 2222.0, "ks_exp": -0.2}
+    assert operation_cut(load_config_text(dumps(d)), KEY).material.ks == 2222.0   # the plant's own measured "M"
+
+
 @pytest.mark.parametrize("change, expected", [
     ({"fz_mm": None}, 'operations."1001/5/1".fz_mm: give exactly one of fz_mm'),
     ({"vf_mm_min": 300.0}, 'operations."1001/5/1".fz_mm: give exactly one of fz_mm'),
@@ -47,7 +58,7 @@ def test_an_operation_loads_with_its_tool_and_material():
     ({"mode": "up"}, 'operations."1001/5/1".ae_mm: missing (mode = "up" needs the maximum radial depth'),
     ({"mode": "up", "ae_mm": 9.0}, 'operations."1001/5/1".ae_mm: 9 is above tools.5.diameter_mm = 8'),
     ({"engagement": "sometimes"}, 'operations."1001/5/1".engagement:'),
-    ({"material": "steel"}, 'operations."1001/5/1".material: "steel" is no [materials.NAME] section (known: alu)'),
+    ({"material": "steel"}, 'operations."1001/5/1".material: "steel" is no [materials.NAME] section (known: alu) and no ISO group (P, M, K, N, S)'),
     ({"depth": 3}, 'operations."1001/5/1".depth: unknown key'),
 ])
 def test_each_problem_names_section_and_key(change, expected):
