@@ -173,7 +173,8 @@ def _timeline(item, started: float, serial: bool) -> None:
         return
     line = json.dumps({"test": item.nodeid, "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"),
                        "start": round(started, 3), "end": round(time.time(), 3),
-                       "cpu_s": round(_cpu_s() - item.stash.get(_CPU_START, _cpu_s()), 2), "serial": serial})
+                       "cpu_s": round(_cpu_s() - item.stash.get(_CPU_START, _cpu_s()), 2), "serial": serial,
+                       "slow": _is(item, "slow")})
     fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     try:
         os.write(fd, (line + "\n").encode())
@@ -246,7 +247,8 @@ def summarise(path: str) -> str:
     out = [f"{len(rows)} tests, {max(r['end'] for r in rows) - t0:.0f} s from the first start to the last end, "
            f"{sum(r['cpu_s'] for r in rows):.0f} CPU s, {len({r['worker'] for r in rows})} workers, "
            f"{os.cpu_count()} cores here"]
-    for name, part in (("parallel", other), ("serial", serial)):
+    slow = [r for r in other if r.get("slow")]
+    for name, part in (("parallel", other), ("  of which slow", slow), ("serial", serial)):
         if part:
             a, b = min(r["start"] for r in part) - t0, max(r["end"] for r in part) - t0
             cpu = sum(r["cpu_s"] for r in part)
@@ -254,6 +256,11 @@ def summarise(path: str) -> str:
             out.append(f"{name}: {len(part)} tests from {a:.0f} s to {b:.0f} s ({b - a:.0f} s), {cpu:.0f} CPU s "
                        f"({cpu / max(b - a, 1e-9):.2f} cores busy on average), {busy / max(b - a, 1e-9):.1f} tests "
                        f"running on average")
+    if slow:
+        out.append(f"the slow tests: {sum(r['end'] - r['start'] for r in slow):.0f} s of a worker's time, "
+                   f"{sum(r['cpu_s'] for r in slow):.0f} CPU s; the other parallel tests: "
+                   f"{sum(r['end'] - r['start'] for r in other if not r.get('slow')):.0f} s, "
+                   f"{sum(r['cpu_s'] for r in other if not r.get('slow')):.0f} CPU s")
     if other:
         end = max(r["end"] for r in other)
         tail = sorted((r for r in other if r["end"] > end - 60), key=lambda r: r["start"])[:10]
