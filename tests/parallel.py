@@ -210,6 +210,11 @@ _cpu_by_test: dict[str, float] = {}
 
 
 def pytest_terminal_summary(terminalreporter, config):
+    timeline = config.getoption("--timeline")
+    if timeline and not os.environ.get("PYTEST_XDIST_WORKER") and Path(timeline).exists():
+        terminalreporter.section("where the time went (--timeline)")
+        for line in summarise(timeline).splitlines():
+            terminalreporter.write_line(line)
     n = config.getoption("--cpu-report")
     if not n or not _cpu_by_test:
         return
@@ -263,9 +268,10 @@ def summarise(path: str) -> str:
                    f"{sum(r['cpu_s'] for r in other if not r.get('slow')):.0f} CPU s")
     if other:
         end = max(r["end"] for r in other)
-        tail = sorted((r for r in other if r["end"] > end - 60), key=lambda r: r["start"])[:10]
-        out.append("the parallel phase's last minute: " + "; ".join(
-            f"{r['test']} ({r['start'] - t0:.0f}-{r['end'] - t0:.0f} s)" for r in tail if r["end"] - r["start"] > 5))
+        tail = sorted((r for r in other if r["end"] > end - 60 and r["end"] - r["start"] > 5), key=lambda r: r["start"])
+        if tail:
+            out.append("over 5 s in the parallel phase's last minute: " + "; ".join(
+                f"{r['test']} ({r['start'] - t0:.0f}-{r['end'] - t0:.0f} s)" for r in tail[:10]))
     # the cores' use, 30 s at a time: CPU s of the tests running then (each test's CPU spread over its time)
     span = max(r["end"] for r in rows) - t0
     buckets = [0.0] * (int(span // 30) + 1)
