@@ -56,9 +56,17 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.xdist_group(SERIAL_GROUP))
         elif _shares_a_module_fixture(item) and not _is(item, "xdist_group"):
             item.add_marker(pytest.mark.xdist_group(f"module:{item.module.__name__}"))
+    _tell_the_controller_the_groups(items)
+
+
+@pytest.hookimpl(hookwrapper=True, specname="pytest_collection_modifyitems")
+def pytest_collection_modifyitems_last(config, items):
+    """After every other plugin's reordering: pytest's own groups the tests of a session-scoped parametrised
+    fixture together (tests/firmware's two builds), which pulled four serial tests to the middle of the
+    collection, and with them the serial group: it was handed out with half the run still to come."""
+    yield
     # a stable sort: slow first, serial last, the collection's order kept within each
     items.sort(key=lambda item: 2 if _is(item, "serial") else 0 if _is(item, "slow") else 1)
-    _tell_the_controller_the_groups(items)
 
 
 @pytest.hookimpl(tryfirst=True)
