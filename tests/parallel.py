@@ -169,18 +169,19 @@ def pytest_runtest_protocol(item, nextitem):
     try:
         yield
     finally:
+        ended = time.time()   # inside the lock, like the start: a serial test's span and another's never overlap
         if parallel:
             _leave(serial, _is(nextitem, "serial"))
-        _timeline(item, started, serial)
+        _timeline(item, started, ended, serial)
 
 
-def _timeline(item, started: float, serial: bool) -> None:
+def _timeline(item, started: float, ended: float, serial: bool) -> None:
     """One line per test for `--timeline`: appended in one write, so the workers' lines never interleave."""
     path = item.config.getoption("--timeline")
     if not path:
         return
     line = json.dumps({"test": item.nodeid, "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"),
-                       "start": round(started, 3), "end": round(time.time(), 3),
+                       "start": round(started, 3), "end": round(ended, 3),
                        "cpu_s": round(_cpu_s() - item.stash.get(_CPU_START, _cpu_s()), 2), "serial": serial,
                        "slow": _is(item, "slow")})
     fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
@@ -269,6 +270,10 @@ def summarise(path: str) -> str:
             out.append(f"{name}: {len(part)} tests from {a:.0f} s to {b:.0f} s ({b - a:.0f} s), {cpu:.0f} CPU s "
                        f"({cpu / max(b - a, 1e-9):.2f} cores busy on average), {busy / max(b - a, 1e-9):.1f} tests "
                        f"running on average")
+    overlapped = sorted({s["test"] for s in serial for r in other if r["start"] < s["end"] and r["end"] > s["start"]})
+    if serial:
+        out.append("every serial test ran alone" if not overlapped else
+                   f"SERIAL TESTS THAT DID NOT RUN ALONE ({len(overlapped)}): " + "; ".join(overlapped[:10]))
     if slow:
         out.append(f"the slow tests: {sum(r['end'] - r['start'] for r in slow):.0f} s of a worker's time, "
                    f"{sum(r['cpu_s'] for r in slow):.0f} CPU s; the other parallel tests: "
