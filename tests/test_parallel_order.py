@@ -51,3 +51,25 @@ def test_slow_first_and_serial_last_even_after_pytests_own_reordering(tmp_path):
     assert sorted(order) == sorted(["test_a_long_one", "test_a_plain_one", "test_a_timed_one[plain]",
                                     "test_a_timed_one[san]", "test_one_on_each_build[plain]",
                                     "test_one_on_each_build[san]"]), order
+
+
+def test_the_timeline_names_a_serial_test_that_did_not_run_alone(tmp_path):
+    """`--timeline`'s summary (what `.ci/run` prints): the phases, and a serial test another test ran beside."""
+    import json
+
+    from tests.parallel import summarise
+
+    def row(test, start, end, serial=False, slow=False, worker="gw0"):
+        return {"test": test, "worker": worker, "start": 1000.0 + start, "end": 1000.0 + end, "cpu_s": 1.0,
+                "serial": serial, "slow": slow}
+
+    alone = [row("a::long", 0, 30, slow=True), row("a::short", 0, 10, worker="gw1"),
+             row("b::timed", 30, 40, serial=True, worker="gw1")]
+    path = tmp_path / "t.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in alone))
+    said = summarise(str(path))
+    assert "every serial test ran alone" in said and "serial: 1 tests from 30 s to 40 s (10 s)" in said, said
+    assert "of which slow: 1 tests" in said, said
+    path.write_text("".join(json.dumps(r) + "\n" for r in [*alone, row("c::beside", 35, 36, worker="gw2")]))
+    said = summarise(str(path))
+    assert "SERIAL TESTS THAT DID NOT RUN ALONE (1): b::timed" in said, said
