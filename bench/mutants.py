@@ -190,6 +190,12 @@ MUTANTS: tuple[Mutant, ...] = (
            "wrong = abs(drift) > RAISE_SHARE",
            "wrong = drift > RAISE_SHARE",
            ("tests/faults/test_sample_rate.py",)),
+    Mutant("sc-rate-check-off-ignored", "signal checks",
+           "rate check: `[daq] check_sample_rate = false` read and ignored (a bench's stream at speed is judged blind)",
+           "daemon/runtime/runner.py",
+           'self._check_rate = bool(getattr(getattr(settings, "daq", None), "check_sample_rate", True))',
+           "self._check_rate = True",
+           ("tests/faults/test_sample_rate.py",)),
     # -- command authorisation ---------------------------------------------------------------------------------
     Mutant("ca-mac-compare-eq", "command authorisation",
            "proof check: `==` for `hmac.compare_digest` (a timing side channel on the MAC)",

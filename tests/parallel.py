@@ -26,6 +26,7 @@ import json
 import os
 import resource
 import tempfile
+import time
 import uuid
 from pathlib import Path
 
@@ -39,6 +40,9 @@ _locks: dict[str, int] = {}
 def pytest_addoption(parser):
     parser.addoption("--cpu-report", type=int, default=0, metavar="N",
                      help="print the N tests that used the most CPU seconds (worker and waited-for children)")
+    parser.addoption("--timeline", default=None, metavar="FILE",
+                     help="append one JSON line per test to FILE: worker, start and end (Unix time), CPU s, serial; "
+                          "says where a run's cores sat idle (docs/testing.md)")
 
 
 def _is(item, name: str) -> bool:
@@ -52,9 +56,17 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.xdist_group(SERIAL_GROUP))
         elif _shares_a_module_fixture(item) and not _is(item, "xdist_group"):
             item.add_marker(pytest.mark.xdist_group(f"module:{item.module.__name__}"))
+    _tell_the_controller_the_groups(items)
+
+
+@pytest.hookimpl(hookwrapper=True, specname="pytest_collection_modifyitems")
+def pytest_collection_modifyitems_last(config, items):
+    """After every other plugin's reordering: pytest's own groups the tests of a session-scoped parametrised
+    fixture together (tests/firmware's two builds), which pulled four serial tests to the middle of the
+    collection, and with them the serial group: it was handed out with half the run still to come."""
+    yield
     # a stable sort: slow first, serial last, the collection's order kept within each
     items.sort(key=lambda item: 2 if _is(item, "serial") else 0 if _is(item, "slow") else 1)
-    _tell_the_controller_the_groups(items)
 
 
 @pytest.hookimpl(tryfirst=True)
@@ -153,11 +165,30 @@ def pytest_runtest_protocol(item, nextitem):
     if parallel:
         _enter(serial)
     item.stash[_CPU_START] = _cpu_s()
+    started = time.time()
     try:
         yield
     finally:
+        ended = time.time()   # inside the lock, like the start: a serial test's span and another's never overlap
         if parallel:
             _leave(serial, _is(nextitem, "serial"))
+        _timeline(item, started, ended, serial)
+
+
+def _timeline(item, started: float, ended: float, serial: bool) -> None:
+    """One line per test for `--timeline`: appended in one write, so the workers' lines never interleave."""
+    path = item.config.getoption("--timeline")
+    if not path:
+        return
+    line = json.dumps({"test": item.nodeid, "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"),
+                       "start": round(started, 3), "end": round(ended, 3),
+                       "cpu_s": round(_cpu_s() - item.stash.get(_CPU_START, _cpu_s()), 2), "serial": serial,
+                       "slow": _is(item, "slow")})
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        os.write(fd, (line + "\n").encode())
+    finally:
+        os.close(fd)
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -188,6 +219,11 @@ _cpu_by_test: dict[str, float] = {}
 
 
 def pytest_terminal_summary(terminalreporter, config):
+    timeline = config.getoption("--timeline")
+    if timeline and not os.environ.get("PYTEST_XDIST_WORKER") and Path(timeline).exists():
+        terminalreporter.section("where the time went (--timeline)")
+        for line in summarise(timeline).splitlines():
+            terminalreporter.write_line(line)
     n = config.getoption("--cpu-report")
     if not n or not _cpu_by_test:
         return
@@ -210,3 +246,60 @@ def pytest_unconfigure(config):
         import shutil
 
         shutil.rmtree(Path(tempfile.gettempdir()) / f"millsense-pytest-{run}", ignore_errors=True)
+
+
+def summarise(path: str) -> str:
+    """What a `--timeline` file says about a run: the parallel and the serial phase's wall time, the CPU seconds
+    the tests used in each (so how many of the box's cores they kept busy), and the tests running alone at the
+    end of the parallel phase. `python -m tests.parallel FILE`."""
+    rows = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    if not rows:
+        return "no tests in the timeline"
+    t0 = min(r["start"] for r in rows)
+    serial = [r for r in rows if r["serial"]]
+    other = [r for r in rows if not r["serial"]]
+    out = [f"{len(rows)} tests, {max(r['end'] for r in rows) - t0:.0f} s from the first start to the last end, "
+           f"{sum(r['cpu_s'] for r in rows):.0f} CPU s, {len({r['worker'] for r in rows})} workers, "
+           f"{os.cpu_count()} cores here"]
+    slow = [r for r in other if r.get("slow")]
+    for name, part in (("parallel", other), ("  of which slow", slow), ("serial", serial)):
+        if part:
+            a, b = min(r["start"] for r in part) - t0, max(r["end"] for r in part) - t0
+            cpu = sum(r["cpu_s"] for r in part)
+            busy = sum(r["end"] - r["start"] for r in part)
+            out.append(f"{name}: {len(part)} tests from {a:.0f} s to {b:.0f} s ({b - a:.0f} s), {cpu:.0f} CPU s "
+                       f"({cpu / max(b - a, 1e-9):.2f} cores busy on average), {busy / max(b - a, 1e-9):.1f} tests "
+                       f"running on average")
+    overlapped = sorted({s["test"] for s in serial for r in other if r["start"] < s["end"] and r["end"] > s["start"]})
+    if serial:
+        out.append("every serial test ran alone" if not overlapped else
+                   f"SERIAL TESTS THAT DID NOT RUN ALONE ({len(overlapped)}): " + "; ".join(overlapped[:10]))
+    if slow:
+        out.append(f"the slow tests: {sum(r['end'] - r['start'] for r in slow):.0f} s of a worker's time, "
+                   f"{sum(r['cpu_s'] for r in slow):.0f} CPU s; the other parallel tests: "
+                   f"{sum(r['end'] - r['start'] for r in other if not r.get('slow')):.0f} s, "
+                   f"{sum(r['cpu_s'] for r in other if not r.get('slow')):.0f} CPU s")
+    if other:
+        end = max(r["end"] for r in other)
+        tail = sorted((r for r in other if r["end"] > end - 60 and r["end"] - r["start"] > 5), key=lambda r: r["start"])
+        if tail:
+            out.append("over 5 s in the parallel phase's last minute: " + "; ".join(
+                f"{r['test']} ({r['start'] - t0:.0f}-{r['end'] - t0:.0f} s)" for r in tail[:10]))
+    # the cores' use, 30 s at a time: CPU s of the tests running then (each test's CPU spread over its time)
+    span = max(r["end"] for r in rows) - t0
+    buckets = [0.0] * (int(span // 30) + 1)
+    for r in rows:
+        dur = max(r["end"] - r["start"], 1e-3)
+        for i in range(len(buckets)):
+            lo, hi = t0 + 30 * i, t0 + 30 * (i + 1)
+            overlap = min(hi, r["end"]) - max(lo, r["start"])
+            if overlap > 0:
+                buckets[i] += r["cpu_s"] * overlap / dur
+    out.append("cores busy, 30 s at a time: " + " ".join(f"{b / 30:.1f}" for b in buckets))
+    return "\n".join(out)
+
+
+if __name__ == "__main__":
+    import sys
+
+    print(summarise(sys.argv[1]))

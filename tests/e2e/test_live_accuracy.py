@@ -19,7 +19,9 @@ from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, writ
 from tests.e2e.truth import Timebase, match_estimates, steady_torque_misses
 
 SCENARIO = "step"
-RUN_S = 14.0
+# 8 s of stream after the first estimate (14 s before issue 37): about 80 revolutions, 42 of them in the step
+# scenario's steady first cut (37 with 7 s, measured at load 5), against the 20 the check below asks for.
+RUN_S = 8.0
 
 
 def _daq(transport: str, port: int) -> str:
