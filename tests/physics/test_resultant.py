@@ -170,7 +170,7 @@ def test_up_milling_is_down_milling_with_the_other_sign_of_r1():
 
 def test_a_law_without_a_finite_force_falls_back_to_the_average_law():
     assert resultant.local_exponents(-0.42, -0.27) == (-0.42, -0.27)
-    assert resultant.local_exponents(-1.0, 0.0) == (0.0, 0.0)       # h^0: the thinnest chip's force finite? no
+    assert resultant.local_exponents(-1.0, 0.0) == (0.0, 0.0)       # 1 + p = 0: no chip in the tooth force
     assert resultant.local_exponents(-0.6, -0.5) == (0.0, 0.0)      # 1 + p + q ≤ 0: ρ·w unbounded at h → 0
     assert resultant.local_exponents(math.nan, 0.1) == (0.0, 0.0)
     # S_m against its closed form and scipy's adaptive quadrature
