@@ -32,8 +32,10 @@ plant's and [D]'s helix), so it covers the immersions [θ_k − ψ, θ_k]; its p
 with S_m(φ) = ∫₀^φ sin^m t dt (closed for m = 1, 2; else a cubic Hermite table of it, built once) and
 a = 1 + p for A, 1 + p + q for B. The tangential mean is ψ·N·S_(1+p)(E)/2π (p = 0: [D] eq. 7's C).
 Straight flutes (ψ → 0): A/ψ → Σ_k w(θ_k)·e^{−iθ_k} over the teeth in cut. With q = 0 the
-triangle inequality gives η ≤ 1, = 1 while at most one tooth cuts and ψ = 0; η(ψ) ≤ η(0) held in
-every case tested: an unknown axial depth or helix taken as ψ = 0 gives the upper bound of the force.
+triangle inequality gives η ≤ 1, = 1 while at most one tooth cuts and ψ = 0 (with q ≠ 0 one tooth's
+η is a little above 1: ρ varies along the arc and √(1 + ρ²) is convex). η(ψ) ≤ η(0) holds in every
+case tested (tests/physics/test_resultant.py): an unknown axial depth or helix taken as ψ = 0 gives
+the upper bound of the force.
 
 η depends on N, the span θ₂ − θ₁, ψ, r₁ and the exponents (p, q) only. Up milling [0, s] is the
 mirror image of down milling [π − s, π] with r₁ of the other sign: φ → π − φ keeps sin φ and maps

@@ -182,3 +182,15 @@ def test_a_law_without_a_finite_force_falls_back_to_the_average_law():
         want = [quad(lambda t: math.sin(t) ** m, 0.0, x, epsabs=1e-13, epsrel=1e-12)[0] for x in phi]
         # the table's first interval holds t^m at 0 (16-point Gauss: ~5e-10 for m = 0.58), nothing η would see
         np.testing.assert_allclose(resultant.sin_power_integral(m, phi), want, rtol=1e-9, atol=1e-9)
+
+
+def test_an_unknown_helix_still_bounds_the_force_from_above_with_the_local_law():
+    """ψ = 0 (helix or axial depth unknown) takes the straight-flute η, the largest the cut can have: the
+    estimate errs high, never low (physics.md §5)."""
+    p, q = SS41_PQ
+    rng = np.random.default_rng(8)
+    span, lag, r1 = rng.uniform(0.05, math.pi, 400), rng.uniform(0.0, 6.0, 400), rng.uniform(-1.5, 1.5, 400)
+    for flutes in (2, 3, 4, 6):
+        helical = exact_overlap_factor(flutes, math.pi - span, math.pi, lag, nodes=16, r1=r1, size_exp=p, r1_exp=q)
+        straight = exact_overlap_factor(flutes, math.pi - span, math.pi, 0.0, nodes=16, r1=r1, size_exp=p, r1_exp=q)
+        assert np.all(helical <= straight * (1.0 + 1e-4))        # the 16-point quadrature of a jump at ψ = 0
