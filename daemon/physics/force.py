@@ -7,9 +7,10 @@ the instantaneous |(F_x, F_y)|. [P] fitted C_f = 1.03–1.11 (mean 1.075);
 ``cf_model`` gives it from r₁(t_a) of [D] eq. (9) instead. That factor is exact
 only while one tooth at a time is in cut (a 2-flute slot, straight flutes); with
 overlapping teeth the forces add as vectors and the true mean resultant is
-smaller by the overlap factor η of ``resultant.py`` (its eq. R2). ``engaged_cf``
-is the one function the estimator (``cf = "model"``, ``"auto"``) and the forward
-model (``expected.py``) take C_f from: η·√(1 + r₁(t_a)²).
+smaller by the overlap factor η of ``resultant.py`` (its eq. R2), which takes each
+tooth's force at its instantaneous chip (Kienzle's law with [D] eq. 9's exponents,
+R1a). ``engaged_cf`` is the one function the estimator (``cf = "model"``, ``"auto"``)
+and the forward model (``expected.py``) take C_f from: η·√(1 + r₁(t_a)²).
 """
 
 from __future__ import annotations
@@ -77,7 +78,9 @@ def engaged_cf(mode: str, flutes: int, tool_radius_mm: float, helix_deg: float |
       [D] Table 1; unknown (None/nan, or outside (0, 2R]): no η;
     - ψ = d_a·tan β/R from ``axial_depth_mm`` and the helix; either unknown: ψ = 0, the straight-flute
       value, the largest η the cut can have (resultant.py): an over-estimate, never an under-estimate;
-    - r₁(t_a) only inside the chip model's range (validity.feed_status); outside it no √(1 + r₁²).
+    - r₁(t_a) only inside the chip model's range (validity.feed_status); outside it no √(1 + r₁²);
+    - η of each tooth's force at its instantaneous chip (resultant.py R1a) with the material's exponents
+      (``local_exponents``), read at r₁(t_a), its sign turned for up milling (``mirror_r1``).
 
     ``fallback_cf`` None (``cf = "model"``): nan wherever a part is missing. A number (``cf = "auto"``,
     [P]'s 1.075): it stands for √(1 + r₁²) where the chip is unknown (η·fallback), and for the whole C_f
