@@ -14,10 +14,14 @@ at a time, then all of them with the three batches; then the deviating cases (th
 programmed axial depth, 0.5 × the radial one in every slot) against the worst batch. From the spread it
 proposes `[learning] physics_tolerance_pct`.
 
-Also the daemon's resultant force from the true torque (`physics.force`, [P] eq. 18 with C_f from r₁(t_a))
-against the true mean resultant force, the issue's "within 2 %".
+Also the daemon's resultant force from the true torque (`physics.force.engaged_cf`: [P] eq. 18 with the
+engaged teeth's C_f, resultant.py R2, at the programmed cut and the revolution's feed per tooth) against the
+true mean resultant force, the issue's "within 2 %", and the forward model's C_f (expected_load's force over
+its torque/R, the tools' helix given as `[tools.N] helix_deg` gives it) against the plant's.
 
-Run: .venv/bin/python bench/first_part.py [--quick]   (--quick: the effects all on, batch 0 only)
+Run: .venv/bin/python bench/first_part.py [--quick | --force]
+  --quick: the effects all on, batch 0 only; --force: the force part alone (every program, batch 0, per
+  case; and without the plant's edge forces, which the daemon cannot know)
 """
 
 from __future__ import annotations
@@ -29,8 +33,8 @@ from dataclasses import replace
 import numpy as np
 
 from millsense.daemon.physics.expected import ProgrammedCut, expected_load
-from millsense.daemon.physics.force import cf_model, resultant_force_n
-from millsense.daemon.physics.milling import Material, average_chip_thickness_mm, engagement_angles_rad
+from millsense.daemon.physics.force import P_MEAN_CF, engaged_cf, resultant_force_n
+from millsense.daemon.physics.milling import Material
 from millsense.sim.cut_effects import NONE, CutEffects
 from millsense.sim.first_part import FIRST_PART_PROGRAMS, programmed_cut
 from millsense.sim.program import ProgramFaults
@@ -73,14 +77,18 @@ def run(program, faults: ProgramFaults | None = None) -> list[dict]:
             if not proc["first_index"] <= r["index_end"] <= proc["last_index"]:
                 continue
             exp = expected_load(cut, tool_radius_mm=op.tool.radius_mm, flutes=op.tool.flutes, material=material,
-                                spindle_rpm=r["spindle_rpm"], override_pct=r["feed_override_pct"])
-            # the daemon's force from the true torque: [P] eq. 18, C_f from r1 at the true t_a ([D] eqs. 8-9)
-            entry, exit_ = engagement_angles_rad(table["ae_mm"] / op.tool.radius_mm, table["mode"])
-            t_a = float(average_chip_thickness_mm(r["feed_per_tooth_mm"], entry, exit_))
-            force_est = float(resultant_force_n(r["torque_nm"], op.tool.radius_mm,
-                                                cf_model(t_a, material.r1, material.r1_exp)))
+                                spindle_rpm=r["spindle_rpm"], override_pct=r["feed_override_pct"],
+                                helix_deg=op.tool.helix_deg)
+            # the daemon's force from the true torque: [P] eq. 18 with the engaged teeth's C_f (resultant.py R2)
+            # at the programmed depths and the revolution's feed per tooth, as the estimator takes it
+            cf = engaged_cf(table["mode"], op.tool.flutes, op.tool.radius_mm, op.tool.helix_deg,
+                            float(r["feed_per_tooth_mm"]), table["ae_mm"], table["ap_mm"], material, P_MEAN_CF)
+            force_est = float(resultant_force_n(r["torque_nm"], op.tool.radius_mm, cf))
+            radius_m = op.tool.radius_mm * 1e-3
             out.append({"key": proc["key"], "op": op, "table": table, "torque": r["torque_nm"] / exp.torque_nm,
-                        "force": r["force_n"] / exp.force_n, "force_est": force_est / r["force_n"]})
+                        "force": r["force_n"] / exp.force_n, "force_est": force_est / r["force_n"],
+                        "cf_expected": (exp.force_n * radius_m / exp.torque_nm)
+                        / (r["force_n"] * radius_m / r["torque_nm"])})
     return out
 
 
@@ -117,7 +125,37 @@ def per_case(rows: list[dict]) -> None:
               f"{np.mean([r['force_est'] for r in sel]):8.4f}")
 
 
+def force_part() -> int:
+    """The force estimate alone: per case and overall, the plant with every effect, then without edge forces."""
+    no_edge = replace(ALL_ON, edge_tangential_n_mm=0.0, edge_radial_n_mm=0.0)
+    t0 = time.perf_counter()
+    print("the daemon's force from the true torque / true mean resultant, per steady revolution in cut "
+          "(engaged_cf at the programmed cut; batch 0)")
+    for label, effects in (("every effect on", ALL_ON), ("every effect but the edge forces", no_edge)):
+        rows = variant(effects, 0.0, CORRECT + OTHERS)
+        print(f"\n{label}: {fmt(stats([r['force_est'] for r in rows]))}")
+        print(f"  forward model's C_f / the plant's: {fmt(stats([r['cf_expected'] for r in rows]))}")
+        for flutes in (2, 3, 4):
+            sel = [r for r in rows if r["op"].tool.flutes == flutes]
+            slots = [r for r in sel if r["table"]["mode"] == "slot"]
+            print(f"  {flutes} flutes: {fmt(stats([r['force_est'] for r in sel]))};  slots: "
+                  f"{fmt(stats([r['force_est'] for r in slots]))}")
+        print(f"  {'key':<11} {'mode':<5} {'fl':>2} {'ae':>5} {'ap':>5} {'fz':>6} {'revs':>4} {'F_est/F':>8} "
+              f"{'max dev':>8} {'Cf_exp/Cf':>9}")
+        for key in dict.fromkeys(r["key"] for r in rows):
+            sel = [r for r in rows if r["key"] == key]
+            op, t = sel[0]["op"], sel[0]["table"]
+            dev = max(abs(r["force_est"] - 1.0) for r in sel)
+            print(f"  {key:<11} {t['mode']:<5} {op.tool.flutes:2d} {t['ae_mm']:5.1f} {t['ap_mm']:5.1f} "
+                  f"{op.feed_per_tooth_mm:6.3f} {len(sel):4d} {np.mean([r['force_est'] for r in sel]):8.4f} "
+                  f"{100 * dev:7.2f}% {np.mean([r['cf_expected'] for r in sel]):9.4f}")
+    print(f"\n{time.perf_counter() - t0:.0f} s")
+    return 0
+
+
 def main(argv: list[str]) -> int:
+    if "--force" in argv:
+        return force_part()
     quick = "--quick" in argv
     t0 = time.perf_counter()
     print("true / expected per steady revolution in cut; expected = physics.expected.expected_load (handbook "
@@ -150,7 +188,7 @@ def main(argv: list[str]) -> int:
         print(f"  varying (pocket, ramp; against the maximum depths): torque max ratio "
               f"{max(r['torque'] for r in varying):.4f}, min {min(r['torque'] for r in varying):.4f}")
     est = [r["force_est"] for r in by_batch[0.0]]
-    print(f"\nforce estimate from the true torque ([P] eq. 18, C_f(r1(t_a))) / true mean resultant: {fmt(stats(est))}")
+    print(f"\nforce estimate from the true torque ([P] eq. 18, engaged_cf) / true mean resultant: {fmt(stats(est))}")
     slot10 = [r["force_est"] for r in by_batch[0.0] if r["key"] == "4101/1/10"]
     print(f"  4101/1/10 (1200 rpm, 3 mm slot, phi20 2-flute): {100 * (np.mean(slot10) - 1):+.2f} %")
     print("\nthe deviating cases (every slot of first-part-slot), against the batch that hides them most")

@@ -8,6 +8,11 @@ Error = force_n / truth force_n − 1, in %: bias, p95 of |e|, max |e|, for `cf 
 estimate's force_n/force_tangential_n against the plant's |F|/F_T: the force model without the
 torque's own error (2 % + 0.03 N·m, docs/accuracy.md), which dominates where the torque is small.
 
+The scenarios' own plant is [D]'s average model (K_s, r₁ at each tooth's average chip, constant along its
+pass); the rows marked "full plant" cut the same with the first-part programs' plant (sim/cut_effects.py:
+Kienzle's law at each instantaneous chip, edge forces, runout, deflection), whose law C_f now models
+(resultant.py R1a). Last, what the model leaves out, by brute-force slices: the edge forces.
+
     .venv/bin/python bench/force_accuracy.py
 """
 
@@ -28,11 +33,19 @@ from tests.estimator import configs, simcase  # noqa: E402  (scenario -> config,
 
 
 def _cases():
+    from millsense.sim.cut_effects import CutEffects
     from millsense.sim.machine import TOOL_D, TOOL_F
     from millsense.sim.scenarios import SCENARIOS
 
     s = SCENARIOS
+    full = CutEffects()
     return [
+        ("full plant: 2 fl slot 1200", replace(s["step-1200"], name="f-2fl", effects=full), {}),
+        ("full plant: 4 fl slot 1200", replace(s["step-1200"], name="f-4fl", tool=TOOL_D, effects=full), {}),
+        ("full plant: 3 fl slot 1200", replace(s["step-1200"], name="f-3fl", tool=TOOL_F, effects=full), {}),
+        ("full plant: up ae 12, 4 fl", replace(s["fig6"], name="f-up", mode="up", effects=full,
+                                               radial_profile=((0.0, 12.0), (150.0, 12.0)), extra_channels=()),
+         {"method": "torque-only", "radial_depth_mm": 12.0}),
         ("step, 2 fl slot 600 rpm", s["step"], {}),
         ("step-1200, 2 fl slot", s["step-1200"], {}),
         ("step-1800, 2 fl slot", s["step-1800"], {}),
@@ -108,17 +121,19 @@ def _local_law_cf(flutes: int, local: bool, fz_mm: float = 0.1, p: float = -0.42
                   points: int = 20000) -> float:
     """C_f of a straight-fluted slot by brute force: K_s and r₁ at the average chip t_a ([D] eqs. 8–9, what η
     assumes) or at each instantaneous chip h = f_z·sin φ (Kienzle's law applied locally, as the issue-41 plant's
-    size effect does); SS41's exponents by default."""
+    size effect does, its radial law scaled so that the slot's mean radial over mean tangential force is
+    [D] eq. 9's r₁(t_a), as the plant's is fitted); SS41's exponents by default."""
     theta = (np.arange(points) + 0.5) * (2.0 * np.pi / points)
-    force, tangential = np.zeros(points, complex), np.zeros(points)
     t_a = 2.0 * fz_mm / np.pi
+    parts = []
     for k in range(flutes):
         phi = np.mod(theta + 2.0 * np.pi * k / flutes, 2.0 * np.pi)
         h = np.where(phi <= np.pi, fz_mm * np.sin(phi), 0.0)
         chip = np.maximum(h, 1e-6) if local else t_a
-        d_t = chip**p * h
-        force += d_t * (1.0 + 1j * r1 * chip**q) * np.exp(-1j * phi)
-        tangential += d_t
+        parts.append((phi, chip**p * h, r1 * chip**q))
+    scale = t_a**q * r1 * sum(d.sum() for _, d, _ in parts) / sum((d * r).sum() for _, d, r in parts)
+    force = sum(d * (1.0 + 1j * scale * r) * np.exp(-1j * phi) for phi, d, r in parts)
+    tangential = sum(d for _, d, _ in parts)
     return float(np.abs(force).mean() / tangential.mean())
 
 
@@ -151,12 +166,48 @@ def main() -> int:
             print(f"  {f'{tool} {rpm} rpm':<24} {_row(pp.get(('auto', rpm), np.array([])))}   "
                   f"{_row(pp.get(('1.075', rpm), np.array([])))}")
     print(f"worst |e| of C_f with cf = auto where the engagement is known: {worst:.2f} %")
-    print("what η leaves out: C_f of a straight slot, f_z 0.1 mm, SS41's laws applied at each instantaneous chip "
-          "against at the average chip (the size effect the issue-41 plant models):")
-    for flutes in (2, 3, 4):
-        at_mean, at_h = _local_law_cf(flutes, False), _local_law_cf(flutes, True)
-        print(f"  {flutes} flutes: average-chip {at_mean:.4f}, instantaneous {at_h:.4f}: η's C_f {100 * (at_mean / at_h - 1):+.1f} %")
+    print("C_f of a straight slot by brute-force slices, SS41: the law at each tooth's average chip ([D]'s, what "
+          "η took before), at each instantaneous chip (Kienzle: what η takes now, resultant.py R1a), and the "
+          "first-part plant's chip law plus its edge forces (K_te 20, K_re 30 N/mm), against η·√(1 + r₁²) now")
+    from millsense.daemon.physics.force import engaged_cf
+    from millsense.daemon.physics.milling import Material
+    from millsense.sim.machine import MATERIALS
+
+    m = MATERIALS["SS41"]
+    material = Material(m.ks, m.ks_exp, m.r1, m.r1_exp, m.r2, m.r2_exp)
+    for fz in (0.05, 0.1):
+        for flutes in (2, 3, 4):
+            at_mean, at_h = _local_law_cf(flutes, False, fz_mm=fz), _local_law_cf(flutes, True, fz_mm=fz)
+            edges = _edge_plant_cf(flutes, fz)
+            model = float(engaged_cf("slot", flutes, 8.0, None, fz, 16.0, None, material, None))
+            print(f"  f_z {fz:.2f}, {flutes} flutes: average chip {at_mean:.4f}, instantaneous {at_h:.4f}, "
+                  f"+ edges {edges:.4f}; model {model:.4f}: {100 * (model / at_h - 1):+.2f} % of the local law, "
+                  f"{100 * (model / edges - 1):+.2f} % with the edges (before: {100 * (at_mean / edges - 1):+.2f} %)")
     return 0 if math.isfinite(worst) else 1
+
+
+def _edge_plant_cf(flutes: int, fz_mm: float, points: int = 20000) -> float:
+    """C_f of a straight slot with the first-part plant's chip law (fitted with its edge forces,
+    sim/cut_effects.calibration) and its edge forces: what the daemon cannot know."""
+    from millsense.sim.cut_effects import CutEffects, calibration
+    from millsense.sim.machine import MATERIALS
+
+    mat, eff = MATERIALS["SS41"], CutEffects()
+    law = calibration(mat, eff)
+    theta = (np.arange(points) + 0.5) * (2.0 * np.pi / points)
+    force, tangential = np.zeros(points, complex), np.zeros(points)
+    for k in range(flutes):
+        phi = np.mod(theta + 2.0 * np.pi * k / flutes, 2.0 * np.pi)
+        h = np.where(phi <= np.pi, fz_mm * np.sin(phi), 0.0)
+        h_c = np.maximum(h, eff.min_chip_mm)
+        d_t = law.c_t * mat.ks * h_c**law.q_t * h
+        d_r = law.c_r * mat.r1 * h_c**law.q_r * d_t
+        cutting = h > 0
+        d_t = d_t + np.where(cutting, eff.edge_tangential_n_mm, 0.0)
+        d_r = d_r + np.where(cutting, eff.edge_radial_n_mm, 0.0)
+        force += (d_t + 1j * d_r) * np.exp(-1j * phi)
+        tangential += d_t
+    return float(np.abs(force).mean() / tangential.mean())
 
 
 if __name__ == "__main__":

@@ -6,8 +6,12 @@ replay a block's revolutions as arrays (`_force_many`). Timed here, in the same 
 - `constant`: eq. (18) with a number C_f (`cf = 1.075`), unchanged by issue 41;
 - `r1 only`: the C_f of `cf = "model"` before issue 41, √(1 + r₁(t_a)²) (engagement, chip, eq. 9; the
   formulas as they were, restated here as the baseline);
-- `engaged`: `force.engaged_cf`, η·√(1 + r₁(t_a)²) with η read from the table by bilinear interpolation;
-- the table's one-off build per flute count (functools.cache: once a process).
+- `η, [D]'s law`: η·√(1 + r₁(t_a)²) with η of the teeth's forces ∝ sin φ (the path before the size
+  effect, restated here: η from the p = q = 0 table, bilinear in span and lag);
+- `engaged`: `force.engaged_cf` now, η of Kienzle's law at each chip (resultant.py R1a-R2), trilinear in
+  span, lag and ±r₁ from the table of the material's exponents;
+- the tables' one-off build per flute count and material exponents (functools.cache: once a process;
+  the estimator builds those of `[material]` at start, per_revolution.RevolutionPhysics).
 
     .venv/bin/python bench/force_cost.py [--repeat 20000]
 """
@@ -48,12 +52,17 @@ def main() -> int:
     radius, flutes, helix = 8.0, 4, 30.0
     torque, t_c, radial, axial, noise = 12.0, 0.1, 6.0, 10.0, 0.6
 
-    builds = {}
+    p, q = resultant.local_exponents(m.ks_exp, m.r1_exp)
+    builds, builds_flat = {}, {}
+    resultant.overlap_table(2, p, q)    # the S_m tables (once a process, a few ms) out of the first figure
     for n in (2, 3, 4, 6):
         resultant.overlap_table.cache_clear()
         t0 = time.perf_counter()
-        resultant.overlap_table(n)
+        resultant.overlap_table(n, p, q)
         builds[n] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        resultant.overlap_table(n)
+        builds_flat[n] = time.perf_counter() - t0
 
     def constant():
         return resultant_force_magnitudes_n(torque, radius, 1.075, noise)
@@ -62,6 +71,12 @@ def main() -> int:
         entry, exit_ = engagement_xp(SCALAR, radial / radius, "down")
         cf = cf_model(chip_xp(SCALAR, t_c, entry, exit_), m.r1, m.r1_exp)
         return resultant_force_magnitudes_n(torque, radius, cf, noise)
+
+    def eta_average_law():
+        entry, exit_ = engagement_xp(SCALAR, radial / radius, "down")
+        cf = cf_model(chip_xp(SCALAR, t_c, entry, exit_), m.r1, m.r1_exp)
+        eta = resultant.overlap_factor(flutes, exit_ - entry, resultant.helix_lag_rad(axial, helix, radius))
+        return resultant_force_magnitudes_n(torque, radius, eta * cf, noise)
 
     def engaged():
         cf = engaged_cf("down", flutes, radius, helix, t_c, radial, axial, m, None)
@@ -84,17 +99,21 @@ def main() -> int:
     print("force per revolution, one revolution on floats (the live path); µs, best of 5")
     base = _per_call_us(constant, args.repeat)
     before = _per_call_us(r1_only, args.repeat)
+    flat = _per_call_us(eta_average_law, args.repeat)
     after = _per_call_us(engaged, args.repeat)
     print(f"  constant C_f (eq. 18)            {base:7.2f}")
     print(f"  √(1 + r₁²) (cf = model before)    {before:7.2f}")
-    print(f"  η·√(1 + r₁²) (model, auto now)    {after:7.2f}   +{after - before:.2f} µs over before")
+    print(f"  η·√(1 + r₁²), [D]'s law           {flat:7.2f}")
+    print(f"  η·√(1 + r₁²), Kienzle at h (now)  {after:7.2f}   +{after - flat:.2f} µs over [D]'s law's η")
     print(f"{rows} revolutions as arrays (replay); µs per block, best of 5")
     many_before = _per_call_us(r1_only_many, max(args.repeat // 100, 20))
     many_after = _per_call_us(engaged_many, max(args.repeat // 100, 20))
     print(f"  √(1 + r₁²) before                 {many_before:7.1f}")
     print(f"  η·√(1 + r₁²) now                  {many_after:7.1f}")
-    print("η table, built once a process per flute count: " + ", ".join(f"{n} flutes {s * 1e3:.0f} ms"
-                                                                       for n, s in builds.items()))
+    print(f"η table of SB40's exponents (p {p:g}, q {q:g}), built once a process per flute count: "
+          + ", ".join(f"{n} flutes {s * 1e3:.0f} ms" for n, s in builds.items()))
+    print("η table of [D]'s law (p = q = 0): " + ", ".join(f"{n} flutes {s * 1e3:.0f} ms"
+                                                          for n, s in builds_flat.items()))
     return 0
 
 

@@ -70,7 +70,8 @@ def expected_load(
     Torque: ``T = F_at·R`` ([P] eq. 16) with F_at the average tangential force of [D] eq. (7) at the
     chip thickness of eq. (8) and the coefficients of eq. (9). Force: ``C_f·F_at`` ([P] eq. 18) with
     the estimator's C_f of the engaged teeth, ``η·√(1 + r₁(t_a)²)`` (``force.engaged_cf``: [P] eq. 17,
-    [D] eq. 9, the teeth's forces added as vectors, resultant.py eq. R2) at the programmed depths;
+    [D] eq. 9, the teeth's forces added as vectors, each at its instantaneous chip with the material's
+    exponents: resultant.py eqs. R1a–R2) at the programmed depths;
     ``helix_deg`` None (unknown) takes straight flutes, the largest force the cut can have. A feed per
     tooth outside the chip model's range (validity.py) takes [P]'s mean 1.075 for √(1 + r₁²).
     None where nothing can be expected (unknown override, spindle stopped, no feed, a radial depth the

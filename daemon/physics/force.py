@@ -7,9 +7,10 @@ the instantaneous |(F_x, F_y)|. [P] fitted C_f = 1.03–1.11 (mean 1.075);
 ``cf_model`` gives it from r₁(t_a) of [D] eq. (9) instead. That factor is exact
 only while one tooth at a time is in cut (a 2-flute slot, straight flutes); with
 overlapping teeth the forces add as vectors and the true mean resultant is
-smaller by the overlap factor η of ``resultant.py`` (its eq. R2). ``engaged_cf``
-is the one function the estimator (``cf = "model"``, ``"auto"``) and the forward
-model (``expected.py``) take C_f from: η·√(1 + r₁(t_a)²).
+smaller by the overlap factor η of ``resultant.py`` (its eq. R2), which takes each
+tooth's force at its instantaneous chip (Kienzle's law with [D] eq. 9's exponents,
+R1a). ``engaged_cf`` is the one function the estimator (``cf = "model"``, ``"auto"``)
+and the forward model (``expected.py``) take C_f from: η·√(1 + r₁(t_a)²).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 from millsense.daemon.physics import validity
 from millsense.daemon.physics.milling import NP, SCALAR, Material, chip_xp, engagement_xp
 from millsense.daemon.physics.numbers import sqrt, values
-from millsense.daemon.physics.resultant import helix_lag_rad, overlap_factor
+from millsense.daemon.physics.resultant import helix_lag_rad, local_exponents, mirror_r1, overlap_factor, overlap_table
 
 # [P] §4.2: the mean C_f of its trial cuts (a φ20 2-flute slot, where η ≈ 1: it stands for √(1 + r₁²)).
 P_MEAN_CF = 1.075
@@ -77,7 +78,9 @@ def engaged_cf(mode: str, flutes: int, tool_radius_mm: float, helix_deg: float |
       [D] Table 1; unknown (None/nan, or outside (0, 2R]): no η;
     - ψ = d_a·tan β/R from ``axial_depth_mm`` and the helix; either unknown: ψ = 0, the straight-flute
       value, the largest η the cut can have (resultant.py): an over-estimate, never an under-estimate;
-    - r₁(t_a) only inside the chip model's range (validity.feed_status); outside it no √(1 + r₁²).
+    - r₁(t_a) only inside the chip model's range (validity.feed_status); outside it no √(1 + r₁²);
+    - η of each tooth's force at its instantaneous chip (resultant.py R1a) with the material's exponents
+      (``local_exponents``), read at r₁(t_a), its sign turned for up milling (``mirror_r1``).
 
     ``fallback_cf`` None (``cf = "model"``): nan wherever a part is missing. A number (``cf = "auto"``,
     [P]'s 1.075): it stands for √(1 + r₁²) where the chip is unknown (η·fallback), and for the whole C_f
@@ -92,18 +95,34 @@ def engaged_cf(mode: str, flutes: int, tool_radius_mm: float, helix_deg: float |
     radial = np.full(n, 2.0 * tool_radius_mm) if mode == "slot" else _column(radial_depth_mm, n)
     ratio = radial / tool_radius_mm
     known = np.isfinite(ratio) & (ratio > 0.0) & (ratio <= 2.0)
+    p, q = local_exponents(material.ks_exp, material.r1_exp)
     with np.errstate(invalid="ignore", divide="ignore"):
         entry, exit_ = engagement_xp(NP, np.where(known, ratio, 1.0), mode)
-        eta = np.where(known, overlap_factor(flutes, exit_ - entry, helix_lag_rad(_column(axial_depth_mm, n),
-                                                                                   helix_deg, tool_radius_mm)), np.nan)
         low, high = validity.feed_masks(t_c, tool_radius_mm)
         chip_ok = known & np.isfinite(t_c) & (t_c > 0) & ~low & ~high
         t_a = chip_xp(NP, np.where(chip_ok, t_c, 1.0), entry, exit_)                               # [D] eq. 8
         chip_ok &= np.isfinite(t_a) & (t_a > 0)
-        single = np.where(chip_ok, cf_model(np.where(chip_ok, t_a, 1.0), material.r1, material.r1_exp), np.nan)
+        r1 = np.where(chip_ok, material.r1 * np.where(chip_ok, t_a, 1.0) ** material.r1_exp, np.nan)  # [D] eq. 9
+        single = sqrt(1.0 + r1**2)                                                                 # [P] eq. 17
+        r1_eta = np.where(chip_ok, r1, _fallback_r1(fallback_cf))
+        lag = helix_lag_rad(_column(axial_depth_mm, n), helix_deg, tool_radius_mm)
+        eta = np.where(known, overlap_factor(flutes, exit_ - entry, lag, mirror_r1(mode, r1_eta), p, q), np.nan)
     if fallback_cf is None:
         return eta * single
     return np.where(known, eta * np.where(chip_ok, single, fallback_cf), fallback_cf)
+
+
+def prepare_engaged_cf(flutes: int, material: Material) -> None:
+    """Build η's table of `engaged_cf` for this flute count and material now (0.3–0.75 s once a process,
+    resultant.overlap_table), so that no revolution pays it."""
+    overlap_table(int(flutes), *local_exponents(material.ks_exp, material.r1_exp))
+
+
+def _fallback_r1(fallback_cf: float | None) -> float:
+    """The r₁ a fallback C_f stands for (C_f = √(1 + r₁²)); 0 where it is none or at most 1."""
+    if fallback_cf is None or not fallback_cf > 1.0:
+        return 0.0
+    return math.sqrt(fallback_cf * fallback_cf - 1.0)
 
 
 def _column(x, shape) -> np.ndarray:
@@ -119,12 +138,14 @@ def _engaged_cf_one(mode, flutes, tool_radius_mm, helix_deg, t_c, radial_mm, axi
         return math.nan if fallback_cf is None else fallback_cf
     entry, exit_ = engagement_xp(SCALAR, ratio, mode)
     lag = helix_lag_rad(None if axial_mm is None else float(axial_mm), helix_deg, tool_radius_mm)
-    eta = overlap_factor(flutes, exit_ - entry, lag)                                                # eq. R2
-    single = math.nan
+    p, q = local_exponents(material.ks_exp, material.r1_exp)
+    r1 = math.nan
     if math.isfinite(t_c) and t_c > 0 and validity.feed_status(t_c, tool_radius_mm) is None:
         t_a = chip_xp(SCALAR, t_c, entry, exit_)                                                    # [D] eq. 8
         if math.isfinite(t_a) and t_a > 0:
-            single = cf_model(t_a, material.r1, material.r1_exp)                                    # [D] eq. 9
-    if math.isnan(single):
-        return math.nan if fallback_cf is None else eta * fallback_cf
-    return eta * single
+            r1 = material.r1 * t_a**material.r1_exp                                                 # [D] eq. 9
+    if math.isnan(r1):
+        if fallback_cf is None:
+            return math.nan
+        return overlap_factor(flutes, exit_ - entry, lag, mirror_r1(mode, _fallback_r1(fallback_cf)), p, q) * fallback_cf
+    return overlap_factor(flutes, exit_ - entry, lag, mirror_r1(mode, r1), p, q) * math.sqrt(1.0 + r1 * r1)  # R2, 17

@@ -30,13 +30,22 @@ FEED_FORCE = "ix_feed = { newton_per_amp = 950.0, friction_n = 120.0 }"
 
 
 def capture(tmp: Path, scenario: str, *, seed: int = 1, filter_cutoff_hz: float | None = None,
-            noise_scale: float = 1.0, extra_channels: bool | None = None) -> tuple[Path, Path]:
+            noise_scale: float = 1.0, extra_channels: bool | None = None, effects=None) -> tuple[Path, Path]:
     """A capture and its truth file for the scenario, as links in `tmp` to the one made for the whole
-    test run (tests/captures.py): read-only, a test that damages a capture writes its own copy."""
+    test run (tests/captures.py): read-only, a test that damages a capture writes its own copy.
+    `effects`: a `sim.cut_effects.CutEffects` the plant cuts with instead of [D]'s average model."""
     from millsense.sim import write_capture
     from tests import captures
 
     tag = f"{scenario}-s{seed}-f{filter_cutoff_hz}-n{noise_scale}-x{extra_channels}"
+    if effects is not None:
+        import hashlib
+        from dataclasses import replace
+
+        from millsense.sim.scenarios import SCENARIOS
+
+        tag += "-e" + hashlib.sha1(repr(effects).encode()).hexdigest()[:12]
+        scenario = replace(SCENARIOS[scenario], effects=effects)
 
     def build(d: Path) -> None:
         kwargs = {"seed": seed, "noise_scale": noise_scale, "extra_channels": extra_channels}

@@ -5,7 +5,10 @@ immersion, the engaged teeth's forces point different ways and their vector sum 
 the plant (sim/cutting.py) adds every edge element's (F_x, F_y) and writes the revolution mean
 of |(F_x, F_y)| to its truth. The daemon's C_f (``cf = "model"``, and the default ``"auto"``)
 is η·√(1 + r₁(t_a)²) with η of physics/resultant.py, from the mode, the radial depth, the
-helix and the axial depth (estimated, else configured).
+helix and the axial depth (estimated, else configured), each tooth's force at its instantaneous
+chip (Kienzle's law, R1a). The slot and up-milling plants here take that law and nothing else
+(``LOCAL_LAW``); [D]'s Fig. 5 keeps [D]'s own plant (K_s, r₁ at the average chip), where the two
+laws differ by well under the torque's budget (down milling, 1-8 mm of 16).
 
 Bounds, from the physics, never from a measured error:
 
@@ -30,8 +33,14 @@ from dataclasses import replace
 
 import pytest
 
+from millsense.sim.cut_effects import NONE
+
 from . import configs, simcase
 
+# the plant with Kienzle's law at each instantaneous chip and nothing else (no edge forces, runout or
+# deflection; the clamp h_min below every chip cut): the law η models (resultant.py R1a). The full plant of
+# the first-part programs: tests/estimator/test_force_first_part.py.
+LOCAL_LAW = replace(NONE, size_effect=True, min_chip_mm=1e-6)
 TORQUE_REL = 0.02     # docs/accuracy.md: steady torque within 2 % + 0.03 N·m
 TORQUE_ABS_NM = 0.03
 ETA_TABLE_REL = 0.001  # physics/resultant.py's table against a fine quadrature (test_resultant.py)
@@ -43,7 +52,7 @@ def _slot_with(tool_name: str):
 
     tool = {"D": TOOL_D, "F": TOOL_F}[tool_name]
     base = SCENARIOS["step-1200"]
-    return replace(base, name=f"step-1200-{tool_name}", tool=tool)
+    return replace(base, name=f"step-1200-{tool_name}-local", tool=tool, effects=LOCAL_LAW)
 
 
 @pytest.fixture(scope="module")
@@ -119,8 +128,8 @@ def test_up_milling_with_the_radial_depth_configured(tmp):
     `[cut]` and the axial depth estimated from the torque: each steady revolution within the budget."""
     from millsense.sim.scenarios import SCENARIOS
 
-    scenario = replace(SCENARIOS["fig6"], name="fig6-up-12", mode="up", radial_profile=((0.0, 12.0), (150.0, 12.0)),
-                       extra_channels=())
+    scenario = replace(SCENARIOS["fig6"], name="fig6-up-12-local", mode="up", radial_profile=((0.0, 12.0), (150.0, 12.0)),
+                       extra_channels=(), effects=LOCAL_LAW)
     cap, truth_path = _capture(tmp, scenario, seed=11)
     m = scenario.material
     settings = configs.load(tmp, name="fig6-up-12.toml", tool=(16.0, 4, 30.0),

@@ -91,3 +91,106 @@ def test_the_helix_lag_and_what_is_unknown():
     np.testing.assert_allclose(helix_lag_rad(np.array([2.0, np.nan]), 45.0, 4.0), [0.5, 0.0])
     assert math.isnan(overlap_factor(4, 0.0, 0.1))
     assert math.isnan(overlap_factor(4, 1.0, -0.1))
+
+
+# Kienzle's law at the instantaneous chip (R1a): SS41's exponents (the first-part programs' material) and
+# [D] Table 2's SB40
+SS41_PQ = (-0.42, -0.27)
+SB40_PQ = (-0.4362, -0.2667)
+
+
+def _mean_ratio(entry, exit_, p, q, fz=0.1, r1=0.3, points=400000):
+    """The cut's mean radial over mean tangential force of the brute-force slices' law, by a midpoint sum."""
+    phi = entry + (np.arange(points) + 0.5) * (exit_ - entry) / points
+    h = fz * np.sin(phi)
+    return float(r1 * (h ** (1 + p + q)).sum() / (h ** (1 + p)).sum())
+
+
+@pytest.mark.parametrize("flutes, entry, exit_, helix_deg, axial_mm", [
+    (4, 0.0, math.pi, 30.0, 6.0),                       # 4-flute slot
+    (3, 0.0, math.pi, 35.0, 10.0),                      # 3-flute slot, long helix
+    (3, 0.0, math.pi, 0.0, 10.0),                       # 3-flute slot, straight flutes
+    (4, math.acos(0.5), math.pi, 30.0, 16.0),           # down, R_r = 1.5
+    (4, 0.0, math.acos(0.25), 45.0, 8.0),               # up, R_r = 0.75: the mirror image takes −r₁
+    (3, 0.0, math.acos(0.625), 35.0, 6.0),              # up, R_r = 0.375
+])
+def test_the_local_law_matches_brute_force_slices(flutes, entry, exit_, helix_deg, axial_mm):
+    """C_f of slices with dF_t ∝ h^(1+p), dF_r ∝ h^q·dF_t against η(R2)·√(1 + r₁²), r₁ the slices' mean ratio."""
+    p, q = SS41_PQ
+    f_t, f_x, f_y = instantaneous_forces(
+        entry_rad=entry, exit_rad=exit_, feed_per_tooth_mm=0.1, axial_depth_mm=axial_mm, tool_radius_mm=8.0,
+        flutes=flutes, helix_deg=helix_deg, ks_n_mm2=1000.0, r1=0.3, angles=3600, slices=300, size_exp=p, r1_exp=q)
+    brute_cf = float(np.mean(np.hypot(f_x, f_y)) / np.mean(f_t))
+    r1 = _mean_ratio(entry, exit_, p, q)
+    lag = axial_mm * math.tan(math.radians(helix_deg)) / 8.0
+    got = float(exact_overlap_factor(flutes, entry, exit_, lag, nodes=FINE, r1=r1, size_exp=p, r1_exp=q))
+    assert got * math.sqrt(1 + r1 * r1) == pytest.approx(brute_cf, rel=5e-4)
+    # the table, built for down milling, reads up milling as its mirror image with −r₁
+    mode = "up" if entry == 0.0 and exit_ < math.pi else "down"
+    table = overlap_factor(flutes, exit_ - entry, lag, resultant.mirror_r1(mode, r1), p, q)
+    assert table == pytest.approx(got, rel=ETA_TABLE_REL)
+    # and [D]'s average law (p = q = 0) is off by far more than that in the slots: the test tells them apart
+    if flutes > 2 and exit_ - entry == math.pi:
+        old = float(exact_overlap_factor(flutes, entry, exit_, lag, nodes=FINE, r1=r1))
+        assert abs(old / got - 1.0) > 0.01
+
+
+@pytest.mark.parametrize("exponents", [SS41_PQ, SB40_PQ])
+@pytest.mark.parametrize("flutes", [2, 3, 4, 6])
+def test_the_table_holds_the_local_law_quadrature(flutes, exponents):
+    p, q = exponents
+    rng = np.random.default_rng(10 + flutes)
+    span = np.concatenate([rng.uniform(0.02, math.pi, 150), [math.pi] * 20])
+    lag = np.concatenate([rng.uniform(0.0, resultant.LAG_MAX_RAD, 150), rng.uniform(0, 3, 10), [0.0] * 10])
+    r1 = rng.uniform(-resultant.R1_MAX, resultant.R1_MAX, span.size)
+    want = exact_overlap_factor(flutes, math.pi - span, math.pi, lag, nodes=FINE, r1=r1, size_exp=p, r1_exp=q)
+    got = overlap_factor(flutes, span, lag, r1, p, q)
+    assert np.max(np.abs(got / want - 1.0)) <= ETA_TABLE_REL
+    one = [overlap_factor(flutes, float(s), float(g), float(r), p, q) for s, g, r in zip(span[:40], lag[:40], r1[:40])]
+    np.testing.assert_allclose(one, got[:40], rtol=1e-12)          # the float path is the array path
+    beyond = overlap_factor(flutes, 2.0, 0.5, resultant.R1_MAX + 0.5, p, q)
+    assert beyond == pytest.approx(float(exact_overlap_factor(flutes, math.pi - 2.0, math.pi, 0.5,
+                                                              r1=resultant.R1_MAX + 0.5, size_exp=p, r1_exp=q)))
+
+
+def test_up_milling_is_down_milling_with_the_other_sign_of_r1():
+    p, q = SS41_PQ
+    rng = np.random.default_rng(5)
+    span, lag, r1 = rng.uniform(0.05, math.pi, 200), rng.uniform(0.0, 6.0, 200), rng.uniform(0.1, 1.5, 200)
+    for flutes in (2, 3, 4):
+        up = exact_overlap_factor(flutes, 0.0, span, lag, nodes=FINE, r1=r1, size_exp=p, r1_exp=q)
+        down = exact_overlap_factor(flutes, math.pi - span, math.pi, lag, nodes=FINE, r1=-r1, size_exp=p, r1_exp=q)
+        np.testing.assert_allclose(up, down, rtol=2e-5)           # FINE's own error with p < 0 (not mirrored)
+        same_sign = exact_overlap_factor(flutes, math.pi - span, math.pi, lag, nodes=FINE, r1=r1, size_exp=p,
+                                         r1_exp=q)
+        assert np.max(np.abs(same_sign / up - 1.0)) > 0.005     # with q ≠ 0 the sign matters
+    assert resultant.mirror_r1("up", 0.4) == -0.4 and resultant.mirror_r1("down", 0.4) == 0.4
+    assert resultant.mirror_r1("slot", 0.4) == 0.4
+
+
+def test_a_law_without_a_finite_force_falls_back_to_the_average_law():
+    assert resultant.local_exponents(-0.42, -0.27) == (-0.42, -0.27)
+    assert resultant.local_exponents(-1.0, 0.0) == (0.0, 0.0)       # 1 + p = 0: no chip in the tooth force
+    assert resultant.local_exponents(-0.6, -0.5) == (0.0, 0.0)      # 1 + p + q ≤ 0: ρ·w unbounded at h → 0
+    assert resultant.local_exponents(math.nan, 0.1) == (0.0, 0.0)
+    # S_m against its closed form and scipy's adaptive quadrature
+    from scipy.integrate import quad
+
+    phi = np.linspace(0.0, math.pi, 37)
+    np.testing.assert_allclose(resultant.sin_power_integral(1.0, phi), 1 - np.cos(phi), atol=1e-15)
+    for m in (0.58, 1.31, 1.58):
+        want = [quad(lambda t: math.sin(t) ** m, 0.0, x, epsabs=1e-13, epsrel=1e-12)[0] for x in phi]
+        # the table's first interval holds t^m at 0 (16-point Gauss: ~5e-10 for m = 0.58), nothing η would see
+        np.testing.assert_allclose(resultant.sin_power_integral(m, phi), want, rtol=1e-9, atol=1e-9)
+
+
+def test_an_unknown_helix_still_bounds_the_force_from_above_with_the_local_law():
+    """ψ = 0 (helix or axial depth unknown) takes the straight-flute η, the largest the cut can have: the
+    estimate errs high, never low (physics.md §5)."""
+    p, q = SS41_PQ
+    rng = np.random.default_rng(8)
+    span, lag, r1 = rng.uniform(0.05, math.pi, 400), rng.uniform(0.0, 6.0, 400), rng.uniform(-1.5, 1.5, 400)
+    for flutes in (2, 3, 4, 6):
+        helical = exact_overlap_factor(flutes, math.pi - span, math.pi, lag, nodes=16, r1=r1, size_exp=p, r1_exp=q)
+        straight = exact_overlap_factor(flutes, math.pi - span, math.pi, 0.0, nodes=16, r1=r1, size_exp=p, r1_exp=q)
+        assert np.all(helical <= straight * (1.0 + 1e-4))        # the 16-point quadrature of a jump at ψ = 0
