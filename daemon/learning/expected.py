@@ -36,7 +36,6 @@ from typing import Any
 from millsense.daemon.events import AlarmEvent, finite
 from millsense.daemon.learning.envelope import LOW_MAX_FRACTION, MAX_WIDENING, WideningCapped, setting
 from millsense.daemon.physics.expected import ExpectedLoad, expected_load
-from millsense.daemon.physics.force import prepare_engaged_cf
 
 LEVELS = ("expected_high", "expected_low")
 DEFAULT_TOLERANCE_PCT = 34.0   # [learning] physics_tolerance_pct (config/models.py)
@@ -160,8 +159,6 @@ class ExpectedBand:
         self.ceilings = {"torque_nm": setting(alarms, "torque_limit_nm", None),
                          "force_n": setting(alarms, "force_limit_n", None)}
         self.cuts: dict[str, Any] = dict(cuts)
-        for op in self.cuts.values():   # η's tables for the expected force: now, never in a revolution
-            prepare_engaged_cf(op.flutes, op.material)
         self.last_seen: dict[str, tuple[float, float]] = {}   # key -> (spindle_rpm, override_pct) of its last steady rev
         self._run: _Run | None = None
 

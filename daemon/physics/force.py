@@ -22,7 +22,7 @@ import numpy as np
 from millsense.daemon.physics import validity
 from millsense.daemon.physics.milling import NP, SCALAR, Material, chip_xp, engagement_xp
 from millsense.daemon.physics.numbers import sqrt, values
-from millsense.daemon.physics.resultant import helix_lag_rad, local_exponents, mirror_r1, overlap_factor, overlap_table
+from millsense.daemon.physics.resultant import helix_lag_rad, local_exponents, mirror_r1, overlap_factor
 
 # [P] §4.2: the mean C_f of its trial cuts (a φ20 2-flute slot, where η ≈ 1: it stands for √(1 + r₁²)).
 P_MEAN_CF = 1.075
@@ -110,12 +110,6 @@ def engaged_cf(mode: str, flutes: int, tool_radius_mm: float, helix_deg: float |
     if fallback_cf is None:
         return eta * single
     return np.where(known, eta * np.where(chip_ok, single, fallback_cf), fallback_cf)
-
-
-def prepare_engaged_cf(flutes: int, material: Material) -> None:
-    """Build η's table of `engaged_cf` for this flute count and material now (0.3–0.75 s once a process,
-    resultant.overlap_table), so that no revolution pays it."""
-    overlap_table(int(flutes), *local_exponents(material.ks_exp, material.r1_exp))
 
 
 def _fallback_r1(fallback_cf: float | None) -> float:

@@ -41,9 +41,9 @@ the upper bound of the force.
 mirror image of down milling [π − s, π] with r₁ of the other sign: φ → π − φ keeps sin φ and maps
 e^{−iφ} to −conj(e^{−iφ}), so A, B become −conj(A), −conj(B) and |A + i·r₁·B| becomes |A − i·r₁·B|
 (with q = 0, B = A and the sign does not matter: up and down alike). A slot is down milling with
-s = π. So one table per flute count and material exponents over (s, ψ, ±r₁), built once per process
-(``overlap_table``), read by trilinear interpolation (``overlap_factor``): the revolution pays a few
-float operations. The table's quadrature and grid are checked against a fine quadrature and an
+s = π. So one table per flute count and material exponents over (s, ψ, ±r₁), its cells computed when a
+cut first reads them (``_Lazy``; ``overlap_table`` builds it whole for tests and benches), read by
+trilinear interpolation (``overlap_factor``): a steady revolution pays a few float operations. The table's quadrature and grid are checked against a fine quadrature and an
 independent brute-force model in tests/physics/test_resultant.py.
 """
 
@@ -175,19 +175,15 @@ def _r1_axis() -> np.ndarray:
     return np.arange(-steps, steps + 1) * R1_STEP
 
 
-@functools.cache
-def overlap_table(flutes: int, size_exp: float = 0.0, r1_exp: float = 0.0) -> np.ndarray:
-    """η over the grid (span i·π/SPAN_STEPS, lag j·LAG_STEP_RAD, r₁ −R1_MAX + k·R1_STEP) for down milling [π − s, π];
-    row 0 (s = 0) is the limit 1 of a vanishing engagement. Built once per flute count and material
-    exponents and process (0.2–0.6 s: bench/force_cost.py)."""
-    if flutes < 1:
-        raise ValueError(f"flutes {flutes}: at least 1")
-    spans = np.arange(SPAN_STEPS + 1) * (math.pi / SPAN_STEPS)
-    lags = np.arange(round(LAG_MAX_RAD / LAG_STEP_RAD) + 1) * LAG_STEP_RAD
+def _cell_rows(flutes: int, size_exp: float, r1_exp: float, span_idx: np.ndarray, lag_idx: np.ndarray) -> np.ndarray:
+    """η over the r₁ axis at the grid cells (span i·π/SPAN_STEPS, lag j·LAG_STEP_RAD), down milling [π − s, π]:
+    an array (cells, r₁). Span index 0 is the limit 1 of a vanishing engagement."""
     rs = _r1_axis()
-    s, psi = np.meshgrid(spans[1:], lags, indexing="ij")
-    flat_s, flat_psi = s.ravel(), psi.ravel()
-    out = np.empty((flat_s.size, rs.size))
+    out = np.ones((span_idx.size, rs.size))
+    cut = span_idx > 0
+    flat_s = span_idx[cut] * (math.pi / SPAN_STEPS)
+    flat_psi = lag_idx[cut] * LAG_STEP_RAD
+    rows = np.empty((flat_s.size, rs.size))
     for i in range(0, flat_s.size, _CHUNK):
         j = i + _CHUNK
         cells = flat_s[i:j].size
@@ -195,14 +191,59 @@ def overlap_table(flutes: int, size_exp: float = 0.0, r1_exp: float = 0.0) -> np
             int(flutes), (math.pi - flat_s[i:j]).reshape(-1, 1), np.full((cells, 1), math.pi),
             flat_psi[i:j].reshape(-1, 1), GAUSS_NODES, float(size_exp), float(r1_exp))
         mag = np.abs(a[:, :, None] + 1j * rs * b[:, :, None])                          # (cells, nodes, r₁)
-        out[i:j] = (mag * weight[:, :, None]).sum(axis=1) / (np.sqrt(1.0 + rs**2) * tangential[:, None])
-    table = np.ones((SPAN_STEPS + 1, lags.size, rs.size))
-    table[1:] = out.reshape(s.shape + (rs.size,))
+        rows[i:j] = (mag * weight[:, :, None]).sum(axis=1) / (np.sqrt(1.0 + rs**2) * tangential[:, None])
+    out[cut] = rows
+    return out
+
+
+_LAGS = round(LAG_MAX_RAD / LAG_STEP_RAD) + 1
+
+
+def overlap_table(flutes: int, size_exp: float = 0.0, r1_exp: float = 0.0) -> np.ndarray:
+    """η over the whole grid (span i·π/SPAN_STEPS, lag j·LAG_STEP_RAD, r₁ −R1_MAX + k·R1_STEP) for down milling
+    [π − s, π]; row 0 (s = 0) is the limit 1 of a vanishing engagement. The daemon never builds it whole
+    (0.3–0.75 s a flute count and material): `overlap_factor` computes the cells a cut needs when it first
+    needs them (`_Lazy`), with the same `_cell_rows`. Tests and benches read the whole table."""
+    if flutes < 1:
+        raise ValueError(f"flutes {flutes}: at least 1")
+    i, j = np.meshgrid(np.arange(SPAN_STEPS + 1), np.arange(_LAGS), indexing="ij")
+    table = _cell_rows(int(flutes), float(size_exp), float(r1_exp), i.ravel(), j.ravel()).reshape(i.shape + (-1,))
     table.setflags(write=False)
     return table
 
 
-_ROWS: dict[tuple[int, float, float], list] = {}   # overlap_table as lists, for the float path
+class _Lazy:
+    """One flute count's and material's table, filled cell by cell as cuts ask (a steady cut reads the same
+    four cells every revolution: the first revolution of a new engagement pays about a millisecond)."""
+
+    def __init__(self, key: tuple[int, float, float]) -> None:
+        if key[0] < 1:
+            raise ValueError(f"flutes {key[0]}: at least 1")
+        self.key = key
+        self.table = np.full((SPAN_STEPS + 1, _LAGS, _r1_axis().size), np.nan)
+        self.done = np.zeros((SPAN_STEPS + 1, _LAGS), dtype=bool)
+        self.quads: dict[tuple[int, int], tuple[list[float], ...]] = {}   # the float path's cells, as lists
+
+    def fill(self, i: np.ndarray, j: np.ndarray) -> None:
+        """Compute the cells (i, j) not yet computed (arrays of grid indices, in range)."""
+        want = ~self.done[i, j]
+        if not want.any():
+            return
+        cells = np.unique(np.stack([i[want], j[want]], axis=1), axis=0)
+        self.table[cells[:, 0], cells[:, 1]] = _cell_rows(*self.key, cells[:, 0], cells[:, 1])
+        self.done[cells[:, 0], cells[:, 1]] = True
+
+    def quad(self, i: int, j: int) -> tuple[list[float], ...]:
+        """The rows of cells (i, j), (i, j + 1), (i + 1, j), (i + 1, j + 1): what one interpolation reads."""
+        q = self.quads.get((i, j))
+        if q is None:
+            ii, jj = np.array([i, i, i + 1, i + 1]), np.array([j, j + 1, j, j + 1])
+            self.fill(ii, jj)
+            q = self.quads[(i, j)] = tuple(self.table[a, b].tolist() for a, b in zip(ii, jj))
+        return q
+
+
+_TABLES: dict[tuple[int, float, float], _Lazy] = {}
 _PER_SPAN = SPAN_STEPS / math.pi
 _PER_LAG = 1.0 / LAG_STEP_RAD
 _PER_R1 = 1.0 / R1_STEP
@@ -210,9 +251,11 @@ _LAG_LAST = round(LAG_MAX_RAD / LAG_STEP_RAD) - 1e-9
 _R1_LAST = 2 * round(R1_MAX / R1_STEP) - 1e-9
 
 
-def _rows(key: tuple[int, float, float]) -> list:
-    rows = _ROWS[key] = overlap_table(*key).tolist()
-    return rows
+def _lazy(key: tuple[int, float, float]) -> _Lazy:
+    t = _TABLES.get(key)
+    if t is None:
+        t = _TABLES[key] = _Lazy(key)
+    return t
 
 
 def mirror_r1(mode: str, r1):
@@ -244,7 +287,7 @@ def overlap_factor(flutes: int, span_rad, lag_rad, r1=0.0, size_exp: float = 0.0
     span, lag, r = values(span_rad), values(lag_rad), values(r1)
     key = (int(flutes), float(size_exp), float(r1_exp))
     if isinstance(span, float) and isinstance(lag, float) and isinstance(r, float):   # one revolution: floats
-        rows = _ROWS.get(key) or _rows(key)
+        lazy = _TABLES.get(key) or _lazy(key)
         if not 0.0 < span <= math.pi + 1e-12 or not lag >= 0.0 or math.isnan(r):
             return math.nan
         if lag > LAG_MAX_RAD or abs(r) > R1_MAX:
@@ -255,11 +298,12 @@ def overlap_factor(flutes: int, span_rad, lag_rad, r1=0.0, size_exp: float = 0.0
         z = min((r + R1_MAX) * _PER_R1, _R1_LAST)
         i, j, k = int(x), int(y), int(z)
         fx, fy, fz = x - i, y - j, z - k
-        a0, a1, b0, b1 = rows[i][j], rows[i][j + 1], rows[i + 1][j], rows[i + 1][j + 1]
+        a0, a1, b0, b1 = lazy.quad(i, j)
         g = 1.0 - fz
         return (((a0[k] * g + a0[k + 1] * fz) * (1 - fy) + (a1[k] * g + a1[k + 1] * fz) * fy) * (1 - fx)
                 + ((b0[k] * g + b0[k + 1] * fz) * (1 - fy) + (b1[k] * g + b1[k + 1] * fz) * fy) * fx)
-    table = overlap_table(*key)
+    lazy = _lazy(key)
+    table = lazy.table
     span, lag, r = np.broadcast_arrays(np.asarray(span, dtype=float), np.asarray(lag, dtype=float),
                                        np.asarray(r, dtype=float))
     ok = (span > 0.0) & (span <= math.pi + 1e-12) & (lag >= 0.0) & np.isfinite(r)
@@ -268,6 +312,7 @@ def overlap_factor(flutes: int, span_rad, lag_rad, r1=0.0, size_exp: float = 0.0
     z = np.clip((np.where(ok, r, 0.0) + R1_MAX) * _PER_R1, 0.0, table.shape[2] - 1 - 1e-9)
     i, j, k = x.astype(int), y.astype(int), z.astype(int)
     fx, fy, fz = x - i, y - j, z - k
+    lazy.fill(np.concatenate([i, i, i + 1, i + 1]).ravel(), np.concatenate([j, j + 1, j, j + 1]).ravel())
 
     def at(ii, jj):
         return table[ii, jj, k] * (1 - fz) + table[ii, jj, k + 1] * fz

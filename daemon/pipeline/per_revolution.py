@@ -37,7 +37,6 @@ from millsense.daemon.physics import validity
 from millsense.daemon.physics.force import P_MEAN_CF, engaged_cf, resultant_force_magnitudes_n
 from millsense.daemon.physics.milling import Material
 from millsense.daemon.physics.power import air_gap_power_w, butterworth_power_gain
-from millsense.daemon.physics.resultant import local_exponents, overlap_table
 from millsense.daemon.physics.torque import (
     cutting_torque_nm,
     inertia_torque_nm,
@@ -243,9 +242,6 @@ class RevolutionPhysics:
         self.tool, self.tools = tool_geometries(settings)
         m = settings.material
         self.material = Material(float(m.ks), float(m.ks_exp), float(m.r1), float(m.r1_exp), float(m.r2), float(m.r2_exp))
-        for geometry in (self.tool, *self.tools.values()):
-            if geometry.cf_model:    # η's table: built here (about 0.4 s a flute count), never in a revolution
-                overlap_table(geometry.flutes, *local_exponents(self.material.ks_exp, self.material.r1_exp))
         cut = settings.cut
         self.mode = str(cut.mode)
         self.feed_mm_min = None if cut.feed_mm_min is None else float(cut.feed_mm_min)

@@ -334,17 +334,3 @@ def test_a_refused_action_on_an_operation_makes_no_key():
         assert KEY not in cell.monitor.keys
     assert cell.monitor.command({"action": "show", "key": KEY})["ok"] and KEY not in cell.monitor.keys
 
-
-def test_the_expected_force_tables_are_built_before_any_revolution():
-    """η's table of each operation's flute count and material (0.3-0.75 s) is built with the band, at start,
-    so that the first steady revolution does not pay it (physics/resultant.py, force.prepare_engaged_cf)."""
-    from millsense.daemon.physics import resultant
-
-    cfg = settings()
-    resultant.overlap_table.cache_clear()
-    band = expected_band(cfg)
-    built = resultant.overlap_table.cache_info()
-    op = band.cut(KEY)
-    resultant.overlap_table(op.flutes, *resultant.local_exponents(op.material.ks_exp, op.material.r1_exp))
-    after = resultant.overlap_table.cache_info()
-    assert built.currsize >= 1 and after.misses == built.misses and after.hits == built.hits + 1

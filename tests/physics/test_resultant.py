@@ -194,3 +194,32 @@ def test_an_unknown_helix_still_bounds_the_force_from_above_with_the_local_law()
         helical = exact_overlap_factor(flutes, math.pi - span, math.pi, lag, nodes=16, r1=r1, size_exp=p, r1_exp=q)
         straight = exact_overlap_factor(flutes, math.pi - span, math.pi, 0.0, nodes=16, r1=r1, size_exp=p, r1_exp=q)
         assert np.all(helical <= straight * (1.0 + 1e-4))        # the 16-point quadrature of a jump at ψ = 0
+
+
+def test_the_daemon_computes_only_the_cells_a_cut_reads_once_each_and_as_the_whole_table_has_them():
+    """The daemon never builds the whole table (0.3-0.75 s a flute count and material, in every daemon, replay
+    and test that starts one): a cut's first revolution computes the four cells it reads, later revolutions
+    none, and the values are the whole table's, on the float path (live) and the array path (replay)."""
+    p, q = resultant.local_exponents(-0.4362, -0.2667)
+    key = (3, p, q)
+    resultant._TABLES.pop(key, None)
+    span, lag, r1 = 2.0, 0.7, 0.45
+    first = overlap_factor(3, span, lag, r1, p, q)
+    cells = resultant._TABLES[key].done
+    assert cells.sum() == 4
+    again = overlap_factor(3, span, lag, r1, p, q)
+    assert again == first and resultant._TABLES[key].done.sum() == 4
+    whole = resultant.overlap_table(3, p, q)
+    spans, lags, rs = np.array([2.0, 0.3, 3.1]), np.array([0.7, 0.0, 5.0]), np.array([0.45, -0.3, 1.2])
+    many = overlap_factor(3, spans, lags, rs, p, q)
+    resultant._TABLES[key] = _whole(key, whole)
+    assert overlap_factor(3, span, lag, r1, p, q) == pytest.approx(first, abs=1e-12)
+    assert overlap_factor(3, spans, lags, rs, p, q) == pytest.approx(many, abs=1e-12)
+    resultant._TABLES.pop(key, None)
+
+
+def _whole(key, table):
+    lazy = resultant._Lazy(key)
+    lazy.table[:] = table
+    lazy.done[:] = True
+    return lazy
