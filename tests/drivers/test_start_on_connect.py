@@ -66,11 +66,18 @@ def test_the_first_tcp_client_sees_the_first_sample_however_late_it_connects(tmp
 
 
 @pytest.mark.quick
-def test_the_first_modbus_request_reads_the_first_index_however_late_it_comes(tmp_path, port):
-    from pymodbus.client import ModbusTcpClient
+@pytest.mark.parametrize("transport", ["modbus-tcp", "modbus-rtu"])
+def test_the_first_modbus_request_reads_the_first_index_however_late_it_comes(tmp_path, port, transport):
+    from pymodbus import FramerType
+    from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
-    emu = Emulator(tmp_path, "--modbus-tcp", f"127.0.0.1:{port}", "--start-index", str(START), "--start-on-connect")
-    client = ModbusTcpClient("127.0.0.1", port=port, timeout=2)
+    if transport == "modbus-tcp":
+        where = f"127.0.0.1:{port}"
+        client = ModbusTcpClient("127.0.0.1", port=port, timeout=2)
+    else:
+        where = str(tmp_path / "rtu")
+        client = ModbusSerialClient(where, framer=FramerType.RTU, baudrate=921600, timeout=2, retries=0)
+    emu = Emulator(tmp_path, f"--{transport}", where, "--start-index", str(START), "--start-on-connect")
     try:
         emu.start()
         assert emu.events("start") == []
