@@ -38,7 +38,7 @@ def _flood(sub, seconds: float) -> None:
 def test_a_new_context_every_few_milliseconds_makes_no_learned_key(tmp_path):
     """The flood's counts alone, no timing (the heartbeat through the flood is the serial test below)."""
     with live_daemon(tmp_path, MACHINE, ["--protocol", "1"], interlock='enabled = false\nreset = "open"') as (
-            procs, daemon, sub, log):
+            procs, daemon, sub, _log):
         wait_for(lambda: status(sub, MACHINE)["revolutions"] >= 5, 60.0, "estimates before the flood")
         _flood(sub, 12.0)
         st = status(sub, MACHINE)
