@@ -149,6 +149,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     pace.add_argument(
         "--fast", dest="realtime", action="store_false", help="as fast as possible (default for --capture)"
     )
+    parser.add_argument("--start-on-connect", action="store_true",
+                        help="with --tcp, --modbus-tcp or --modbus-rtu: the first sample is made when the first "
+                             "client connects (Modbus: its first request; the status log's start event then), so "
+                             "a reader that starts late sees the run from its start; a test bench's option, never "
+                             "a machine's")
     parser.add_argument("--truth", metavar="FILE", help="write the per-revolution truth (JSON lines) to FILE")
     parser.add_argument("--seed", type=int, default=0)
     passes = parser.add_mutually_exclusive_group()

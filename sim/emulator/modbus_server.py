@@ -34,7 +34,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 from pymodbus.simulator.simcore import SimCore
 
-from millsense.sim.emulator.pacing import CncTimer
+from millsense.sim.emulator.pacing import CncTimer, first_of
 from millsense.sim.emulator.pty import PtyBridge
 from millsense.drivers.protocol import FLAG_WATCHDOG, OUT_ALARM_LAMP, OUT_FEED_HOLD
 
@@ -121,7 +121,7 @@ class ModbusDeviceServer:
     """Modbus TCP on ``host:port``, or with ``rtu_link`` Modbus RTU on a pty reachable at that path."""
 
     def __init__(self, device, pacer, host: str = "", port: int = 0, *, rtu_link: str | None = None,
-                 unit: int = 1, duration_samples: int | None = None):
+                 unit: int = 1, duration_samples: int | None = None, on_first_client=None):
         if not 1 <= unit <= 247:
             raise ValueError(f"Modbus unit id {unit} outside 1..247")
         self.device = device
@@ -154,6 +154,10 @@ class ModbusDeviceServer:
         self._server: ModbusTcpServer | ModbusSerialServer | None = None
         self._cnc = CncTimer(device)  # applies the CNC's changes when due, so the status log has their times
         self.stop = asyncio.Event()
+        # --start-on-connect: the first sample waits for the first request (a TCP connect alone reads nothing;
+        # an RTU link has no connect), then `on_first_client(now)`
+        self._on_first_client = on_first_client
+        self._first_request = asyncio.Event()
 
     def _in_map(self, fc: int, address: int, count: int) -> bool:
         end = address + count
@@ -169,6 +173,11 @@ class ModbusDeviceServer:
     async def _action(self, fc, start, address, count, registers, values):
         now = time.monotonic()
         dev = self.device
+        if self._on_first_client is not None and not self._first_request.is_set():
+            # sample 0 is due now: this request already reads the head at the run's first index
+            self._first_request.set()
+            self.pacer.restart(now)
+            self._on_first_client(now)
         if fc == FC_INPUT and values is None:
             if address < self._fixed_end:
                 dev.update_cnc(now)  # the CNC's flags as of this moment
@@ -310,6 +319,8 @@ class ModbusDeviceServer:
         if self._server is None:
             await self.open()
         try:
+            if self._on_first_client is not None:
+                await first_of(self._first_request, self.stop)
             while not self.stop.is_set():
                 n = self.pacer.due(time.monotonic(), self.duration_samples)
                 if n:

@@ -9,6 +9,11 @@ a DAQ with its own sample clock sends them: a wake-up 1 ms late at 10-sample
 frames sends one 10-sample frame and keeps the 11th for the next, instead of a
 10-sample frame and a 1-sample one (which doubled the frames on the wire and
 was nothing a real DAQ does). The end of a finite run sends what is left.
+
+`millsense sim --start-on-connect` (a test bench's option) makes sample 0 wait
+for the first client: the servers await `first_of(client, stop)`, then
+`Pacer.restart(now)`, so a reader that starts late still sees the run from its
+first sample, however long its start-up took.
 """
 
 from __future__ import annotations
@@ -27,6 +32,10 @@ class Pacer:
         self.clock = clock
         self.t0 = clock()
         self.produced = 0
+
+    def restart(self, now: float) -> None:
+        """Sample 0 is due at `now` (nothing produced yet: --start-on-connect)."""
+        self.t0, self.produced = now, 0
 
     def due(self, now: float | None = None, limit: int | None = None) -> int:
         """How many samples to produce now (and count them as produced)."""
@@ -77,3 +86,15 @@ class CncTimer:
         if self.device.update_cnc(now) and self.on_change is not None:
             self.on_change(now)
         self.arm()
+
+
+async def first_of(*events) -> None:
+    """Wait until any of the asyncio `events` is set."""
+    import asyncio
+
+    waits = [asyncio.ensure_future(e.wait()) for e in events]
+    try:
+        await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for w in waits:
+            w.cancel()

@@ -106,10 +106,17 @@ def serve(args) -> int:
         afc_allowed=args.afc_allowed,
     )
     device.watchdog_broken = bool(getattr(args, "watchdog_broken", False))
-    status_log.write("start", first_index=device.head, scenario=args.scenario, protocol=device.protocol,
-                     feed_override=device.feed_override if device.protocol >= 2 else None,
-                     cnc_override_lag_ms=args.cnc_override_lag_ms,
-                     cnc_override_rate_pct_s=args.cnc_override_rate_pct_s)
+    start = dict(first_index=device.head, scenario=args.scenario, protocol=device.protocol,
+                 feed_override=device.feed_override if device.protocol >= 2 else None,
+                 cnc_override_lag_ms=args.cnc_override_lag_ms,
+                 cnc_override_rate_pct_s=args.cnc_override_rate_pct_s)
+    if getattr(args, "start_on_connect", False):
+        if not (args.tcp or args.modbus_tcp or args.modbus_rtu):
+            raise EmulatorError("--start-on-connect waits for a client: give --tcp, --modbus-tcp or --modbus-rtu", 2)
+        args.log_start = lambda now: status_log.write("start", now, **start)   # when the first client connects
+    else:
+        args.log_start = None
+        status_log.write("start", **start)
     # the samples come at the source's true rate, whatever its descriptor claims (--descriptor-rate)
     device.sample_rate_hz = int(getattr(source, "sample_rate_hz", device.sample_rate_hz))
     rate = device.sample_rate_hz
@@ -160,13 +167,14 @@ async def _main(args, device, pacer, duration_samples) -> int:
     if args.modbus_tcp:
         from millsense.sim.emulator.modbus_server import ModbusDeviceServer
 
-        server = ModbusDeviceServer(device, pacer, *args.modbus_tcp, unit=args.unit, duration_samples=duration_samples)
+        server = ModbusDeviceServer(device, pacer, *args.modbus_tcp, unit=args.unit, duration_samples=duration_samples,
+                                    on_first_client=args.log_start)
         where = f"modbus-tcp {args.modbus_tcp[0]}:{args.modbus_tcp[1]}"
     elif args.modbus_rtu:
         from millsense.sim.emulator.modbus_server import ModbusDeviceServer
 
         server = ModbusDeviceServer(device, pacer, rtu_link=args.modbus_rtu, unit=args.unit,
-                                    duration_samples=duration_samples)
+                                    duration_samples=duration_samples, on_first_client=args.log_start)
         where = f"modbus-rtu {args.modbus_rtu}"
     else:
         from millsense.sim.emulator.stream_server import StreamServer
@@ -178,7 +186,8 @@ async def _main(args, device, pacer, duration_samples) -> int:
             garbage_bps=args.garbage_bps,
             seed=args.seed,
         )
-        server = StreamServer(device, emitter, pacer, duration_samples=duration_samples)
+        server = StreamServer(device, emitter, pacer, duration_samples=duration_samples,
+                              on_first_client=args.log_start)
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, server.stop.set)
     capture_fh = None

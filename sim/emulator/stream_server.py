@@ -13,7 +13,7 @@ import contextlib
 import os
 import time
 
-from millsense.sim.emulator.pacing import CncTimer
+from millsense.sim.emulator.pacing import CncTimer, first_of
 from millsense.sim.emulator.pty import Pty
 from millsense.drivers.protocol import CMD_SEND_DESCRIPTOR, Command, StreamDecoder
 
@@ -23,7 +23,7 @@ MAX_CLIENT_BACKLOG = 1 << 20
 class StreamServer:
     """Runs the device, sending frames to every sink and obeying commands from any."""
 
-    def __init__(self, device, emitter, pacer, *, duration_samples: int | None = None) -> None:
+    def __init__(self, device, emitter, pacer, *, duration_samples: int | None = None, on_first_client=None) -> None:
         self.device = device
         self.emitter = emitter
         self.pacer = pacer
@@ -36,6 +36,9 @@ class StreamServer:
         self.stop = asyncio.Event()
         self.client_dropped_bytes = 0
         self._cnc = CncTimer(device, lambda now: self._send(self.emitter.context(now)))  # a CONTEXT on each change
+        # --start-on-connect: the first sample waits for the first TCP client, then `on_first_client(now)`
+        self._on_first_client = on_first_client
+        self._first_client = asyncio.Event()
 
     # -- sinks ----------------------------------------------------------------
 
@@ -66,6 +69,7 @@ class StreamServer:
         # each client gets the stream from its connect on, starting with a descriptor
         writer.write(self.emitter.descriptor(time.monotonic()))
         self._clients.add(writer)
+        self._first_client.set()
         decoder = StreamDecoder()
         try:
             while not self.stop.is_set():
@@ -123,7 +127,18 @@ class StreamServer:
 
     # -- main loop ------------------------------------------------------------
 
+    async def _wait_first_client(self) -> None:
+        """--start-on-connect: sample 0 when the first client connects (a reader that starts slowly, e.g. a
+        daemon on a loaded host, sees the run from its start)."""
+        await first_of(self._first_client, self.stop)
+        if self._first_client.is_set():
+            now = time.monotonic()
+            self.pacer.restart(now)
+            self._on_first_client(now)
+
     async def run(self) -> None:
+        if self._on_first_client is not None:
+            await self._wait_first_client()
         now = time.monotonic()
         self._send(self.emitter.descriptor(now))
         try:

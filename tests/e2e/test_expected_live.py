@@ -67,6 +67,7 @@ def _run_part(tmp_path, name, operations, until):
     with Procs(tmp_path) as procs:
         procs.start(f"sim-{name}", ["sim", "--scenario", "part-program", "--parts", "2", "--tcp",
                                     f"127.0.0.1:{daq_port}", "--realtime", "--once", "--watchdog-ms", "1000",
+                                    "--start-on-connect",  # part 1 from its start, however slow the daemon's start
                                     "--status-log", str(log_path)])
         wait_for(lambda: "serving" in procs.text(f"sim-{name}"), 60.0, "emulator serving")
         state = tmp_path / f"{name}-state"

@@ -8,6 +8,10 @@ left out of the config, only the learned envelope can see it: `envelope_low`
 must hold the feed (the emulator's status log shows the output), the
 summaries and the alarm must be in the history database, and a restarted
 daemon must answer the `limits` query with the envelope it learned.
+
+The emulator plays from its first client's connect on (`--start-on-connect`): the daemon, started after it,
+must see part 1 from its start (its first process "learning", not cut into from the middle), however long
+its own start-up takes on a loaded box.
 """
 
 from __future__ import annotations
@@ -49,7 +53,7 @@ def test_an_envelope_learned_live_holds_the_feed_and_outlives_a_restart(tmp_path
     log_path = tmp_path / "status.jsonl"
     with Procs(tmp_path) as procs:
         procs.start("sim", ["sim", "--scenario", "part-program", "--parts", "3", "--broken-flute", "3:11",
-                            "--tcp", f"127.0.0.1:{daq_port}", "--realtime", "--once", "--watchdog-ms", "1000",
+                            "--tcp", f"127.0.0.1:{daq_port}", "--realtime", "--once", "--start-on-connect", "--watchdog-ms", "1000",
                             "--status-log", str(log_path)])
         wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
         daemon = procs.start("daemon", ["run", "--config", str(cfg), "--connect-timeout", "120"])
@@ -113,7 +117,7 @@ def test_the_context_comes_through_modbus_registers_too(tmp_path):
     cfg.write_text(dumps(doc))
     with Procs(tmp_path) as procs:
         procs.start("sim", ["sim", "--scenario", "part-program", "--parts", "1", "--modbus-tcp", f"127.0.0.1:{daq_port}",
-                            "--realtime", "--once"])
+                            "--realtime", "--once", "--start-on-connect"])
         wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
         procs.start("daemon", ["run", "--config", str(cfg), "--connect-timeout", "120"])
         sub = Subscriber([tcp(z_port)], machine)
