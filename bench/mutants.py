@@ -89,6 +89,7 @@ E2E_FLUTE_WHILE_FEED_MOVES = ("tests/e2e/test_afc_closed_loop.py::"
                               "test_a_flute_that_breaks_while_the_feed_moves_is_still_caught")
 AUTH = ("tests/publish/test_command_auth.py", "tests/publish/test_command_authority.py")
 E2E_AUTH = "tests/e2e/test_command_authority_live.py"
+EXPECTED = "tests/learning/test_expected.py"   # the expected band of issue 41
 FRAME = ("tests/runtime/test_frame_check.py", "tests/runtime/test_safety_check.py", "tests/runtime/test_reader_path.py")
 DRIVER_CODEC = ("tests/drivers/test_crc.py", "tests/drivers/test_protocol.py", "tests/drivers/test_protocol2.py")
 
@@ -253,6 +254,27 @@ MUTANTS: tuple[Mutant, ...] = (
            "if seq < self.last_seq:",
            ("tests/learning/test_context_auth.py", "tests/runtime/test_context_authority.py",
             "tests/pipeline/test_feed_control_authority.py", "tests/e2e/test_context_authority.py")),
+    Mutant("ex-high-not-held", "learning",
+           "expected_high (a cut deeper than its operation declares) warns but does not hold the feed",
+           "daemon/learning/expected.py",
+           "                       value > high, True)",
+           "                       value > high, False)",
+           (EXPECTED, "tests/e2e/test_expected_live.py"), trust=False),
+    Mutant("ex-varying-low-holds", "learning",
+           "expected_low holds the feed in a varying-engagement operation (a pocket's corners stop the machine)",
+           "daemon/learning/expected.py",
+           "value < low and low_on and self._low_counts(run, quantity, value, expected, low),\n"
+           "                       op.engagement == \"constant\")",
+           "value < low and low_on and self._low_counts(run, quantity, value, expected, low),\n"
+           "                       True)",
+           (EXPECTED, "tests/e2e/test_expected_live.py")),
+    Mutant("ex-unknown-override-armed", "learning",
+           "an unknown feed override is taken as 100 %: the expected band is armed on a guess",
+           "daemon/physics/expected.py",
+           "    if override_pct is None or not math.isfinite(override_pct) or override_pct <= 0.0:\n        return None",
+           "    override_pct = 100.0 if override_pct is None else override_pct\n"
+           "    if not math.isfinite(override_pct) or override_pct <= 0.0:\n        return None",
+           ("tests/physics/test_expected.py", EXPECTED, "tests/e2e/test_expected_live.py")),
     # -- AFC ---------------------------------------------------------------------------------------------------
     Mutant("afc-trip-not-safe", "AFC",
            "a trip no longer puts the override to <= 100 % at once (the next revolution would)",
