@@ -149,6 +149,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     pace.add_argument(
         "--fast", dest="realtime", action="store_false", help="as fast as possible (default for --capture)"
     )
+    parser.add_argument("--speed", metavar="K", type=_positive, default=1.0,
+                        help="pace the samples K times as fast as the clock (default 1; the descriptor keeps the "
+                             "true rate, so the daemon needs [daq] check_sample_rate = false): a test bench "
+                             "playing parts at speed")
+    parser.add_argument("--wait-client", action="store_true",
+                        help="--tcp: hold the first sample until the first client connects (a whole part to a "
+                             "daemon that starts after the emulator)")
     parser.add_argument("--truth", metavar="FILE", help="write the per-revolution truth (JSON lines) to FILE")
     parser.add_argument("--seed", type=int, default=0)
     passes = parser.add_mutually_exclusive_group()

@@ -106,10 +106,19 @@ def serve(args) -> int:
         afc_allowed=args.afc_allowed,
     )
     device.watchdog_broken = bool(getattr(args, "watchdog_broken", False))
-    status_log.write("start", first_index=device.head, scenario=args.scenario, protocol=device.protocol,
-                     feed_override=device.feed_override if device.protocol >= 2 else None,
-                     cnc_override_lag_ms=args.cnc_override_lag_ms,
-                     cnc_override_rate_pct_s=args.cnc_override_rate_pct_s)
+    speed = float(getattr(args, "speed", None) or 1.0)
+
+    def started() -> None:   # the first sample is due now: the status log's time base (tests/e2e/truth.py)
+        status_log.write("start", first_index=device.head, scenario=args.scenario, protocol=device.protocol,
+                         feed_override=device.feed_override if device.protocol >= 2 else None,
+                         cnc_override_lag_ms=args.cnc_override_lag_ms,
+                         cnc_override_rate_pct_s=args.cnc_override_rate_pct_s, speed=speed)
+
+    wait_client = started if getattr(args, "wait_client", False) else None
+    if wait_client is not None and not args.tcp:
+        raise EmulatorError("--wait-client: only for --tcp (the stream waits for its first TCP client)", 2)
+    if wait_client is None:
+        started()
     # the samples come at the source's true rate, whatever its descriptor claims (--descriptor-rate)
     device.sample_rate_hz = int(getattr(source, "sample_rate_hz", device.sample_rate_hz))
     rate = device.sample_rate_hz
@@ -119,13 +128,15 @@ def serve(args) -> int:
     elif not args.loop and math.isfinite(getattr(source, "duration_s", math.inf)):
         duration_samples = int(round(source.duration_s * rate))
     realtime = args.realtime if args.realtime is not None else not args.capture
+    if speed != 1.0 and not realtime:
+        raise EmulatorError("--speed: only for a stream paced by the clock (not --fast or --capture)", 2)
     if args.capture and duration_samples is None:
         raise EmulatorError(f"scenario {args.scenario!r} never ends: give --duration-s for a capture", 2)
     # the framed stream sends whole frames (a Modbus register map fills its ring sample by sample)
     stream = not (args.modbus_tcp or args.modbus_rtu)
-    pacer = Pacer(rate, realtime=realtime, quantum=args.per_frame if stream else 1)
+    pacer = Pacer(rate, realtime=realtime, quantum=args.per_frame if stream else 1, speed=speed)
     try:
-        code = asyncio.run(_main(args, device, pacer, duration_samples))
+        code = asyncio.run(_main(args, device, pacer, duration_samples, wait_client))
     except OSError as exc:
         raise EmulatorError(str(exc)) from exc
     finally:
@@ -154,7 +165,7 @@ def _with_sensor_faults(source, args):
         raise EmulatorError(str(exc), 2) from exc
 
 
-async def _main(args, device, pacer, duration_samples) -> int:
+async def _main(args, device, pacer, duration_samples, wait_client=None) -> int:
     loop = asyncio.get_running_loop()
     modbus = bool(args.modbus_tcp or args.modbus_rtu)
     if args.modbus_tcp:
@@ -178,7 +189,7 @@ async def _main(args, device, pacer, duration_samples) -> int:
             garbage_bps=args.garbage_bps,
             seed=args.seed,
         )
-        server = StreamServer(device, emitter, pacer, duration_samples=duration_samples)
+        server = StreamServer(device, emitter, pacer, duration_samples=duration_samples, wait_client=wait_client)
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, server.stop.set)
     capture_fh = None

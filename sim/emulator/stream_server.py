@@ -23,8 +23,12 @@ MAX_CLIENT_BACKLOG = 1 << 20
 class StreamServer:
     """Runs the device, sending frames to every sink and obeying commands from any."""
 
-    def __init__(self, device, emitter, pacer, *, duration_samples: int | None = None) -> None:
+    def __init__(self, device, emitter, pacer, *, duration_samples: int | None = None, wait_client=None) -> None:
         self.device = device
+        # None: the stream runs from the start; else called when the first TCP client connects, from which the
+        # first sample is due (a part played whole to a daemon that connects after the emulator is up)
+        self.wait_client = wait_client
+        self._first_client = asyncio.Event()
         self.emitter = emitter
         self.pacer = pacer
         self.duration_samples = duration_samples
@@ -66,6 +70,7 @@ class StreamServer:
         # each client gets the stream from its connect on, starting with a descriptor
         writer.write(self.emitter.descriptor(time.monotonic()))
         self._clients.add(writer)
+        self._first_client.set()
         decoder = StreamDecoder()
         try:
             while not self.stop.is_set():
@@ -124,6 +129,16 @@ class StreamServer:
     # -- main loop ------------------------------------------------------------
 
     async def run(self) -> None:
+        if self.wait_client is not None:
+            stop = asyncio.ensure_future(self.stop.wait())
+            await asyncio.wait([stop, asyncio.ensure_future(self._first_client.wait())],
+                               return_when=asyncio.FIRST_COMPLETED)
+            if self.stop.is_set():
+                await self.close()
+                return
+            stop.cancel()
+            self.pacer.restart()
+            self.wait_client()
         now = time.monotonic()
         self._send(self.emitter.descriptor(now))
         try:
