@@ -14,8 +14,8 @@ at a time, then all of them with the three batches; then the deviating cases (th
 programmed axial depth, 0.5 × the radial one in every slot) against the worst batch. From the spread it
 proposes `[learning] physics_tolerance_pct`.
 
-Also the daemon's resultant force from the true torque (`physics.force`, [P] eq. 18 with C_f from r₁(t_a))
-against the true mean resultant force, the issue's "within 2 %".
+Also the daemon's resultant force from the true torque (`physics.force`, [P] eq. 18 with `cf = "auto"`'s C_f of
+the engaged teeth at the programmed cut) against the true mean resultant force, the issue's "within 2 %".
 
 Run: .venv/bin/python bench/first_part.py [--quick]   (--quick: the effects all on, batch 0 only)
 """
@@ -29,8 +29,8 @@ from dataclasses import replace
 import numpy as np
 
 from millsense.daemon.physics.expected import ProgrammedCut, expected_load
-from millsense.daemon.physics.force import cf_model, resultant_force_n
-from millsense.daemon.physics.milling import Material, average_chip_thickness_mm, engagement_angles_rad
+from millsense.daemon.physics.force import P_MEAN_CF, engaged_cf, resultant_force_n
+from millsense.daemon.physics.milling import Material
 from millsense.sim.cut_effects import NONE, CutEffects
 from millsense.sim.first_part import FIRST_PART_PROGRAMS, programmed_cut
 from millsense.sim.program import ProgramFaults
@@ -74,11 +74,12 @@ def run(program, faults: ProgramFaults | None = None) -> list[dict]:
                 continue
             exp = expected_load(cut, tool_radius_mm=op.tool.radius_mm, flutes=op.tool.flutes, material=material,
                                 spindle_rpm=r["spindle_rpm"], override_pct=r["feed_override_pct"])
-            # the daemon's force from the true torque: [P] eq. 18, C_f from r1 at the true t_a ([D] eqs. 8-9)
-            entry, exit_ = engagement_angles_rad(table["ae_mm"] / op.tool.radius_mm, table["mode"])
-            t_a = float(average_chip_thickness_mm(r["feed_per_tooth_mm"], entry, exit_))
-            force_est = float(resultant_force_n(r["torque_nm"], op.tool.radius_mm,
-                                                cf_model(t_a, material.r1, material.r1_exp)))
+            # the daemon's force from the true torque: [P] eq. 18 with the C_f of cf = "auto", the engaged teeth
+            # added as vectors (force.engaged_cf: η·√(1 + r1(t_a)²), resultant.py R2) at the programmed depths
+            # and mode, the tool's helix, the true feed per tooth
+            cf = engaged_cf(table["mode"], op.tool.flutes, op.tool.radius_mm, op.tool.helix_deg,
+                            float(r["feed_per_tooth_mm"]), table["ae_mm"], table["ap_mm"], material, P_MEAN_CF)
+            force_est = float(resultant_force_n(r["torque_nm"], op.tool.radius_mm, cf))
             out.append({"key": proc["key"], "op": op, "table": table, "torque": r["torque_nm"] / exp.torque_nm,
                         "force": r["force_n"] / exp.force_n, "force_est": force_est / r["force_n"]})
     return out
@@ -150,7 +151,12 @@ def main(argv: list[str]) -> int:
         print(f"  varying (pocket, ramp; against the maximum depths): torque max ratio "
               f"{max(r['torque'] for r in varying):.4f}, min {min(r['torque'] for r in varying):.4f}")
     est = [r["force_est"] for r in by_batch[0.0]]
-    print(f"\nforce estimate from the true torque ([P] eq. 18, C_f(r1(t_a))) / true mean resultant: {fmt(stats(est))}")
+    print(f"\nforce estimate from the true torque ([P] eq. 18, engaged C_f) / true mean resultant: {fmt(stats(est))}")
+    for label, sel in (("2-flute", lambda r: r["op"].tool.flutes == 2),
+                       ("3-4 flute slots", lambda r: r["op"].tool.flutes > 2 and r["table"]["mode"] == "slot"),
+                       ("3-4 flute down/up", lambda r: r["op"].tool.flutes > 2 and r["table"]["mode"] != "slot")):
+        rows = [r["force_est"] for r in by_batch[0.0] if sel(r)]
+        print(f"  {label:<18} {fmt(stats(rows))}")
     slot10 = [r["force_est"] for r in by_batch[0.0] if r["key"] == "4101/1/10"]
     print(f"  4101/1/10 (1200 rpm, 3 mm slot, phi20 2-flute): {100 * (np.mean(slot10) - 1):+.2f} %")
     print("\nthe deviating cases (every slot of first-part-slot), against the batch that hides them most")

@@ -517,7 +517,8 @@ class RevolutionPhysics:
         for i in range(count):
             number = None if tools is None else tools[i]
             rows.setdefault((number if number in self.tools else None, None if cuts is None else cuts[i]), []).append(i)
-        return [(self.tools.get(number, self.tool), np.array(r, dtype=np.intp), cut) for (number, cut), r in rows.items()]
+        return [(self.tools.get(number, self.tool), np.array(r, dtype=np.intp), cut)
+                for (number, cut), r in rows.items()]
 
     def _with_tool(self, tool: ToolGeometry, torque_nm, rpm, feed_mm_min, force_feed_n, force_x_n, force_y_n,
                    cutting, noise_nm, ramp, cut: OperationEngagement | None = None) -> _ToolPart:

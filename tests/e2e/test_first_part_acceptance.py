@@ -5,7 +5,8 @@ deflection, wear); the daemon's `[operations]` are what each program *programs*;
 off the config's by the percentage that hides each case most (docs/validation.md, "The expected load of a first
 part, live"). Trip cases play one operation at 1× (`--only-operation`); the correct parts are played at 3×
 (`--speed`, the daemon's `check_sample_rate = false`: pacing is not what they test). Shared run code:
-tests/e2e/first_part_run.py; the whole sweep (30 parts × 3 batches, every slot for each trip): bench/first_part_live.py.
+tests/e2e/first_part_run.py; the whole sweep (30 parts × 3 batches, every slot for each trip):
+bench/first_part_live.py.
 """
 
 from __future__ import annotations
