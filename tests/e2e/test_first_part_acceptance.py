@@ -46,7 +46,8 @@ def test_a_cut_1_8_times_deeper_trips_expected_high_within_3_steady_revolutions(
     assert f"ap {ap:g} mm" in alarm["reason"] and "> expected" in alarm["reason"], alarm
     # by the plant's truth: the first steady revolution of the cut and the two after it
     assert steady_revolution_of_alarm(run, alarm) <= 3, alarm
-    assert alarm["process_rev"] == _judged_from(SLOT, OP) + 2, alarm
+    # the daemon's rule: judged from a tool radius of path past the entry, the third judged revolution trips
+    assert alarm["process_rev"] <= _judged_from(SLOT, OP) + 2, alarm
     assert [a for a in run.alarms if a["level"] == "expected_low"] == []
 
 
@@ -54,19 +55,18 @@ def test_a_cut_1_8_times_deeper_trips_expected_high_within_3_steady_revolutions(
 @pytest.mark.parametrize("scale", ["--axial-scale", "--radial-scale"])
 def test_a_half_depth_in_a_constant_slot_trips_expected_low(tmp_path, scale):
     """Axial or radial depth 0.5 × the programmed one (half the slot already gone: a down-milling cut D/2 wide),
-    the material 20 % harder than the config's (what hides it most).
+    the material 20 % harder than the config's (what hides it most): within 3 steady revolutions.
 
-    The trip comes on the third revolution the daemon judges (its steady rule: a tool radius of path past the
-    revolution it first calls cutting). By the plant's truth that is the fourth steady revolution, one late:
-    a half-depth cut's first revolutions stay under `[depth] min_torque_nm` and the daemon sees the entry a
-    revolution after the cutter touched (docs/validation.md, "The expected load of a first part, live")."""
+    A half-depth cut's first touch stays under `[depth] min_torque_nm`: counted from the first revolution called
+    cutting, the band tripped on the plant's fourth steady revolution; the entry now counts from the revolutions
+    rising out of the air into the cut (learning/expected.py, tests/learning/test_expected_entry.py)."""
     run = play(tmp_path, SLOT, name=f"acc-low{scale[2]}", until_alarm="expected_low",
                sim_args=("--only-operation", str(OP), scale, f"{OP}:0.5", "--material-offset-pct", "20"))
     alarm = next(a for a in run.alarms if a["level"] == "expected_low")
     assert run.feed_held and alarm["interlock"] == "feed_hold", alarm   # constant engagement: it holds
     assert alarm["operation"] == OP and "< expected" in alarm["reason"], alarm
-    assert alarm["process_rev"] == _judged_from(SLOT, OP) + 2, alarm
-    assert steady_revolution_of_alarm(run, alarm) >= 1   # on a steady revolution of the cut, by the truth
+    assert steady_revolution_of_alarm(run, alarm) <= 3, alarm
+    assert alarm["process_rev"] <= _judged_from(SLOT, OP) + 2, alarm
 
 
 # Every correct operation once, each program with a batch at an end of the ±20 % range (the whole sweep, every
