@@ -105,11 +105,11 @@ def play(tmp_path: Path, program: str, *, name: str, speed: float = 1.0, sim_arg
                          f"{operations} process summaries")
                 assert daemon.poll() is None, procs.text(name)[-3000:]
             else:
-                try:
-                    wait_for(lambda: [a for a in sub.get("alarm") if a["level"] == until_alarm], SLOW_S, until_alarm)
-                except AssertionError as exc:
-                    raise AssertionError(f"{exc}; alarms {sub.get('alarm')}; processes {sub.get('process')}") \
-                        from None
+                # (or the part played out, its every process summarised, without it)
+                over = wait_for(lambda: [a for a in sub.get("alarm") if a["level"] == until_alarm] or (
+                    sim.poll() is not None and len(sub.get("process")) >= operations and "over"), SLOW_S, until_alarm)
+                if over == "over":
+                    raise AssertionError(f"no {until_alarm}: alarms {sub.get('alarm')}; processes {sub.get('process')}")
                 held = bool(wait_for(lambda: [e for e in read_jsonl(log_path)
                                               if e.get("event") == "outputs" and e.get("feed_hold")], 30.0,
                                      "the emulated DAQ's feed-hold output"))
@@ -144,8 +144,8 @@ def steady_revolution_of_alarm(run: Run, alarm: dict) -> int:
 
 
 def force_by_operation(run: Run) -> dict[str, dict]:
-    """Per operation: the daemon's published force over its steady revolutions against the plant's true mean
-    resultant, and the same for the torque.
+    """Per operation of constant engagement: the daemon's published force over its steady revolutions against the
+    plant's true mean resultant, and the same for the torque.
 
     The stream may be played at speed, so revolutions are paired within each operation by order: the daemon's
     cutting revolutions of the key, less as many at each end as the truth has cutting revolutions outside its
@@ -153,7 +153,10 @@ def force_by_operation(run: Run) -> dict[str, dict]:
     lie inside the truth's steady stretch, where the load of a constant cut is constant."""
     out = {}
     revs = truth_revs(run.truth)
+    tables = operations_config(run.program)
     for proc in run.truth_processes:
+        if tables.get(proc["key"], {}).get("engagement") != "constant":
+            continue   # a varying cut's load moves along its path: no pairing by order
         cut = [r for r in revs if proc["first_index"] <= r["index_end"] <= proc["last_index"] and r["cutting"]]
         steady = [i for i, r in enumerate(cut) if r["steady"]]
         if not steady:
