@@ -63,6 +63,7 @@ def parts(work: Path, speed: float, jobs: int) -> None:
     print(f"{'program':<18} {'batch':>5} {'ops':>3} {'armed':>5} {'alarms':>6}  {'force bias':>10} {'max':>6}  "
           f"{'torque bias':>11} {'max':>6}")
     every: dict[int, list] = {b: [] for b in BATCHES}
+    kinds: dict[str, list] = {}
     per_key: dict[str, dict[int, float]] = {}
     for (program, batch), run in runs.items():
         f = force_by_operation(run)
@@ -72,10 +73,16 @@ def parts(work: Path, speed: float, jobs: int) -> None:
         for k, v in f.items():
             if len(v["force_ratio"]):
                 per_key.setdefault(k, {})[batch] = float(v["force_ratio"].mean())
+        for k, v in f.items():
+            op = next(o for o in FIRST_PART_PROGRAMS[program].operations if k.endswith(f"/{o.number}"))
+            kind = ("worn" if program == "first-part-worn" else "2-flute" if op.tool.flutes == 2
+                    else "3-4 flute slots" if (op.mode or "slot") == "slot" else "3-4 flute down/up")
+            kinds.setdefault(kind, []).append(v["force_ratio"])
         armed = sum(p.get("expected_band") == "armed" for p in run.processes)
-        print(f"{program:<18} {batch:+5d} {len(run.processes):3d} {armed:5d} {len(run.alarms):6d}  "
-              f"{100 * (fr.mean() - 1):+9.2f} % {100 * np.abs(fr - 1).max():5.2f} %  "
-              f"{100 * (tr.mean() - 1):+10.2f} % {100 * np.abs(tr - 1).max():5.2f} %")
+        figures = (f"{100 * (fr.mean() - 1):+9.2f} % {100 * np.abs(fr - 1).max():5.2f} %  "
+                   f"{100 * (tr.mean() - 1):+10.2f} % {100 * np.abs(tr - 1).max():5.2f} %") if len(fr) else \
+            "(varying engagement: not paired)"
+        print(f"{program:<18} {batch:+5d} {len(run.processes):3d} {armed:5d} {len(run.alarms):6d}  {figures}")
         for a in run.alarms:
             print(f"    ALARM {a['level']} {a.get('program')}/{a.get('tool')}/{a.get('operation')}: {a.get('reason')}")
         for p in run.processes:
@@ -85,6 +92,10 @@ def parts(work: Path, speed: float, jobs: int) -> None:
     for b in BATCHES:
         fr = np.concatenate([x[0] for x in every[b]])
         print(f"batch {b:+d} %: force over {len(fr)} revolutions: bias {100 * (fr.mean() - 1):+.2f} %, "
+              f"p95 {100 * np.percentile(np.abs(fr - 1), 95):.2f} %, max {100 * np.abs(fr - 1).max():.2f} %")
+    for kind, rows in kinds.items():
+        fr = np.concatenate(rows)
+        print(f"  {kind:<18} {len(fr):5d} revolutions: bias {100 * (fr.mean() - 1):+.2f} %, "
               f"p95 {100 * np.percentile(np.abs(fr - 1), 95):.2f} %, max {100 * np.abs(fr - 1).max():.2f} %")
     print("\nforce / true force per operation (mean over its steady revolutions), batches -20 / 0 / +20 %:")
     for k in sorted(per_key, key=lambda k: [int(x) for x in k.split("/")]):
