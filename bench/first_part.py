@@ -189,6 +189,11 @@ def main(argv: list[str]) -> int:
               f"{max(r['torque'] for r in varying):.4f}, min {min(r['torque'] for r in varying):.4f}")
     est = [r["force_est"] for r in by_batch[0.0]]
     print(f"\nforce estimate from the true torque ([P] eq. 18, engaged_cf) / true mean resultant: {fmt(stats(est))}")
+    for label, sel in (("2-flute", lambda r: r["op"].tool.flutes == 2),
+                       ("3-4 flute slots", lambda r: r["op"].tool.flutes > 2 and r["table"]["mode"] == "slot"),
+                       ("3-4 flute down/up", lambda r: r["op"].tool.flutes > 2 and r["table"]["mode"] != "slot")):
+        rows = [r["force_est"] for r in by_batch[0.0] if sel(r)]
+        print(f"  {label:<18} {fmt(stats(rows))}")
     slot10 = [r["force_est"] for r in by_batch[0.0] if r["key"] == "4101/1/10"]
     print(f"  4101/1/10 (1200 rpm, 3 mm slot, phi20 2-flute): {100 * (np.mean(slot10) - 1):+.2f} %")
     print("\nthe deviating cases (every slot of first-part-slot), against the batch that hides them most")

@@ -10,7 +10,7 @@ gives for its programmed cut at the revolution's measured spindle speed and appl
 
 Only *steady* revolutions in cut are judged (docs/validation.md's steady): valid, cutting, the spindle not
 changing speed, a tool radius of path past the (re-)entry into the cut (the engagement still growing before
-it), the override and the measured feed per tooth each held within STEADY_FEED_PCT over the last
+it; the entry counted from the revolutions rising out of the air's noise into the cut, `_entry_credit`), the override and the measured feed per tooth each held within STEADY_FEED_PCT over the last
 STEADY_REVOLUTIONS revolutions. Others neither count nor break a run. An unknown override arms nothing
 (a note per process, `learning.expected_unarmed`, which the runner logs once a run; the process payload
 says `expected_band: "unarmed"`).
@@ -44,6 +44,8 @@ STEADY_FEED_PCT = 2.0         # "held": within this % of the largest of them
 LOW_STEP_OF_TOL = 0.5         # a drop into the low side that counts: at least half the tolerance in one revolution
 FALSE_ALARM_MARGIN_PCT = 5.0  # a false alarm widens the band so that what was seen fits with this to spare
 KEPT_WARNING_PROCESSES = 3    # processes in a row kept from teaching by the physics: warned once
+ENTRY_LOOKBACK = 4            # revolutions before the first cutting one that may be the cutter's first touch
+ENTRY_NOISE_SIGMAS = 3.0      # ... each above its own torque scatter (eq. 20) by this, and rising into the cut
 _QUANTITIES = ("torque_nm", "force_n")
 _UNITS = {"torque_nm": "N·m", "force_n": "N"}
 
@@ -122,6 +124,7 @@ class _Run:
     path_mm: float = 0.0          # path since (re-)entry into the cut
     overrides: deque = field(default_factory=lambda: deque(maxlen=STEADY_REVOLUTIONS))
     feeds: deque = field(default_factory=lambda: deque(maxlen=STEADY_REVOLUTIONS))
+    air: deque = field(default_factory=lambda: deque(maxlen=ENTRY_LOOKBACK))   # (torque, sigma, path) out of cut
     runs: dict[str, int] = field(default_factory=dict)           # level:quantity -> steady revolutions in a row
     prev: dict[str, tuple[float, bool]] = field(default_factory=dict)   # quantity -> (value, below) of the last steady
     low_armed: dict[str, bool] = field(default_factory=dict)
@@ -204,10 +207,11 @@ class ExpectedBand:
             run = self._run = _Run(proc)
         if not est.get("valid", True):
             return out   # a damaged revolution neither counts nor breaks a run
+        rpm, ovr = finite(est.get("spindle_rpm")), finite(est.get("feed_override_pct"))
         if not est.get("cutting"):
             run.leave_cut()
+            run.air.append(self._air_step(proc.key, est, rpm, ovr, op.flutes))
             return out
-        rpm, ovr = finite(est.get("spindle_rpm")), finite(est.get("feed_override_pct"))
         if ovr is None:
             if not run.noted:
                 run.noted = True
@@ -220,6 +224,9 @@ class ExpectedBand:
         if exp is None:
             run.leave_cut()
             return out
+        if run.path_mm == 0.0:   # the first revolution called cutting: the entry may have begun under the threshold
+            run.path_mm = self._entry_credit(run.air, finite(est.get("torque_nm")))
+        run.air.clear()
         path_before = run.path_mm
         run.path_mm += exp.feed_per_tooth_mm * op.flutes   # mm of path this revolution
         run.overrides.append(ovr)
@@ -242,6 +249,34 @@ class ExpectedBand:
                        op.engagement == "constant")
             run.prev[quantity] = (value, value < low)
         return out
+
+    def _air_step(self, key: str, est: dict[str, Any], rpm: float | None, ovr: float | None,
+                  flutes: int) -> tuple[float, float, float] | None:
+        """A revolution out of cut: (torque, its scatter, its path) where it may be the cutter's first touch."""
+        torque, sigma = finite(est.get("torque_nm")), finite(est.get("torque_sigma_nm"))
+        if torque is None or sigma is None or est.get("accelerating") or ovr is None:
+            return None
+        exp = self.expected(key, rpm, ovr)
+        return None if exp is None else (torque, sigma, exp.feed_per_tooth_mm * flutes)
+
+    @staticmethod
+    def _entry_credit(air: deque, first_torque: float | None) -> float:
+        """The path already cut when the first revolution over `[depth] min_torque_nm` came: the revolutions just
+        before it whose torque rose out of the air's noise (above ENTRY_NOISE_SIGMAS of its own scatter) and
+        below the next one's, each into the cut. A shallow cut's first touch stays under the threshold; without
+        this its steady revolutions were judged that many revolutions late. Flat air credits nothing (a
+        revolution not below the next breaks the chain), and a revolution or two credited wrongly moves the
+        first judged one by as much of a tool radius of path, where a slot's engagement is within
+        (p/R)²/2 of full."""
+        credit, above = 0.0, first_torque
+        for step in reversed(air):
+            if step is None or above is None:
+                break
+            torque, sigma, path = step
+            if not (ENTRY_NOISE_SIGMAS * sigma < torque < above - ENTRY_NOISE_SIGMAS * sigma):
+                break
+            credit, above = credit + path, torque
+        return credit
 
     @staticmethod
     def _held(run: _Run) -> bool:

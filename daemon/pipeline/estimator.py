@@ -183,10 +183,13 @@ class Estimator:
 
     `tool_at` (set by whoever knows the machine's context): given a revolution's
     last sample seq, the CNC tool number in the spindle, or None when unknown.
-    None (the default): every revolution uses `[tool]`.
+    None (the default): every revolution uses `[tool]`. `cut_at` likewise: the engagement of the
+    operation the CNC reports where `[operations]` declares a constant cut (per_revolution.OperationEngagement),
+    which the force's C_f is taken at; None (the default, or no such operation): `[cut]`'s.
     """
 
     tool_at: Callable[[int], int | None] | None = None
+    cut_at: Callable[[int], Any] | None = None
 
     def __init__(self, settings, descriptor, sample_rate_hz: float | None = None, *,
                  friction_zero: bool = False, force_magnitude: bool = False):
@@ -376,8 +379,9 @@ class Estimator:
             prev_spindle_rpm=None if math.isnan(prev_rpm) else prev_rpm, feed_override_pct=override_pct,
         )
         end = int(batch.seq_end[i])
-        phys = {k: [v] for k, v in self.physics.estimate(means, None if self.tool_at is None
-                                                          else self.tool_at(end)).items()}
+        phys = {k: [v] for k, v in self.physics.estimate(
+            means, None if self.tool_at is None else self.tool_at(end),
+            None if self.cut_at is None else self.cut_at(end)).items()}
         if end < self._last_seq:   # its filter gain holds for the sample-level power from the sample after it
             self.gain_steps.append((end + 1, self.physics.last_gain))
         if "f_mag" in c:
@@ -482,7 +486,9 @@ class Estimator:
             )
             tool_at = self.tool_at
             tools = None if tool_at is None else [tool_at(s) for s in batch.seq_end[g].tolist()]
-            phys = self.physics.estimate_many(cols, tools)
+            cut_at = self.cut_at
+            cuts = None if cut_at is None else [cut_at(s) for s in batch.seq_end[g].tolist()]
+            phys = self.physics.estimate_many(cols, tools, cuts)
             # each revolution's filter gain holds for the sample-level power from the sample after it
             ends, gains = batch.seq_end[g].tolist(), self.physics.gains
             self.gain_steps += [(e + 1, gain) for e, gain in zip(ends, gains) if e < self._last_seq]

@@ -202,6 +202,14 @@ class Gear:
     inertia_kgm2: float | None = None   # referred to the spindle; None: unknown, no compensation
 
 
+class OperationEngagement(NamedTuple):
+    """The engagement an operation declares (`[operations]`, constant): what the force's C_f is taken at."""
+
+    mode: str
+    radial_depth_mm: float
+    axial_depth_mm: float
+
+
 class _ToolPart(NamedTuple):
     """The tool-dependent columns of some revolutions (nan where none)."""
 
@@ -268,9 +276,10 @@ class RevolutionPhysics:
 
     # ---------------------------------------------------------------------------------
 
-    def estimate(self, r: RevolutionMeans, tool: int | None = None) -> dict:
+    def estimate(self, r: RevolutionMeans, tool: int | None = None, cut: OperationEngagement | None = None) -> dict:
         """All physical fields of one good revolution (payload of interfaces.md), on plain floats;
-        `tool`: the CNC number of the tool in the spindle (None: unknown, `[tool]`).
+        `tool`: the CNC number of the tool in the spindle (None: unknown, `[tool]`); `cut`: the engagement of
+        the operation the CNC reports, where `[operations]` declares it (None: `[cut]`'s, `force_engagement`).
 
         The live daemon's block closes one revolution: this is its path. The chain is `estimate_many`'s,
         step for step in the same order, through the same physics functions on Python floats (after its
@@ -334,7 +343,7 @@ class RevolutionPhysics:
                 status, radial_mm, axial_mm = d.status, _known(d.radial_depth_mm), _known(d.axial_depth_mm)
                 if not validity.within_tool(radial_mm, axial_mm, geometry.diameter_mm, geometry.flute_length_mm):
                     status, radial_mm, axial_mm = validity.OUTSIDE_TOOL, None, None
-        force_n = self._force_one(geometry, torque_nm, t_c, radial_mm, axial_mm, noise_nm)
+        force_n = self._force_one(geometry, torque_nm, t_c, radial_mm, axial_mm, noise_nm, cut)
         self.last_gain = gain
         self.gains = [gain]
         return {
@@ -370,24 +379,34 @@ class RevolutionPhysics:
         return validity.feed_status(t_c, tool.radius_mm)
 
     def _force_one(self, tool: ToolGeometry, torque_nm: float, t_c: float, radial_mm: float | None,
-                   axial_mm: float | None, noise_nm: float) -> float:
+                   axial_mm: float | None, noise_nm: float, cut: OperationEngagement | None = None) -> float:
         """`_force_many` of one revolution on floats: [P] eq. (18), nan where none."""
         cf = tool.cf
         if tool.cf_model:   # the engaged teeth added as vectors (force.engaged_cf, resultant.py R2)
-            cf = engaged_cf(self.mode, tool.flutes, tool.radius_mm, tool.helix_deg, t_c,
-                            self.known_radial_mm if radial_mm is None else radial_mm,
-                            self.known_axial_mm if axial_mm is None else axial_mm, self.material, tool.cf_fallback)
+            mode, radial_mm, axial_mm = self.force_engagement(cut, radial_mm, axial_mm)
+            cf = engaged_cf(mode, tool.flutes, tool.radius_mm, tool.helix_deg, t_c, radial_mm, axial_mm,
+                            self.material, tool.cf_fallback)
             if math.isnan(cf):
                 return math.nan
         return resultant_force_magnitudes_n(torque_nm, tool.radius_mm, cf, noise_nm)            # [P] eq. 18
 
-    def estimate_many(self, c: RevolutionColumns, tools: Sequence[int | None] | None = None) -> dict[str, list]:
+    def force_engagement(self, cut: OperationEngagement | None, radial_mm, axial_mm):
+        """(mode, radial, axial) the force's C_f is taken at: an operation's declared constant cut where the CNC
+        reports one (`[operations]`: its mode is the cut's, whatever `[cut]` says, and its programmed depths, not
+        depths estimated under `[cut]`'s mode); else `[cut]`'s mode, the estimated depths, else `[cut]`'s."""
+        if cut is not None:
+            return cut
+        return self.mode, _or_known(radial_mm, self.known_radial_mm), _or_known(axial_mm, self.known_axial_mm)
+
+    def estimate_many(self, c: RevolutionColumns, tools: Sequence[int | None] | None = None,
+                      cuts: Sequence[OperationEngagement | None] | None = None) -> dict[str, list]:
         """All physical fields of R good revolutions at once: {field: list of R plain values (None: null)}.
 
         Every formula runs once over the (R,) columns; only the feed check (a state machine over
         consecutive revolutions) and the depth's root finding, when configured, go revolution by revolution.
         `tools`: the CNC tool number in the spindle for each revolution (None: unknown); what depends on
-        the tool runs once per tool among them, on its revolutions.
+        the tool runs once per tool among them, on its revolutions; `cuts`: each revolution's operation
+        engagement (`estimate`'s `cut`), grouped with the tool.
         """
         rpm = c.spindle_rpm
         f_e = c.f_e_hz
@@ -442,21 +461,21 @@ class RevolutionPhysics:
         cutting = (torque_nm >= self.min_torque_nm) & ~ramp
         self._feed_check_many(c.feed_rate_mm_min, cutting & steady, override)
         noise_nm = self.force_noise_nm(sigma_nm)
-        groups = self._tool_groups(tools, count)
+        groups = self._tool_groups(tools, count, cuts)
         if len(groups) == 1:   # the usual block: one tool, the whole columns
             t_c, tangential_n, radial_mm, axial_mm, status, force_n = self._with_tool(
                 groups[0][0], torque_nm, rpm, feed_mm_min, force_feed_n, c.force_x_n, c.force_y_n, cutting, noise_nm,
-                ramp)
+                ramp, groups[0][2])
         else:
             t_c, tangential_n, radial_mm, axial_mm, force_n = (np.empty(count) for _ in range(5))
             status: list = [None] * count
-            for tool, rows in groups:
+            for tool, rows, cut in groups:
                 def pick(values):
                     return None if values is None else values[rows]
 
                 part = self._with_tool(tool, torque_nm[rows], rpm[rows], pick(feed_mm_min), pick(force_feed_n),
                                        pick(c.force_x_n), pick(c.force_y_n), cutting[rows], noise_nm[rows],
-                                       ramp[rows])
+                                       ramp[rows], cut)
                 for whole, piece in zip((t_c, tangential_n, radial_mm, axial_mm), part[:4]):
                     whole[rows] = piece
                 force_n[rows] = part.force_n
@@ -484,17 +503,21 @@ class RevolutionPhysics:
             "cutting": cutting.tolist(),
         }
 
-    def _tool_groups(self, tools: Sequence[int | None] | None, count: int) -> list[tuple[ToolGeometry, np.ndarray]]:
-        """(geometry, its revolutions' indices) per tool among `tools`; a number not listed is `[tool]`."""
-        if tools is None or not self.tools:
-            return [(self.tool, np.arange(count))]
-        rows: dict[int | None, list[int]] = {}
-        for i, number in enumerate(tools):
-            rows.setdefault(number if number in self.tools else None, []).append(i)
-        return [(self.tools.get(number, self.tool), np.array(r, dtype=np.intp)) for number, r in rows.items()]
+    def _tool_groups(self, tools: Sequence[int | None] | None, count: int,
+                     cuts: Sequence[OperationEngagement | None] | None = None) -> list[tuple]:
+        """(geometry, its revolutions' indices, operation engagement) per tool and engagement among `tools` and
+        `cuts`; a number not listed is `[tool]`."""
+        if (tools is None or not self.tools) and not (cuts and any(c is not None for c in cuts)):
+            return [(self.tool, np.arange(count), None)]
+        rows: dict[tuple, list[int]] = {}
+        for i in range(count):
+            number = None if tools is None else tools[i]
+            rows.setdefault((number if number in self.tools else None, None if cuts is None else cuts[i]), []).append(i)
+        return [(self.tools.get(number, self.tool), np.array(r, dtype=np.intp), cut)
+                for (number, cut), r in rows.items()]
 
     def _with_tool(self, tool: ToolGeometry, torque_nm, rpm, feed_mm_min, force_feed_n, force_x_n, force_y_n,
-                   cutting, noise_nm, ramp) -> _ToolPart:
+                   cutting, noise_nm, ramp, cut: OperationEngagement | None = None) -> _ToolPart:
         """What depends on the tool, for revolutions that all had `tool` in the spindle."""
         if feed_mm_min is not None:
             t_c = np.where(rpm > 0, feed_mm_min / (tool.flutes * rpm), np.nan)                  # t_c = f/(N·n)
@@ -503,7 +526,7 @@ class RevolutionPhysics:
         tangential_n = torque_nm / (tool.radius_mm * 1e-3)                                      # eq. (16)
         radial_mm, axial_mm, status = self._depth_many(tool, torque_nm, tangential_n, force_feed_n, t_c,
                                                        force_x_n, force_y_n, cutting, rpm, ramp)
-        force_n = self._force_many(tool, torque_nm, t_c, radial_mm, axial_mm, noise_nm)
+        force_n = self._force_many(tool, torque_nm, t_c, radial_mm, axial_mm, noise_nm, cut)
         return _ToolPart(t_c, tangential_n, radial_mm, axial_mm, status, force_n)
 
     def _filter_gains(self, f_e_hz: np.ndarray) -> np.ndarray:
@@ -698,21 +721,27 @@ class RevolutionPhysics:
         return self.min_torque_nm + self.FORCE_NOISE_SIGMAS * np.where(np.isfinite(sigma_nm), sigma_nm, 0.0)
 
     def _force_many(self, tool: ToolGeometry, torque_nm: np.ndarray, t_c: np.ndarray, radial_mm: np.ndarray,
-                    axial_mm: np.ndarray, noise_nm) -> np.ndarray:
+                    axial_mm: np.ndarray, noise_nm, cut: OperationEngagement | None = None) -> np.ndarray:
         """Resultant in-plane force magnitude, [P] eq. (18), >= 0, nan where none
         (force.resultant_force_magnitudes_n); C_f constant, or of the engaged teeth (force.engaged_cf):
-        the estimated depths, else the configured ones."""
+        the operation's declared cut, else the estimated depths, else the configured ones (`force_engagement`)."""
         if not tool.cf_model:
             return resultant_force_magnitudes_n(torque_nm, tool.radius_mm, tool.cf, noise_nm)
-        if self.known_radial_mm is not None:
-            radial_mm = np.where(np.isnan(radial_mm), self.known_radial_mm, radial_mm)
-        if self.known_axial_mm is not None:
-            axial_mm = np.where(np.isnan(axial_mm), self.known_axial_mm, axial_mm)
-        cf = engaged_cf(self.mode, tool.flutes, tool.radius_mm, tool.helix_deg, t_c, radial_mm, axial_mm,
+        mode, radial_mm, axial_mm = self.force_engagement(cut, radial_mm, axial_mm)
+        cf = engaged_cf(mode, tool.flutes, tool.radius_mm, tool.helix_deg, t_c, radial_mm, axial_mm,
                         self.material, tool.cf_fallback)
         usable = np.isfinite(cf)
         return np.where(usable, resultant_force_magnitudes_n(torque_nm, tool.radius_mm, np.where(usable, cf, 1.0),
                                                              noise_nm), np.nan)
+
+
+def _or_known(depth_mm, known_mm: float | None):
+    """An estimated depth (a float, None, or a column with nan), the configured one where it has none."""
+    if known_mm is None:
+        return depth_mm
+    if isinstance(depth_mm, np.ndarray):
+        return np.where(np.isnan(depth_mm), known_mm, depth_mm)
+    return known_mm if depth_mm is None else depth_mm
 
 
 def _known(value: float | None) -> float | None:

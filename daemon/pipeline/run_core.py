@@ -31,6 +31,7 @@ from millsense.daemon.learning.expected import ExpectedBand
 from millsense.daemon.config.operations import operation_cuts
 from millsense.daemon.pipeline.alarms import AlarmEngine
 from millsense.daemon.pipeline.override_track import OverrideTrack, load_gain
+from millsense.daemon.pipeline.per_revolution import OperationEngagement
 from millsense.daemon.pipeline.safety_check import SafetyCheck
 
 _BEFORE_ANY = -(1 << 62)   # a STATUS before any sample: it holds from the first one on
@@ -117,6 +118,14 @@ def expected_band(settings: Any) -> ExpectedBand | None:
     return ExpectedBand(cuts, getattr(settings, "learning", None), getattr(settings, "alarms", None)) if cuts else None
 
 
+def operation_engagements(settings: Any) -> dict[str, OperationEngagement]:
+    """key → the engagement of each `[operations]` entry of constant engagement: the force's C_f takes the
+    operation's mode and programmed depths where the CNC reports it (a varying one's are only maxima)."""
+    cuts = operation_cuts(settings) if getattr(settings, "operations", None) else {}
+    return {key: OperationEngagement(op.cut.mode, float(op.cut.radial_depth_mm), float(op.cut.axial_depth_mm))
+            for key, op in cuts.items() if op.engagement == "constant"}
+
+
 class PipelineCore:
     """Owns the estimator (re-made when the descriptor changes) and the alarm engine."""
 
@@ -137,6 +146,7 @@ class PipelineCore:
                            expected=expected_band(settings))   # [operations] (issue 41)
             if learning is not None and getattr(learning, "enabled", False) else None)
         self._block_end: tuple[int, int] | None = None  # (seq, device index) one past the last block
+        self._engagements = operation_engagements(settings)
         self._context_change: int | None = None  # a context change the process monitor has not settled yet
         self._last_rev_end: int | None = None  # the last sample of the last revolution closed
         self._factory = estimator_factory
@@ -178,6 +188,8 @@ class PipelineCore:
             self.estimator.override = self.override  # the feed the cut runs at: configured x applied override
         if hasattr(self.estimator, "tool_at"):
             self.estimator.tool_at = self.tool_at  # force and depth use the tool in the spindle
+        if hasattr(self.estimator, "cut_at") and self._engagements:
+            self.estimator.cut_at = self.cut_at    # the force: the engagement of the operation being cut
         if hasattr(self.estimator, "rev"):
             self.estimator.rev = self._rev_base  # revolution numbers go on where the last estimator stopped
         self.descriptor = descriptor
@@ -205,6 +217,11 @@ class PipelineCore:
             self._rev_base = int(getattr(est, "rev", self._rev_base) or 0)
 
     # -- context ----------------------------------------------------------
+    def cut_at(self, seq: int) -> OperationEngagement | None:
+        """The engagement the operation at sample `seq` declares (`[operations]`, constant), None otherwise."""
+        ctx = self.context.at(seq)
+        return None if ctx is None else self._engagements.get(ctx.key)
+
     def tool_at(self, seq: int) -> int | None:
         """The CNC's tool number in the spindle at sample `seq` (None: no context)."""
         ctx = self.context.at(seq)

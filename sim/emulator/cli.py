@@ -149,6 +149,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     pace.add_argument(
         "--fast", dest="realtime", action="store_false", help="as fast as possible (default for --capture)"
     )
+    parser.add_argument("--speed", metavar="K", type=_positive, default=1.0,
+                        help="pace the samples K times as fast as the clock (default 1; the descriptor keeps the "
+                             "true rate, so the daemon needs [daq] check_sample_rate = false): a test bench "
+                             "playing parts at speed")
     parser.add_argument("--start-on-connect", action="store_true",
                         help="with --tcp, --modbus-tcp or --modbus-rtu: the first sample is made when the first "
                              "client connects (Modbus: its first request; the status log's start event then), so "

@@ -24,8 +24,11 @@ import time
 
 class Pacer:
     def __init__(self, sample_rate_hz: int, *, realtime: bool = True, batch_s: float = 0.01, clock=time.monotonic,
-                 quantum: int = 1):
+                 quantum: int = 1, speed: float = 1.0):
         self.rate = sample_rate_hz
+        # realtime only: samples due `speed` times as fast as the clock (a test bench playing a part at speed;
+        # the samples and their descriptor keep their true rate)
+        self.speed = float(speed)
         self.realtime = realtime
         self.quantum = max(1, int(quantum))
         self.batch = max(1, round(sample_rate_hz * batch_s))
@@ -41,7 +44,7 @@ class Pacer:
         """How many samples to produce now (and count them as produced)."""
         if self.realtime:
             now = self.clock() if now is None else now
-            n = math.floor((now - self.t0) * self.rate) - self.produced
+            n = math.floor((now - self.t0) * self.rate * self.speed) - self.produced
             if limit is None or self.produced + n < limit:
                 n -= n % self.quantum   # whole frames only; the rest waits for the next one
         else:
@@ -54,7 +57,7 @@ class Pacer:
 
     def next_time(self) -> float:
         """Monotonic time when the next batch is due."""
-        return self.t0 + (self.produced + max(self.batch, self.quantum)) / self.rate
+        return self.t0 + (self.produced + max(self.batch * self.speed, self.quantum)) / (self.rate * self.speed)
 
 
 class CncTimer:

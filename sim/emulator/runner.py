@@ -106,10 +106,11 @@ def serve(args) -> int:
         afc_allowed=args.afc_allowed,
     )
     device.watchdog_broken = bool(getattr(args, "watchdog_broken", False))
+    speed = float(getattr(args, "speed", None) or 1.0)
     start = dict(first_index=device.head, scenario=args.scenario, protocol=device.protocol,
                  feed_override=device.feed_override if device.protocol >= 2 else None,
                  cnc_override_lag_ms=args.cnc_override_lag_ms,
-                 cnc_override_rate_pct_s=args.cnc_override_rate_pct_s)
+                 cnc_override_rate_pct_s=args.cnc_override_rate_pct_s, speed=speed)
     if getattr(args, "start_on_connect", False):
         if not (args.tcp or args.modbus_tcp or args.modbus_rtu):
             raise EmulatorError("--start-on-connect waits for a client: give --tcp, --modbus-tcp or --modbus-rtu", 2)
@@ -126,11 +127,13 @@ def serve(args) -> int:
     elif not args.loop and math.isfinite(getattr(source, "duration_s", math.inf)):
         duration_samples = int(round(source.duration_s * rate))
     realtime = args.realtime if args.realtime is not None else not args.capture
+    if speed != 1.0 and not realtime:
+        raise EmulatorError("--speed: only for a stream paced by the clock (not --fast or --capture)", 2)
     if args.capture and duration_samples is None:
         raise EmulatorError(f"scenario {args.scenario!r} never ends: give --duration-s for a capture", 2)
     # the framed stream sends whole frames (a Modbus register map fills its ring sample by sample)
     stream = not (args.modbus_tcp or args.modbus_rtu)
-    pacer = Pacer(rate, realtime=realtime, quantum=args.per_frame if stream else 1)
+    pacer = Pacer(rate, realtime=realtime, quantum=args.per_frame if stream else 1, speed=speed)
     try:
         code = asyncio.run(_main(args, device, pacer, duration_samples))
     except OSError as exc:

@@ -90,6 +90,25 @@ def test_pacer_sends_whole_frames_as_a_daq_does():
     assert pacer.due(limit=limit) == 15   # the last, partial frame
 
 
+def test_pacer_at_speed_sends_k_times_the_samples_without_drift_and_restarts():
+    """`--speed K`: K seconds of samples each second of the clock, whole frames, still one wake-up per 10 ms;
+    `restart` (the stream held until its first client) makes the first sample due then."""
+    now = [100.0]
+    pacer = Pacer(1000, clock=lambda: now[0], quantum=10, speed=3.0)
+    now[0] = 250.0
+    pacer.restart()
+    assert pacer.due() == 0
+    rng = np.random.default_rng(2)
+    wakes = 0
+    while now[0] < 260.0:
+        now[0] = pacer.next_time() + float(rng.uniform(0, 0.004))
+        n = pacer.due()
+        assert n % 10 == 0
+        wakes += 1
+    assert 0 <= int((now[0] - 250.0) * 3000) - pacer.produced < 10
+    assert 900 <= wakes <= 1001   # 10 s of the clock at one wake-up per 10 ms, not per 10/3 ms
+
+
 def test_create_driver_names_the_transport_in_errors():
     with pytest.raises(DriverError, match="'carrier-pigeon'"):
         create_driver("carrier-pigeon")

@@ -157,6 +157,9 @@ def test_first_part_options_are_refused_where_they_mean_nothing(millsense_cmd, t
         (["--scenario", "first-part-worn", "--life-used", "1:1.5"], "within 0..1"),
         (["--scenario", "step", "--material-offset-pct", "-95"], "above -90"),
         (["--scenario", "ramp", "--material-offset-pct", "10"], "the ramp cuts nothing"),
+        (["--scenario", "first-part-slot", "--speed", "3"], "--speed: only for a stream paced by the clock"),
+        (["--scenario", "first-part-slot", "--start-on-connect"], "--start-on-connect waits for a client"),
+        (["--scenario", "first-part-slot", "--speed", "0"], "expected a value > 0"),
     ]
     for args, message in cases:
         res = subprocess.run([*millsense_cmd, "sim", *args, "--capture", cap], capture_output=True, text=True,
