@@ -96,7 +96,7 @@ def test_pacer_at_speed_sends_k_times_the_samples_without_drift_and_restarts():
     now = [100.0]
     pacer = Pacer(1000, clock=lambda: now[0], quantum=10, speed=3.0)
     now[0] = 250.0
-    pacer.restart()
+    pacer.restart(now[0])
     assert pacer.due() == 0
     rng = np.random.default_rng(2)
     wakes = 0
