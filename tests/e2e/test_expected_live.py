@@ -107,6 +107,17 @@ def _first_steady_rev(state, estimates: list[dict], operations: dict, alarm_rev:
     return start + math.ceil(radius_mm / (fz_mm * flutes) - 1e-9)
 
 
+def _alarm_and_hold(sub, log_path, level: str, what: str) -> dict:
+    """The first `level` alarm, then the emulated DAQ's feed-hold output (what the alarm held)."""
+    try:
+        alarm = wait_for(lambda: [a for a in sub.get("alarm") if a["level"] == level], SLOW_S, what)[0]
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}; alarms {sub.get('alarm')}; processes {sub.get('process')}") from None
+    wait_for(lambda: [e for e in read_jsonl(log_path) if e.get("event") == "outputs" and e.get("feed_hold")],
+             30.0, "the emulated DAQ's feed-hold output")
+    return alarm
+
+
 @pytest.mark.slow
 def test_a_first_part_cut_deeper_than_programmed_trips_expected_high_live(tmp_path):
     real = PROGRAMS["part-program"].operations[0]
@@ -142,13 +153,7 @@ def test_a_first_part_cut_deeper_than_programmed_trips_expected_high_live(tmp_pa
     shallow = _operations(min(real.depths_mm) / DEEPER)
 
     def tripped(sub, log_path, at):
-        try:
-            alarm = wait_for(lambda: [a for a in sub.get("alarm") if a["level"] == "expected_high"], SLOW_S,
-                             "expected_high on the deeper cut")[0]
-        except AssertionError as exc:
-            raise AssertionError(f"{exc}; alarms {sub.get('alarm')}; processes {sub.get('process')}") from None
-        wait_for(lambda: [e for e in read_jsonl(log_path) if e.get("event") == "outputs" and e.get("feed_hold")],
-                 30.0, "the emulated DAQ's feed-hold output")
+        alarm = _alarm_and_hold(sub, log_path, "expected_high", "expected_high on the deeper cut")
         # the operator's false-alarm on the expected band: never open over Zenoh, granted at the machine, audited
         env = dict(os.environ, **at["env"])
         cli = ["limits", "false-alarm", KEY, "--json"]
@@ -182,13 +187,7 @@ def test_a_first_part_cut_shallower_in_a_constant_slot_trips_expected_low_live(t
     ops[KEY]["engagement"] = "constant"
 
     def tripped(sub, log_path, at):
-        try:
-            alarm = wait_for(lambda: [a for a in sub.get("alarm") if a["level"] == "expected_low"], SLOW_S,
-                             "expected_low on the shallower cut")[0]
-        except AssertionError as exc:
-            raise AssertionError(f"{exc}; alarms {sub.get('alarm')}; processes {sub.get('process')}") from None
-        wait_for(lambda: [e for e in read_jsonl(log_path) if e.get("event") == "outputs" and e.get("feed_hold")],
-                 30.0, "the emulated DAQ's feed-hold output")
+        alarm = _alarm_and_hold(sub, log_path, "expected_low", "expected_low on the shallower cut")
         return alarm, sub.get("estimate"), at["state"]
 
     alarm, estimates, state = _run_part(tmp_path, "exp-low", ops, tripped)

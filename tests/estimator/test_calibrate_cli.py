@@ -14,6 +14,7 @@ TABLE2 = {"low-speed": (2.6629, 0.0400), "high-speed": (1.6160, 0.0022)}
 
 
 def _run(cmd, timeout=150):
+    """A CLI subprocess: (exit code, stdout, stderr); killed after `timeout` s (test_calibrate_material too)."""
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         out, err = proc.communicate(timeout=timeout)

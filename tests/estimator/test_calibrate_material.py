@@ -12,12 +12,12 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
-import subprocess
 import tomllib
 
 import pytest
 
 from . import configs, simcase
+from .test_calibrate_cli import _run as run_cli
 
 TORQUE_REL = 0.02
 TORQUE_ABS_NM = 0.03
@@ -28,14 +28,7 @@ LEVEL_MM = 15.0                    # of travel at each feed, after the first's e
 
 
 def _run(cmd, timeout=180):
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        out, err = proc.communicate(timeout=timeout)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    return proc.returncode, out, err
+    return run_cli(cmd, timeout)   # the calibrate CLI's subprocess runner (test_calibrate_cli.py)
 
 
 def _test_cut(name, *, material="SS41", depth_mm=2.0, feeds=FEEDS_PER_TOOTH_MM):
