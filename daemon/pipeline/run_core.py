@@ -112,16 +112,20 @@ def process_payload(summary: dict[str, Any], machine: str, t: float | None) -> d
     return out
 
 
-def expected_band(settings: Any) -> ExpectedBand | None:
-    """The physics' expected band of the configured [operations]; None without any (everything as before)."""
-    cuts = operation_cuts(settings) if getattr(settings, "operations", None) else {}
+def _operation_cuts(settings: Any) -> dict[str, Any]:
+    return operation_cuts(settings) if getattr(settings, "operations", None) else {}
+
+
+def expected_band(settings: Any, cuts: dict[str, Any] | None = None) -> ExpectedBand | None:
+    """The physics' expected band of the configured [operations] (`cuts`: already resolved); None without any
+    (everything as before)."""
+    cuts = _operation_cuts(settings) if cuts is None else cuts
     return ExpectedBand(cuts, getattr(settings, "learning", None), getattr(settings, "alarms", None)) if cuts else None
 
 
-def operation_engagements(settings: Any) -> dict[str, OperationEngagement]:
-    """key → the engagement of each `[operations]` entry of constant engagement: the force's C_f takes the
-    operation's mode and programmed depths where the CNC reports it (a varying one's are only maxima)."""
-    cuts = operation_cuts(settings) if getattr(settings, "operations", None) else {}
+def operation_engagements(cuts: dict[str, Any]) -> dict[str, OperationEngagement]:
+    """key → the engagement of each resolved `[operations]` entry of constant engagement: the force's C_f takes
+    the operation's mode and programmed depths where the CNC reports it (a varying one's are only maxima)."""
     return {key: OperationEngagement(op.cut.mode, float(op.cut.radial_depth_mm), float(op.cut.axial_depth_mm))
             for key, op in cuts.items() if op.engagement == "constant"}
 
@@ -140,13 +144,14 @@ class PipelineCore:
         # The CNC's applied feed override by sample (STATUS): kept here so that a new estimator goes on with it
         self.override = OverrideTrack()
         learning = getattr(settings, "learning", None)
+        cuts = _operation_cuts(settings)   # [operations] resolved once: the expected band and the force's engagement
         self.monitor: ProcessMonitor | None = (
             ProcessMonitor(learning, limits=limits, tools=tools, first_process=first_process,
                            gain=load_gain(settings), alarms=getattr(settings, "alarms", None),
-                           expected=expected_band(settings))   # [operations] (issue 41)
+                           expected=expected_band(settings, cuts))   # [operations] (issue 41)
             if learning is not None and getattr(learning, "enabled", False) else None)
         self._block_end: tuple[int, int] | None = None  # (seq, device index) one past the last block
-        self._engagements = operation_engagements(settings)
+        self._engagements = operation_engagements(cuts)
         self._context_change: int | None = None  # a context change the process monitor has not settled yet
         self._last_rev_end: int | None = None  # the last sample of the last revolution closed
         self._factory = estimator_factory
