@@ -12,7 +12,10 @@ time a flood can take.
 
 Per query: the payload's length is checked before anything reads it
 (`MAX_QUERY_BYTES`); `status` and `config` answers are kept as bytes for a
-moment, so a burst of status queries costs one `Controls.status()`. `limits`
+moment, so a burst of status queries costs one `Controls.status()`; a kept
+status is served only while `status_version()` (the state, the interlock and
+the faults) is what it was, so a trip shows at the next query, never a cached
+`armed` after the DAQ took the hold. `limits`
 reads only (no token): with no payload it answers `controls.limits()`, with
 `{"key": "program/tool/operation"}` that key's detail. Refusals are
 never logged one line each (finding 6): `cmd/*` refusals go to the audit log,
@@ -58,12 +61,14 @@ class QueryServer:
                  config: Callable[[], dict], commands: dict[str, Callable[[dict, str], dict]],
                  gate: CommandGate | None, log: Any = None, capacity: int = RING_CAPACITY,
                  max_rate_hz: float = 1000.0, cache_status: bool = True,
-                 limits: Callable[[str | None], dict] | None = None):
+                 limits: Callable[[str | None], dict] | None = None,
+                 status_version: Callable[[], Any] | None = None):
         self._status, self._config, self._gate, self._log = status, config, gate, log
+        self._status_version = status_version
         self._limits = limits
         self._commands = commands
         self._max_per_tick = max(1, int(max_rate_hz / 10))
-        self._cache: dict[str, tuple[float, bytes]] = {}
+        self._cache: dict[str, tuple[float, bytes, Any]] = {}   # name -> (until, body, version)
         self._cache_status = cache_status
         self._stop = threading.Event()
         self._lock = threading.Lock()  # counters and the refusal log line, shared by the workers
@@ -148,7 +153,8 @@ class QueryServer:
 
     # ---- the kinds of query --------------------------------------------------------------
     def _serve_status(self, _query: Any, _command: str | None) -> tuple[bool, bytes]:
-        return self._cached("status", STATUS_CACHE_S if self._cache_status else 0.0, self._status)
+        return self._cached("status", STATUS_CACHE_S if self._cache_status else 0.0, self._status,
+                            self._status_version)
 
     def _serve_config(self, _query: Any, _command: str | None) -> tuple[bool, bytes]:
         return self._cached("config", CONFIG_CACHE_S, self._config)
@@ -172,10 +178,17 @@ class QueryServer:
             return False, dumps({"ok": False, "error": str(exc)})
         return self._cached(f"limits {key}", 0.0, lambda: self._limits(key))
 
-    def _cached(self, name: str, keep_s: float, produce: Callable[[], dict]) -> tuple[bool, bytes]:
+    def _cached(self, name: str, keep_s: float, produce: Callable[[], dict],
+                version: Callable[[], Any] | None = None) -> tuple[bool, bytes]:
+        """`version`: what the kept answer must still match to be served (read before producing, so an
+        answer produced across a change is kept under the older version and not served again)."""
         now = time.monotonic()
         hit = self._cache.get(name)
-        if hit is not None and now < hit[0]:
+        try:
+            current = version() if version is not None else None
+        except Exception:  # noqa: BLE001 - no version, no cache: always fresh
+            current, keep_s, hit = object(), 0.0, None
+        if hit is not None and now < hit[0] and hit[2] == current:
             return True, hit[1]
         try:
             result = produce()
@@ -187,7 +200,7 @@ class QueryServer:
             self._note_refusal(name, reason)
             return False, dumps({"ok": False, "error": reason})
         if keep_s > 0:
-            self._cache[name] = (now + keep_s, body)
+            self._cache[name] = (now + keep_s, body, current)
         return True, body
 
     def _serve_command(self, query: Any, command: str | None) -> tuple[bool, bytes]:

@@ -281,7 +281,8 @@ class ZenohSink:
             self._queries = QueryServer(session, self.prefix, status=self._status_answer, config=self._config_answer,
                                         commands=self._commands(controls), gate=self.gate, log=log,
                                         cache_status=controls is not None,
-                                        limits=self._limits_answer if has_limits else None)
+                                        limits=self._limits_answer if has_limits else None,
+                                        status_version=getattr(controls, "status_version", None))
             self._declare_context(controls)
             self._token = self._keep(session.liveliness().declare_token(f"{self.prefix}/alive"))
         except BaseException:

@@ -88,6 +88,12 @@ class OperatorControls(Controls):
     def status(self) -> dict[str, Any]:
         return self._report.payload()
 
+    def status_version(self) -> tuple:
+        """What a kept status answer must still match (publish/queryables.py): the daemon's state, the
+        interlock's and the faults. Cheap: read on every status query."""
+        il = self._interlock
+        return (self._board.state, il.state, il.reason, il.hold_unconfirmed, tuple(sorted(self._board.faults.items())))
+
     def config(self) -> dict[str, Any]:
         if self._effective_config is None:
             return {"machine": self.machine}

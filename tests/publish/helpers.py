@@ -79,7 +79,11 @@ class FakeInterlock:
         self.fail_with: Exception | None = None
 
     def status(self) -> dict:
+        self.status_calls = getattr(self, "status_calls", 0) + 1
         return {"state": "running", "interlock": "feed_hold" if self.latched else "clear"}
+
+    def status_version(self) -> tuple:
+        return (self.latched,)
 
     def config(self) -> dict:
         return {"machine": "m1", "interlock": {"enabled": True}}

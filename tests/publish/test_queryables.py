@@ -63,6 +63,23 @@ def test_reset_with_the_right_token_clears_the_latch(daemon):
     assert ask(b, "millsense/m1/status")[0][1]["interlock"] == "clear"  # no stale cached status after a command
 
 
+def test_a_cached_status_is_never_served_once_the_interlock_changed(daemon, monkeypatch):
+    """A burst of status queries costs one `status()`, but never past a change of what the status says of the
+    feed: a trip from the estimator (no command through the sink) shows at the next query, not up to
+    STATUS_CACHE_S later (a test read `armed` from the cache after the DAQ had already taken the hold)."""
+    from millsense.daemon.publish import queryables
+
+    monkeypatch.setattr(queryables, "STATUS_CACHE_S", 60.0)   # the cache's lifetime out of the race
+    sink, controls, b = daemon
+    controls.latched = False
+    assert ask(b, "millsense/m1/status")[0][1]["interlock"] == "clear"
+    calls = controls.status_calls
+    assert ask(b, "millsense/m1/status")[0][1]["interlock"] == "clear"
+    assert controls.status_calls == calls     # unchanged: served from the cache
+    controls.latched = True                   # the trip, outside any command
+    assert ask(b, "millsense/m1/status")[0][1]["interlock"] == "feed_hold"
+
+
 def test_exception_inside_controls_is_a_signed_result_and_the_daemon_lives_on(daemon):
     sink, controls, b = daemon
     controls.fail_with = RuntimeError("DAQ link down, cannot release feed hold")
