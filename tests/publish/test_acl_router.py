@@ -111,12 +111,13 @@ def test_router_acl_stops_spoofing_and_lets_the_daemon_through(tmp_path):
             sessions += [viewer, operator, spoofer, stranger, adapter]
             seen_viewer, seen_operator, seen_stranger = Seen(), Seen(), Seen()
             alive: list[str] = []
+            alive_kinds: list[str] = []   # with PUT / DELETE, for the message
             entities += [
                 viewer.declare_subscriber("millsense/**", seen_viewer),
                 operator.declare_subscriber("millsense/**", seen_operator),
                 stranger.declare_subscriber("millsense/**", seen_stranger),
-                viewer.liveliness().declare_subscriber("millsense/*/alive", lambda s: alive.append(str(s.key_expr)),
-                                                       history=True),
+                viewer.liveliness().declare_subscriber("millsense/*/alive", lambda s: (
+                    alive.append(str(s.key_expr)), alive_kinds.append(f"{s.kind}: {s.key_expr}")), history=True),
             ]
 
             # -- the daemon's publications reach the viewer through the router
@@ -176,8 +177,11 @@ def test_router_acl_stops_spoofing_and_lets_the_daemon_through(tmp_path):
             viewer_limits = [r for r in viewer.get(f"millsense/{MACHINE}/limits", timeout=3.0)]
             stranger_status = [r for r in stranger.get(f"millsense/{MACHINE}/status", timeout=1.0)]
             viewer_status = [r for r in viewer.get(f"millsense/{MACHINE}/status", timeout=3.0)]
-            ghost_alive = [str(r.ok.key_expr) for r in viewer.liveliness().get("millsense/*/alive", timeout=2.0)
-                           if r.ok is not None]
+            # the tokens the router holds: asked until the daemon's is among them (the positive control: a get on a
+            # loaded box came back without it once, CI), then the spoofer's must not be
+            ghost_alive = wait_for(lambda: (lambda keys: keys if f"millsense/{MACHINE}/alive" in keys else None)(
+                [str(r.ok.key_expr) for r in viewer.liveliness().get("millsense/*/alive", timeout=2.0)
+                 if r.ok is not None]), 30.0, f"the daemon's alive token at the router ({alive_kinds})")
             assert daemon.poll() is None
         finally:
             for e in entities:
@@ -191,7 +195,7 @@ def test_router_acl_stops_spoofing_and_lets_the_daemon_through(tmp_path):
 
     # nobody received a spoofed sample, alive token or reply
     assert seen_viewer.spoofed() == [] and seen_operator.spoofed() == [], (seen_viewer.spoofed() + seen_operator.spoofed())[:3]
-    assert not [a for a in alive if "ghost" in a] and ghost_alive == [f"millsense/{MACHINE}/alive"], (alive, ghost_alive)
+    assert not [a for a in alive if "ghost" in a] and ghost_alive == [f"millsense/{MACHINE}/alive"], (alive_kinds, ghost_alive)
     assert fake_queries == [], "a query reached the fake queryable"
     assert ghost_replies == []
     # the real daemon answered the operator, once per query, and it was not the impostor
