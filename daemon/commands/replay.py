@@ -188,13 +188,33 @@ class Replay:
         seq, index, lost, disc, parts = self._pending
         self._pending, self._pending_n = None, 0
         counts = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        step = self.core.process(SampleBlock(seq, index, counts, lost, disc))
-        self._write_items(step.items, lines)
-        self._note_faults(step)
-        if self.phase_check is not None:   # every change: a large block may raise and clear it
+        # The wiring check first (it reads only the raw samples): while it holds fault `signals`, every
+        # revolution is invalid, `invalid: "phase"`, as live (runner.py `_set_stream_problem`). A joined block
+        # is up to 16 s, so it is cut where the check changed (the estimates do not depend on where blocks are
+        # cut) rather than judged a block late as the live daemon's 0.1-s blocks are.
+        pieces: list[tuple[int, bool]] = []   # (end of a piece, the check faulted within it)
+        if self.phase_check is not None:
+            faulted = self.phase_check.faulted
             self.phase_check.update(counts, lost, disc)
-            for at, verdict in self.phase_check.changes:
+            for at, verdict in self.phase_check.changes:   # every change: a large block may raise and clear it
                 self._note_fault_change("signals", seq + at, verdict)
+                pieces.append((at + 1, faulted))
+                faulted = bool(verdict)
+            pieces.append((len(counts), faulted))
+        else:
+            pieces.append((len(counts), False))
+        start = 0
+        for end, faulted in pieces:
+            if end <= start:
+                continue
+            self.core.stream_problem = "phase" if faulted else None
+            first = start == 0
+            step = self.core.process(SampleBlock(seq + start, (index + start) & 0xFFFFFFFF, counts[start:end],
+                                                 lost if first else 0, disc and first))
+            self._write_items(step.items, lines)
+            self._note_faults(step)
+            start = end
+        self.core.stream_problem = "phase" if self.phase_check is not None and self.phase_check.faulted else None
 
     def _note_faults(self, step) -> None:
         """The faults the live daemon would raise or clear, at the sample where each was decided."""

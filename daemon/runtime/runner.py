@@ -519,7 +519,7 @@ class Runner:
         if last is None or last.rate != rate:
             self.rate_check = RateCheck(rate, faulted=last is not None and last.faulted)
         self.board.verdict("sample_rate", self.rate_check.update(seq_last, arrival_s, restart))
-        self.core.stream_problem = "sample_rate" if self.rate_check.faulted else None
+        self._set_stream_problem()
 
     def _check_phase(self, block: Any) -> None:
         """The currents against each other and the voltages (phase_check.py): fault `signals`, source `phase`.
@@ -530,9 +530,17 @@ class Runner:
             self._phase_desc, self.phase_check = desc, None
             if desc is not None:   # the estimator accepted it: so does this; it goes on from the last verdict
                 self.phase_check = PhaseCheck(self.settings, desc, faulted=last is not None and last.faulted)
-        if self.phase_check is None:
-            return
-        self.board.verdict("phase", self.phase_check.update(block.counts, block.lost_before, block.discontinuity))
+        if self.phase_check is not None:
+            self.board.verdict("phase", self.phase_check.update(block.counts, block.lost_before, block.discontinuity))
+        self._set_stream_problem()
+
+    def _set_stream_problem(self) -> None:
+        """While the rate or the wiring check holds fault `signals`, every revolution is published invalid
+        with its name: the numbers of a stream at another rate, or of swapped or turned current sensors, are
+        wrong however whole the revolution (nothing downstream, learning or AFC, takes them as measured)."""
+        rate, phase = self.rate_check, self.phase_check
+        self.core.stream_problem = ("sample_rate" if rate is not None and rate.faulted else
+                                    "phase" if phase is not None and phase.faulted else None)
 
     def _caught_up(self) -> bool:
         """Is the driver's queue empty, i.e. did this block just arrive?"""
