@@ -188,7 +188,7 @@ class Replay:
         seq, index, lost, disc, parts = self._pending
         self._pending, self._pending_n = None, 0
         counts = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        # The wiring check first (it reads only the raw samples): while it holds fault `signals`, every
+        # The phase check first (it reads only the raw samples): while it holds fault `signals`, every
         # revolution is invalid, `invalid: "phase"`, as live (runner.py `_set_stream_problem`). A joined block
         # is up to 16 s, so it is cut where the check changed (the estimates do not depend on where blocks are
         # cut) rather than judged a block late as the live daemon's 0.1-s blocks are.
@@ -207,14 +207,19 @@ class Replay:
         for end, faulted in pieces:
             if end <= start:
                 continue
-            self.core.stream_problem = "phase" if faulted else None
+            self.core.stream_problem = self._stream_problem(faulted)
             first = start == 0
             step = self.core.process(SampleBlock(seq + start, (index + start) & 0xFFFFFFFF, counts[start:end],
                                                  lost if first else 0, disc and first))
             self._write_items(step.items, lines)
             self._note_faults(step)
             start = end
-        self.core.stream_problem = "phase" if self.phase_check is not None and self.phase_check.faulted else None
+        self.core.stream_problem = self._stream_problem(self.phase_check is not None and self.phase_check.faulted)
+
+    def _stream_problem(self, phase_faulted: bool) -> str | None:
+        """As live (runner.py `_set_stream_problem`, without the rate check a capture cannot make): the power
+        check's fault from the next block on (it judges the estimates a block makes)."""
+        return "phase" if phase_faulted else "wiring" if self.power_check.faulted else None
 
     def _note_faults(self, step) -> None:
         """The faults the live daemon would raise or clear, at the sample where each was decided."""

@@ -434,10 +434,9 @@ class Estimator:
             track.forget_before(seq_end[-1])   # the next revolution starts after this sample
         # damage from lost samples, a gap or a restart: "lost_samples"; only an impossible angle step: "signals"
         # a fault of the whole stream (`stream_problem`, the runner's rate check) before any of these
-        invalid = [self.stream_problem or ("lost_samples" if dmg and (n_lost or not jmp) else
-                                           "signals" if dmg or prob or s else None)
-                   for dmg, jmp, n_lost, prob, s in zip(batch.damaged.tolist(), batch.jumped.tolist(), lost,
-                                                       problems, sat)]
+        own = [("lost_samples" if dmg and (n_lost or not jmp) else "signals" if dmg or prob or s else None)
+               for dmg, jmp, n_lost, prob, s in zip(batch.damaged.tolist(), batch.jumped.tolist(), lost, problems, sat)]
+        invalid = [self.stream_problem or reason for reason in own]
         c = self._cols
         duration = batch.end_pos - batch.start_pos
         mean = batch.integrals / duration[:, None]
@@ -518,6 +517,8 @@ class Estimator:
                 est = dict.fromkeys(NULL_FIELDS)
                 est.update(zip(_BASE_KEYS, (first + i, seq_end[i], samples[i], lost[i], ovr[i])), valid=False,
                            invalid=invalid[i], cutting=False, accelerating=False)
+                if own[i] is None:   # whole, invalid only for the stream's fault: the wiring check still reads it
+                    est["wiring_p_in_w"], est["wiring_rpm"] = float(mean[i, c["p_in"]]), rpm_l[i]
                 if has_fm:
                     est["force_measured_n"] = None
                 est["saturated"] = sat[i]

@@ -13,6 +13,12 @@ power has been positive for as many revolutions again.
 Revolutions that say nothing about the wiring are left out: damaged ones, a
 spindle speeding up (`accelerating`) and one slowing down, which may be
 braking and feeding power back (regeneration).
+
+While this (or another stream check) holds the fault, every revolution is
+published invalid (`invalid: "wiring"`, runner.py `_set_stream_problem`), its
+quantities null: the estimator hands this check the whole revolution's input
+power and speed beside it (`wiring_p_in_w`, `wiring_rpm`, never published), so
+that the fault still clears once the wiring is right.
 """
 
 from __future__ import annotations
@@ -41,9 +47,12 @@ class PowerSignCheck:
 
     def update(self, est: Mapping[str, Any]) -> str | None:
         """One estimate. Returns the verdict (verdict.py): the reason when raised, "" when cleared, else None."""
-        rpm, p_in = est.get("spindle_rpm"), est.get("p_in_w")
+        if est.get("valid", True):
+            rpm, p_in = est.get("spindle_rpm"), est.get("p_in_w")
+        else:   # invalid for the stream's fault only: whole, judged on what the estimator kept for this check
+            rpm, p_in = est.get("wiring_rpm"), est.get("wiring_p_in_w")
         prev, self._prev_rpm = self._prev_rpm, rpm
-        if not est.get("valid", True) or est.get("accelerating") or rpm is None or p_in is None:
+        if est.get("accelerating") or rpm is None or p_in is None:
             return None
         if prev is not None and rpm < prev * (1.0 - SLOWING_PCT / 100.0):
             return None

@@ -37,7 +37,7 @@ from millsense.daemon.pipeline.safety_check import SafetyCheck
 _BEFORE_ANY = -(1 << 62)   # a STATUS before any sample: it holds from the first one on
 
 # Internal fields of the estimator's dicts that are not part of the `estimate` payload.
-_INTERNAL = ("seq_end",)
+_INTERNAL = ("seq_end", "wiring_p_in_w", "wiring_rpm")   # the last two: power_check.py's, on invalid revolutions
 
 
 @dataclass

@@ -535,12 +535,13 @@ class Runner:
         self._set_stream_problem()
 
     def _set_stream_problem(self) -> None:
-        """While the rate or the wiring check holds fault `signals`, every revolution is published invalid
-        with its name: the numbers of a stream at another rate, or of swapped or turned current sensors, are
-        wrong however whole the revolution (nothing downstream, learning or AFC, takes them as measured)."""
+        """While the rate, the phase or the power check holds fault `signals`, every revolution is published
+        invalid with its name: the numbers of a stream at another rate, or of swapped or turned current sensors,
+        are wrong however whole the revolution (nothing downstream, learning or AFC, takes them as measured)."""
         rate, phase = self.rate_check, self.phase_check
         self.core.stream_problem = ("sample_rate" if rate is not None and rate.faulted else
-                                    "phase" if phase is not None and phase.faulted else None)
+                                    "phase" if phase is not None and phase.faulted else
+                                    "wiring" if self.power_check.faulted else None)
 
     def _caught_up(self) -> bool:
         """Is the driver's queue empty, i.e. did this block just arrive?"""

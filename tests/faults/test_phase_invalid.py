@@ -75,3 +75,43 @@ def test_replay_publishes_them_invalid_from_the_sample_the_check_decided(tmp_pat
     assert after and [(e["valid"], e["invalid"]) for e in after] == [(False, "phase")] * len(after)
     assert [e for e in before if e["valid"]], "revolutions before the check decided are judged as before"
     assert not [e for e in before if e["invalid"] == "phase"]
+
+
+def test_current_sensors_turned_round_the_power_check_makes_them_invalid_too(tmp_path):
+    """All three current sensors turned round: the phase check sees nothing wrong (they still sum to zero and turn
+    with the voltages), the power check (negative input power, 20 steady revolutions) raises the fault; from the
+    next block every revolution is `invalid: "wiring"`, and what the check reads of it is never published."""
+    cfg = write_config(tmp_path / "rev.toml", machine="wire-03", daq='transport = "sim"\nscenario = "step"',
+                       interlock=INTERLOCK_OPEN)
+    text = cfg.read_text()
+    for name in ("i_u", "i_v", "i_w"):
+        text = text.replace(f"[channels.{name}]\nscale = 0.002", f"[channels.{name}]\nscale = -0.002")
+    assert text.count("scale = -0.002") == 3
+    cfg.write_text(text)
+    with runner_on_the_sim(load_config(cfg)) as (runner, drv, sink):
+        counts = np.array(make_source("step", seed=3).step(8000), dtype=np.int16, copy=True)
+        raised_at = None
+        for k in range(0, len(counts), 100):
+            runner.handle(SampleBlock(k, k, counts[k : k + 100], 0, False), time.monotonic())
+            if raised_at is None and runner.power_check.faulted:
+                raised_at = len(sink.of("estimate"))
+        estimates = [p for p, _ in sink.of("estimate")]
+        assert raised_at is not None, runner.faults
+        assert "input power negative" in runner.faults.get("signals", ""), runner.faults
+        after = estimates[raised_at:]
+        assert after and [(e["valid"], e["invalid"]) for e in after] == [(False, "wiring")] * len(after)
+        assert not [e for e in estimates if "wiring_p_in_w" in e or "wiring_rpm" in e]
+
+
+def test_the_power_check_clears_on_revolutions_it_made_invalid():
+    from millsense.daemon.pipeline.power_check import REVOLUTIONS, PowerSignCheck
+
+    check = PowerSignCheck()
+    wrong = {"valid": True, "spindle_rpm": 600.0, "p_in_w": -400.0, "accelerating": False}
+    verdicts = [check.update(wrong) for _ in range(REVOLUTIONS)]
+    assert verdicts[-1] and check.faulted
+    right = {"valid": False, "invalid": "wiring", "wiring_rpm": 600.0, "wiring_p_in_w": 900.0, "accelerating": False}
+    verdicts = [check.update(right) for _ in range(REVOLUTIONS)]
+    assert verdicts[-1] == "" and not check.faulted
+    damaged = {"valid": False, "invalid": "lost_samples", "accelerating": False}   # nothing to judge on
+    assert check.update(damaged) is None
