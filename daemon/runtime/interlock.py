@@ -437,4 +437,9 @@ def wait_ms(done: Callable[[], bool], t0: float, wait_s: float) -> float | None:
 def trip_reason(ev: Any) -> str:
     """The interlock's reason for a hold: the alarm, its value and the limit it crossed (from below or above)."""
     side = "<" if ev.level in ("envelope_low", "expected_low") else ">"
-    return f"{ev.level} {ev.quantity} {ev.value} {side} {ev.limit}"
+    return f"{ev.level} {ev.quantity} {_shown(ev.value)} {side} {_shown(ev.limit)}"
+
+
+def _shown(x: Any) -> str:
+    """A value as a reason shows it: a float to 3 decimals (`12.345678901` read as a measurement's precision)."""
+    return repr(round(x, 3)) if isinstance(x, float) else str(x)
