@@ -9,9 +9,12 @@ at the machine (`millsense reset`, `test-trip`, `limits`, `afc`: publish/operato
 from __future__ import annotations
 
 import json
+import os
 import socket
 import struct
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +29,7 @@ SOCKET_MODE = 0o660
 # machine would rather wait than be told to try again. What cannot be answered in this long is a
 # daemon that is hung, and the error says so.
 CLIENT_TIMEOUT_S = 30.0
+UNIX_PATH_MAX = 107      # bytes of a Unix socket's address (AF_UNIX `sun_path`, its NUL aside)
 
 
 class LocalControlError(Exception):
@@ -34,6 +38,21 @@ class LocalControlError(Exception):
 
 def socket_path(state_dir: Path) -> Path:
     return Path(state_dir) / SOCKET_NAME
+
+
+@contextmanager
+def unix_address(path: Path) -> Iterator[str]:
+    """The address to bind or connect the socket at `path` by: the path itself when it fits in a Unix socket's
+    107 bytes; else (Linux) through its folder's file descriptor, `/proc/self/fd/N/control.sock`, so that a deep
+    `state_dir` does not leave the daemon without its local control (the folder held open while it is used)."""
+    if len(os.fsencode(str(path))) <= UNIX_PATH_MAX or not hasattr(os, "O_PATH") or not os.path.isdir("/proc/self/fd"):
+        yield str(path)
+        return
+    fd = os.open(path.parent, os.O_PATH | os.O_DIRECTORY)
+    try:
+        yield f"/proc/self/fd/{fd}/{path.name}"
+    finally:
+        os.close(fd)
 
 
 # -- client ----------------------------------------------------------------------
@@ -49,7 +68,8 @@ def local_command(state_dir: Path, command: str, timeout_s: float = CLIENT_TIMEO
     sock.settimeout(timeout_s)
     try:
         try:
-            sock.connect(str(path))
+            with unix_address(path) as address:
+                sock.connect(address)
         except FileNotFoundError:
             raise LocalControlError(f"no daemon's control socket at {path} (is millsense running for this machine?)") from None
         except PermissionError:

@@ -43,7 +43,7 @@ import structlog
 from millsense.daemon.afc.args import afc_reply, check_afc_args
 from millsense.daemon.controls import Controls
 from millsense.daemon.local_socket import (COMMANDS, DENIED_READ_S, READ_DEADLINE_S, SOCKET_MODE, command_of,
-                                           peer_credentials, read_line, socket_path)
+                                           peer_credentials, read_line, socket_path, unix_address)
 from millsense.daemon.publish.limits_args import READS, check_args
 from millsense.drivers.base import name_os_thread
 
@@ -74,7 +74,8 @@ class LocalControl:
                 self.path.unlink()  # left by a daemon that died; one daemon per state directory
             sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             try:
-                sock.bind(str(self.path))
+                with unix_address(self.path) as address:   # a deep state_dir: through the folder's fd
+                    sock.bind(address)
                 os.chmod(self.path, SOCKET_MODE)
                 sock.listen(8)
                 sock.settimeout(0.2)  # the accept loop looks at the stop flag
