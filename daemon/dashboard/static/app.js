@@ -106,12 +106,19 @@ function holdFromAlarm(m, a) {
   // An alarm sent while the daemon holds the feed says so before the next status does.
   if (a.interlock !== "feed_hold" || m.hold) return;
   const t = typeof a.t === "number" ? a.t : null;
-  // The runner's reason for a trip (runner._trip_reason): the alarm, its value and the limit crossed.
+  // The interlock's reason for a trip (runtime/interlock.py trip_reason): the alarm, its value and the limit crossed.
   const side = (a.level === "envelope_low" || a.level === "expected_low") ? " < " : " > ";
   const trip = TRIP_LEVELS.includes(a.level); // a warning or a clear sent while held: held, not why
-  const reason = trip ? a.level + " " + a.quantity + " " + a.value + side + a.limit : "latched";
+  const reason = trip ? a.level + " " + a.quantity + " " + shown(a.value) + side + shown(a.limit) : "latched";
   m.hold = { reason, since: t, alarmT: t };
   showHold(m);
+}
+
+function shown(x) {
+  // a number as the interlock's reason shows it (runtime/interlock.py `_shown`): to 3 decimals, a whole one with ".0"
+  if (typeof x !== "number" || !isFinite(x)) return String(x);
+  const r = Math.round(x * 1000) / 1000;
+  return Number.isInteger(r) ? r.toFixed(1) : String(r);
 }
 
 function showHold(m) {
