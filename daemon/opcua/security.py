@@ -94,7 +94,7 @@ def load_server_identity(cert_path: Path, key_path: Path) -> ServerIdentity:
             exc).lower() else "not a private key (PEM or DER)"
         raise OpcuaSetupError(f"--key {key_path}: {why}") from None
     if not isinstance(key, rsa.RSAPrivateKey) or not 2048 <= key.key_size <= 4096:
-        raise OpcuaSetupError(f"--key {key_path}: Basic256Sha256 needs an RSA key of 2048 to 4096 bits")
+        raise OpcuaSetupError(f"--key {key_path}: the security policies (Basic256Sha256, Aes128_Sha256_RsaOaep, Aes256_Sha256_RsaPss) need an RSA key of 2048 to 4096 bits")
     if key.public_key().public_numbers() != cert.public_key().public_numbers():
         raise OpcuaSetupError(f"--key {key_path}: does not belong to the certificate --cert {cert_path}")
     now = dt.datetime.now(dt.timezone.utc)

@@ -1,0 +1,98 @@
+"""The companion specifications' nodesets (issue 42): the real NodeSet2 files from the npm registry
+(tests/opcua/nodesets.py), imported by daemon/opcua/nodesets.py into a real asyncua server; a folder that
+cannot be imported stops `millsense opcua` with exit 78, naming the file and the node."""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+import subprocess
+
+import pytest
+
+pytest.importorskip("asyncua", reason="the opcua extra (asyncua) is not installed")
+from asyncua import Server, ua  # noqa: E402
+
+from millsense.daemon.opcua.nodesets import (  # noqa: E402
+    DI_NS,
+    MACHINE_TOOL_NS,
+    REQUIRED_MODELS,
+    NodesetError,
+    find_nodesets,
+    import_nodesets,
+)
+from tests.conftest import free_tcp_port  # noqa: E402
+from tests.e2e.helpers import CMD, tcp  # noqa: E402
+from tests.opcua import nodesets as fetched  # noqa: E402
+from tests.opcua.rig import make_pki  # noqa: E402
+
+DI_DESIGN_TOOL_ONLY = "ns=1;i=73"  # DI's parentless `Configuration` template (DesignToolOnly="true")
+MACHINE_TOOL_TYPE = 13             # MachineToolType in OPC 40501's NodeIds.csv
+
+
+@pytest.fixture(scope="module")
+def six():
+    return fetched.folder()
+
+
+def _copy(six, tmp_path):
+    """A writable copy of the six files (the shared folder is read-only)."""
+    folder = tmp_path / "nodesets"
+    folder.mkdir()
+    for name in fetched.FILES:
+        shutil.copyfile(six / name, folder / name)
+    return folder
+
+
+def test_the_six_models_are_found_in_dependency_order_by_what_each_file_declares(six, tmp_path):
+    order = [n.model_uri for n in find_nodesets(six)]
+    assert sorted(order) == sorted(REQUIRED_MODELS)
+    for n in find_nodesets(six):
+        for required in n.requires:  # each after every model it requires
+            assert required not in REQUIRED_MODELS or order.index(required) < order.index(n.model_uri), (n, order)
+    # A model missing: named, with its URI.
+    folder = _copy(six, tmp_path)
+    (folder / "Opc.Ua.Machinery.Jobs.Nodeset2.xml").unlink()
+    with pytest.raises(NodesetError, match=r"no NodeSet2 file for Machinery Jobs \(http://opcfoundation.org/UA/Machinery/Jobs/\)"):
+        find_nodesets(folder)
+
+
+def test_the_official_nodesets_import_into_asyncua_with_their_types(six):
+    async def scenario():
+        server = Server()
+        await server.init()
+        loaded = await import_nodesets(server, six)
+        assert [n.name for n in loaded][-1] == "MachineTool (OPC 40501)"
+        mt = await server.get_namespace_index(MACHINE_TOOL_NS)
+        machine_tool_type = server.get_node(ua.NodeId(MACHINE_TOOL_TYPE, mt))
+        assert (await machine_tool_type.read_browse_name()) == ua.QualifiedName("MachineToolType", mt)
+        # The DesignToolOnly templates are left out, as the UANodeSet schema says (and their import failed).
+        di = await server.get_namespace_index(DI_NS)
+        template = server.get_node(ua.NodeId.from_string(DI_DESIGN_TOOL_ONLY.replace("ns=1", f"ns={di}")))
+        with pytest.raises(ua.UaStatusCodeError):
+            await template.read_browse_name()
+        # The data types were loaded after the last file: Machinery Jobs' OptionSet structure among them.
+        assert hasattr(ua, "OutputInformationDataType")
+
+    asyncio.run(scenario())
+
+
+def test_a_nodeset_folder_that_fails_to_import_exits_78_naming_the_file_and_the_node(six, tmp_path):
+    folder = _copy(six, tmp_path)
+    broken = folder / "Opc.Ua.MachineTool.NodeSet2.xml"
+    text = broken.read_text(encoding="utf-8")
+    # An object whose parent is in no nodeset: asyncua refuses it (BadParentNodeIdInvalid).
+    bad = ('<UAObject NodeId="ns=1;i=990001" BrowseName="1:Orphan" ParentNodeId="ns=1;i=990000">'
+           '<DisplayName>Orphan</DisplayName><References>'
+           '<Reference ReferenceType="HasComponent" IsForward="false">ns=1;i=990000</Reference>'
+           '<Reference ReferenceType="HasTypeDefinition">i=58</Reference></References></UAObject>')
+    broken.write_text(text.replace("</UANodeSet>", bad + "</UANodeSet>"), encoding="utf-8")
+    pki = make_pki(tmp_path / "pki")
+    done = subprocess.run(CMD + ["opcua", "--endpoint", f"opc.tcp://127.0.0.1:{free_tcp_port()}", "--cert",
+                                 str(pki.server_cert), "--key", str(pki.server_key), "--trust-dir", str(pki.trust_dir),
+                                 "--connect", tcp(free_tcp_port()), "--no-scouting", "--nodesets", str(folder)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 78, done.stderr
+    assert "--nodesets" in done.stderr and str(broken) in done.stderr and "ns=1;i=990001" in done.stderr, done.stderr
+    assert "BadParentNodeIdInvalid" in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert "opcua.listening" not in done.stderr  # never served with a model it could not load
