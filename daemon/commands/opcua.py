@@ -3,9 +3,11 @@
 A machine appears (by its liveliness token `millsense/<m>/alive`) as an object with its spindle
 speed, power, torque, force, depths, alarm and interlock state, program, tool and operation,
 process count and wear, AFC state where the daemon has it; its alarm changes are OPC UA events.
-Security: Basic256Sha256 Sign & Encrypt only, client certificates from a trust directory,
-anonymous sessions only with `--allow-anonymous`. docs/opcua.md has the address space and the
-certificates.
+Security: Sign & Encrypt only (Basic256Sha256, Aes128_Sha256_RsaOaep, Aes256_Sha256_RsaPss), client
+certificates from a trust directory, anonymous sessions only with `--allow-anonymous`. With
+`--nodesets DIR` the OPC Foundation's companion specifications are loaded and each configured machine
+is an OPC 40501 MachineToolType. Options left out come from the `[opcua]` section of `--config`.
+docs/opcua.md has the address space and the certificates.
 
 Needs the `opcua` extra (asyncua); the live daemon never imports it.
 """

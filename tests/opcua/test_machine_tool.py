@@ -89,6 +89,12 @@ def test_the_machine_is_a_machine_tool_with_its_identification_and_live_monitori
             assert await (await ident.get_child([f"{di}:SerialNumber"])).read_value() == IDENTITY["serial_number"]
             uri = await (await ident.get_child([f"{di}:ProductInstanceUri"])).read_value()
             assert uri == IDENTITY["product_instance_uri"]
+            # Read only, the typed nodes too: a trusted client's write is refused.
+            serial = await ident.get_child([f"{di}:SerialNumber"])
+            with pytest.raises(ua.UaStatusCodeError) as refused:
+                await serial.write_value("forged")
+            assert refused.value.code in (ua.StatusCodes.BadUserAccessDenied, ua.StatusCodes.BadNotWritable), refused
+            assert await serial.read_value() == IDENTITY["serial_number"]
             # millsense's own values, one reference away from the instance.
             torque = await child(machine, f"{ms}:{MACHINE}", f"{ms}:Spindle", f"{ms}:torque_nm")
             assert torque is not None
