@@ -103,6 +103,11 @@ def run(args: argparse.Namespace) -> int:
             identities[from_file.machine] = identity_of_machine
         tools = from_file.tools
     args.endpoint = args.endpoint or DEFAULT_ENDPOINT
+    if args.nodesets and not identities:
+        # 40001-1's Identification is mandatory and only the configuration knows it: nothing could be typed
+        return _fail(f"{from_section.get('--nodesets', '--nodesets')}: no machine to show as a MachineToolType: give "
+                     "--config FILE whose [opcua] has manufacturer, serial_number and product_instance_uri "
+                     "(docs/opcua.md)", EXIT_CONFIG)
     try:
         parse_endpoint(args.endpoint)
     except ValueError as exc:

@@ -10,7 +10,8 @@ value with a Good status. docs/opcua.md has the table of what is mapped, what is
     Objects/Machines/<machine>                      MachineToolType (MachineTool namespace, i=13)
       Identification/ Manufacturer SerialNumber ProductInstanceUri
       Monitoring/MachineTool/FeedOverride           the override the CNC applied (estimate feed_override_pct)
-      Monitoring/Spindle/ Name IsRotating            SpindleMonitoringType: rotating = spindle_rpm > 0
+      Monitoring/Spindle/ Name IsRotating            SpindleMonitoringType: an estimate's spindle_rpm > 0; false
+                                                    from a status when no revolution closed since the last one
       Production/ActiveProgram/Name                 the context's program number
       Equipment/Tools/T<n>/ ControlIdentifier1, ToolLife/ProcessCount, ToolLife/Wear   one per [tools.N]
                                                     and per tool number a process summary names
@@ -75,6 +76,7 @@ class MachineToolInstance:
         self.tools: dict[int, tuple[Node, Node]] = {}
         self.last: dict[str, Any] = {}
         self._tools_full_logged = False
+        self._status_revolutions: int | None = None
 
     def _id(self, *path: str) -> ua.NodeId:
         return ua.NodeId("/".join((self.machine, "MachineTool") + path), self.ms)
@@ -146,8 +148,25 @@ class MachineToolInstance:
             if "program" in payload:
                 program = F.convert(payload.get("program"), F.INT64)
                 await self._write("ProgramName", None if program is None else str(program), ua.VariantType.String, when)
+        elif kind == "status":
+            await self._rotation_from_status(payload, when)
         elif kind == "process":
             await self._tool_life(payload, when)
+
+    async def _rotation_from_status(self, status: dict[str, Any], when: dt.datetime | None) -> None:
+        """A stopped spindle closes no revolution, so no estimate says it stopped: the status (once a second)
+        does. No revolution since the last status: not rotating. The DAQ's link down: not known."""
+        revolutions = F.convert(status.get("revolutions"), F.INT64)
+        previous, self._status_revolutions = self._status_revolutions, revolutions
+        if status.get("daq_link") == "down":
+            await self._write("IsRotating", None, ua.VariantType.Boolean, when)
+        elif revolutions is not None and revolutions == previous:
+            await self._write("IsRotating", False, ua.VariantType.Boolean, when)
+
+    async def gone(self) -> None:
+        """The daemon's liveliness token went: nothing it said holds any more."""
+        self._status_revolutions = None
+        await self._write("IsRotating", None, ua.VariantType.Boolean, None)
 
     async def _write(self, name: str, value: Any, vt: ua.VariantType, when: dt.datetime | None) -> None:
         if name in self.last and self.last[name] == value:

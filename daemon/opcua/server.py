@@ -146,6 +146,8 @@ class Feeder:
                     continue
                 if kind in ("alive", "gone"):
                     await nodes.set_alive(kind == "alive")
+                    if kind == "gone" and machine in self.typed:
+                        await self.typed[machine].gone()
                     log.info("opcua.machine_" + kind, machine=machine)
                 else:
                     await nodes.apply(kind, payload)

@@ -25,7 +25,7 @@ from millsense.daemon.opcua.machine_nodes import MachineNodes, Namespaces  # noq
 from millsense.daemon.opcua.machine_tool import MachineToolInstance  # noqa: E402
 from millsense.daemon.opcua.settings import Identification  # noqa: E402
 from tests.conftest import free_tcp_port  # noqa: E402
-from tests.e2e.helpers import CMD, tcp  # noqa: E402
+from tests.e2e.helpers import CMD, tcp, write_config  # noqa: E402
 from tests.opcua import nodesets as fetched  # noqa: E402
 from tests.opcua.rig import make_pki  # noqa: E402
 
@@ -96,6 +96,19 @@ def test_the_official_nodesets_import_into_asyncua_with_their_types_and_a_machin
             dv = await machine.nodes[name].read_data_value(raise_on_bad_status=False)
             assert dv.StatusCode.value == ua.StatusCodes.BadNoData, (name, dv)
         assert await machine.nodes["FeedOverride"].read_value() == 80.0
+        # A stopped spindle sends no estimate: the status, once a second, says no revolution closed since the last.
+        await machine.apply("estimate", {"t": 1.7e9 + 0.2, "spindle_rpm": 3000.0})
+        await machine.apply("status", {"t": 1.7e9 + 1, "revolutions": 50, "daq_link": "up"})
+        await machine.apply("status", {"t": 1.7e9 + 2, "revolutions": 99, "daq_link": "up"})
+        assert await rotating.read_value() is True
+        await machine.apply("status", {"t": 1.7e9 + 3, "revolutions": 99, "daq_link": "up"})
+        assert await rotating.read_value() is False
+        await machine.apply("status", {"t": 1.7e9 + 4, "revolutions": 99, "daq_link": "down"})
+        assert (await rotating.read_data_value(raise_on_bad_status=False)).StatusCode.value == ua.StatusCodes.BadNoData
+        await machine.apply("estimate", {"t": 1.7e9 + 5, "spindle_rpm": 3000.0})
+        assert await rotating.read_value() is True
+        await machine.gone()
+        assert (await rotating.read_data_value(raise_on_bad_status=False)).StatusCode.value == ua.StatusCodes.BadNoData
         await machine.apply("process", {"tool": 7, "tool_processes": 3, "tool_wear_pct": 2.5})
         assert [await n.read_value() for n in machine.tools[7]] == [3, 2.5]
 
@@ -113,9 +126,13 @@ def test_a_nodeset_folder_that_fails_to_import_exits_78_naming_the_file_and_the_
            '<Reference ReferenceType="HasTypeDefinition">i=58</Reference></References></UAObject>')
     broken.write_text(text.replace("</UANodeSet>", bad + "</UANodeSet>"), encoding="utf-8")
     pki = make_pki(tmp_path / "pki")
+    cfg = write_config(tmp_path / "d.toml", machine="m1", daq='transport = "sim"\nscenario = "step"')
+    cfg.write_text(cfg.read_text() + '\n[opcua]\nmanufacturer = "ACME"\nserial_number = "42"\n'
+                                     'product_instance_uri = "urn:acme:42"\n')
     done = subprocess.run(CMD + ["opcua", "--endpoint", f"opc.tcp://127.0.0.1:{free_tcp_port()}", "--cert",
                                  str(pki.server_cert), "--key", str(pki.server_key), "--trust-dir", str(pki.trust_dir),
-                                 "--connect", tcp(free_tcp_port()), "--no-scouting", "--nodesets", str(folder)],
+                                 "--config", str(cfg), "--connect", tcp(free_tcp_port()), "--no-scouting",
+                                 "--nodesets", str(folder)],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 78, done.stderr
     assert "--nodesets" in done.stderr and str(broken) in done.stderr and "ns=1;i=990001" in done.stderr, done.stderr

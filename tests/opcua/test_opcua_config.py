@@ -55,3 +55,7 @@ def test_opcua_takes_the_section_and_the_command_line_overrides_it(tmp_path):
     bad = subprocess.run(CMD + ["opcua", "--config", str(cfg.parent / "bad.toml")], capture_output=True, text=True,
                          timeout=60)
     assert bad.returncode == 78 and "opcua.allow_anonymous" in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
+    # --nodesets with no machine whose identification is configured: nothing could be typed, said at once.
+    untyped = subprocess.run(base + ["--nodesets", str(tmp_path)], capture_output=True, text=True, timeout=60)
+    assert untyped.returncode == 78 and "--nodesets: no machine to show as a MachineToolType" in untyped.stderr, \
+        untyped.stderr
