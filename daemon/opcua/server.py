@@ -134,8 +134,12 @@ class Feeder:
                             reason="no [opcua] manufacturer, serial_number and product_instance_uri for this machine "
                                    "in --config: no MachineToolType object, only Objects/millsense/" + name)
             else:
-                self.typed[name] = await MachineToolInstance(self.server, name, self.ns.ms).create(
-                    identification, options.tools, nodes.obj)
+                try:
+                    self.typed[name] = await MachineToolInstance(self.server, name, self.ns.ms).create(
+                        identification, options.tools, nodes.obj)
+                except Exception as exc:  # noqa: BLE001 - its own nodes still serve; the log says what is missing
+                    log.error("opcua.machine_tool_failed", machine=name, error=f"{type(exc).__name__}: {exc}",
+                              detail="no MachineToolType object for this machine; Objects/millsense/" + name + " serves")
         return nodes
 
     async def apply(self, items: list[tuple[str, str, dict[str, Any]]]) -> None:
