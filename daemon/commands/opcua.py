@@ -55,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folder of the OPC Foundation's NodeSet2 files (DI, IA, Machinery, ISA-95 Job Control, "
                              "Machinery Jobs, MachineTool): one MachineToolType object per machine (docs/opcua.md)")
     parser.add_argument("--machine", "-m", metavar="ID", default=None, help="only this machine (default: every one seen)")
-    add_config_argument(parser, "where to connect")
+    add_config_argument(parser, "where to connect, its [opcua] section and its machine's identification")
     add_zenoh_arguments(parser, listen=False)
     parser.add_argument("--log-format", choices=("auto", "json", "console"), default="auto",
                         help="log lines: JSON under systemd or into a pipe, readable on a terminal (auto)")
