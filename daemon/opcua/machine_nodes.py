@@ -27,6 +27,7 @@ import structlog
 from asyncua import Node, Server, ua
 
 from millsense.daemon.opcua import fields as F
+from millsense.daemon.opcua.conditions import ConditionNodes
 from millsense.daemon.opcua.feed_held import NAME as FEED_HELD
 from millsense.daemon.opcua.feed_held import Change, FeedHeldTrack
 from millsense.daemon.publish.alarm_state import ShownAlarms, catch_up, caught_up
@@ -137,6 +138,7 @@ class MachineNodes:
         self.tools_folder: Any = None
         self.events: Any = None
         self.event_template: Any = None
+        self.conditions: Any = None                      # the condition instances (conditions.py)
         self._tools_full_logged = False
 
     def _id(self, *parts: str) -> ua.NodeId:
@@ -160,6 +162,7 @@ class MachineNodes:
         self.tools_folder = await equipment.add_folder(self._id("Equipment", "Tools"), ua.QualifiedName("Tools", mt))
         self.events = await self.server.get_event_generator(self.ns.alarm_type, self.messages)
         self.event_template = copy.deepcopy(self.events.event)
+        self.conditions = ConditionNodes(self.server, self.ns.alarm_type, self.messages)
         return self
 
     async def _folder(self, name: str) -> Any:
@@ -301,6 +304,13 @@ class MachineNodes:
                 setattr(event, name, v)
             generator.event = event
             await generator.trigger(time_attr=when)
+        # the condition instance at the event's ConditionId (conditions.py), with the Server copy's EventId;
+        # after the events, and never in their way: a node that cannot be written costs a log line, not an event
+        try:
+            await self.conditions.update(values, event.EventId, when)
+        except Exception as exc:  # noqa: BLE001
+            log.warning("opcua.condition_node_error", machine=self.machine, condition=str(values.get("ConditionName")),
+                        error=f"{type(exc).__name__}: {exc}")
 
     async def _tool_life(self, payload: dict[str, Any]) -> None:
         tool = F.convert(payload.get("tool"), F.INT64)
