@@ -48,6 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trust-dir", metavar="DIR", default=None,
                         help="directory of trusted client certificates (one file each, read at every new session; "
                              "default [opcua] trust_dir)")
+    parser.add_argument("--operators-dir", metavar="DIR", default=None,
+                        help="certificates of the clients that may acknowledge and confirm alarms (each also in "
+                             "--trust-dir; default [opcua] operators_dir, else nobody)")
     parser.add_argument("--allow-anonymous", action="store_true",
                         help="also accept anonymous sessions (still over the encrypted channel, from a client whose "
                              "certificate is trusted; or [opcua] allow_anonymous = true)")
@@ -93,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
             return _fail(str(exc), EXIT_CONFIG)
         section = from_file.opcua
         for option, key in (("endpoint", "endpoint"), ("cert", "cert"), ("key", "key"), ("trust_dir", "trust_dir"),
-                            ("nodesets", "nodesets_dir")):
+                            ("operators_dir", "operators_dir"), ("nodesets", "nodesets_dir")):
             if getattr(args, option) is None and getattr(section, key):
                 setattr(args, option, getattr(section, key))  # the command line first, then the file
                 from_section[f"--{option.replace('_', '-')}"] = f"opcua.{key} ({args.config})"
@@ -120,6 +123,9 @@ def run(args: argparse.Namespace) -> int:
         identity = load_server_identity(Path(args.cert), Path(args.key))
         trust = TrustList(Path(args.trust_dir))
         trusted = trust.check()
+        operators = TrustList(Path(args.operators_dir), option="--operators-dir") if args.operators_dir else None
+        if operators is not None:
+            operators.check()
     except OpcuaSetupError as exc:
         return _fail(_named(str(exc), from_section), EXIT_CONFIG)
     connection = client_settings(args, PROG)
@@ -147,7 +153,8 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"{strip_rust(str(exc))}\n{hint(settings, daemon)}", 1)
     options = Options(endpoint=args.endpoint, identity=identity, trust=trust,
                       allow_anonymous=args.allow_anonymous, machine=args.machine or "*",
-                      nodesets=Path(args.nodesets) if args.nodesets else None, identities=identities, tools=tools)
+                      nodesets=Path(args.nodesets) if args.nodesets else None, identities=identities, tools=tools,
+                      operators=operators)
     try:
         return _serve(options, session)
     except OpcuaSetupError as exc:

@@ -43,6 +43,7 @@ class OpcuaSettings(_Section):
     cert: str = ""
     key: str = ""
     trust_dir: str = ""
+    operators_dir: str = ""   # the certificates (each also in trust_dir) that may acknowledge and confirm alarms
     nodesets_dir: str = ""
     allow_anonymous: bool = False
     manufacturer: str = Field("", max_length=256)

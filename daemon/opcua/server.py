@@ -18,6 +18,8 @@ from urllib.parse import urlparse
 import structlog
 from asyncua import Server, ua
 
+from millsense.daemon.opcua.acknowledge import CallerRuleset
+from millsense.daemon.opcua.acknowledge import bind as bind_acknowledge
 from millsense.daemon.opcua.inbox import Inbox, subscribe
 from millsense.daemon.opcua.machine_nodes import MachineNodes, Namespaces
 from millsense.daemon.opcua.machine_tool import MachineToolInstance
@@ -54,6 +56,7 @@ class Options:
     nodesets: Path | None = None  # the folder of the companion specifications' NodeSet2 files (nodesets.py)
     identities: dict[str, Identification] = field(default_factory=dict)  # [opcua] of --config, by machine id
     tools: list[int] = field(default_factory=list)  # its [tools.N] numbers
+    operators: TrustList | None = None  # who may acknowledge and confirm alarms (acknowledge.py); none: nobody
     refused: list[str] = field(default_factory=list)  # client refusals, newest last (tests and the status line)
 
 
@@ -74,7 +77,7 @@ def parse_endpoint(text: str) -> tuple[str, int]:
 
 
 async def build_server(options: Options) -> tuple[Server, Namespaces, Any]:
-    server = Server(user_manager=SessionUsers(options.trust))
+    server = Server(user_manager=SessionUsers(options.trust, options.operators))
     # ConditionRefresh (and Refresh2): a client that connects while a condition is active (a held feed)
     # asks for the retained conditions. asyncua binds the methods only when told; the value is the
     # severity of its RefreshStart/RefreshEnd events (an int: True would make it 1).
@@ -83,7 +86,9 @@ async def build_server(options: Options) -> tuple[Server, Namespaces, Any]:
     server.set_endpoint(options.endpoint)
     server.set_server_name("millsense")
     await server.set_application_uri(options.identity.application_uri)
-    server.set_security_policy([getattr(ua.SecurityPolicyType, p) for p in SECURITY_POLICIES])
+    # CallerRuleset: asyncua's own rules, noting each request's user for Acknowledge and Confirm (acknowledge.py)
+    server.set_security_policy([getattr(ua.SecurityPolicyType, p) for p in SECURITY_POLICIES],
+                               permission_ruleset=CallerRuleset())
     server.set_identity_tokens(identity_tokens(options.allow_anonymous))
     await server.load_certificate(options.identity.certificate_der, format="der")
     await server.load_private_key(options.identity.private_key_pem, format="pem")
@@ -97,6 +102,7 @@ async def build_server(options: Options) -> tuple[Server, Namespaces, Any]:
         log.info("opcua.own_model", detail="no --nodesets folder: millsense's own model only, no MachineToolType "
                  "instances (docs/opcua.md)")
     ns = await Namespaces.register(server)
+    bind_acknowledge(server, ns.conditions)
     root = await server.nodes.objects.add_folder(ua.NodeId("millsense", ns.ms), ua.QualifiedName("millsense", ns.ms))
     await root.set_event_notifier([ua.EventNotifier.SubscribeToEvents])
     await server.nodes.server.add_reference(root.nodeid, ua.ObjectIds.HasNotifier)

@@ -55,7 +55,7 @@ def read_opcua_section(path: Path) -> FileSettings:
     except ValidationError as exc:
         raise OpcuaConfigError("\n".join(f"{path}: {line}" for line in problems_from(Settings, exc, ("opcua",)))) from None
     base = path.resolve().parent
-    resolved = {key: str(base / value) for key in ("cert", "key", "trust_dir", "nodesets_dir")
+    resolved = {key: str(base / value) for key in ("cert", "key", "trust_dir", "operators_dir", "nodesets_dir")
                 if (value := getattr(settings, key)) and not Path(value).expanduser().is_absolute()}
     machine = raw.get("machine") if isinstance(raw.get("machine"), str) else None
     tools = raw.get("tools") if isinstance(raw.get("tools"), dict) else {}

@@ -59,3 +59,16 @@ def test_opcua_takes_the_section_and_the_command_line_overrides_it(tmp_path):
     untyped = subprocess.run(base + ["--nodesets", str(tmp_path)], capture_output=True, text=True, timeout=60)
     assert untyped.returncode == 78 and "--nodesets: no machine to show as a MachineToolType" in untyped.stderr, \
         untyped.stderr
+    # The operators' folder (who may acknowledge alarms), from the section, named by its key when it is wrong.
+    from tests.opcua.rig import make_pki  # asyncua's client: only here (the test above needs no extra)
+
+    pki = make_pki(tmp_path / "real")
+    (cfg.parent / "ops.toml").write_text(cfg.read_text().replace(
+        'cert = "pki/none.der"\nkey = "pki/none.pem"\ntrust_dir = "pki"',
+        f'cert = "{pki.server_cert}"\nkey = "{pki.server_key}"\ntrust_dir = "{pki.trust_dir}"\n'
+        'operators_dir = "no-such-folder"'))
+    ops = subprocess.run(CMD + ["opcua", "--config", str(cfg.parent / "ops.toml"), "--connect", tcp(free_tcp_port()),
+                                "--no-scouting"], capture_output=True, text=True, timeout=60)
+    assert ops.returncode == 78, ops.stderr
+    assert f"opcua.operators_dir ({cfg.parent / 'ops.toml'}) {tmp_path / 'no-such-folder'}: not a directory" in ops.stderr, \
+        ops.stderr
