@@ -8,6 +8,7 @@ The modules, in the order a sample travels:
 - `machine_nodes.py`: one machine's part of the address space, its tool life (OPC 40501 names) and
   its alarm events (an AlarmConditionType subtype).
 - `conditions.py`: the condition instance at each event's ConditionId, its state from the events it fires.
+- `acknowledge.py`: Acknowledge and Confirm of a condition, for operators only, audited.
 - `feed_held.py`: the held feed as one retained condition per machine, `FeedHeld` (pure: when it goes
   active and inactive, and what its event says).
 - `nodesets.py`: the OPC Foundation's NodeSet2 files (DI ... MachineTool) imported at start (issue 42).
