@@ -49,8 +49,9 @@ class CallerRuleset(SimpleRoleRuleset):
         return super().check_validity(user, action_type_id, body)
 
 
-def bind(server: Any, registry: dict[ua.NodeId, Any]) -> None:
-    """Link Acknowledge and Confirm to `registry`: ConditionId -> its ConditionNodes (conditions.py)."""
+def bind(server: Any, registry: dict[ua.NodeId, Any], methods: dict[str, Any]) -> None:
+    """Link Acknowledge and Confirm to `registry`: ConditionId -> its ConditionNodes (conditions.py); `methods`
+    gets the callbacks by name, for the condition instances' own copies of the methods."""
 
     async def acknowledge(object_id: ua.NodeId, event_id: Any = None, comment: Any = None) -> Any:
         return await _call("acknowledge", registry, object_id, event_id, comment)
@@ -60,6 +61,8 @@ def bind(server: Any, registry: dict[ua.NodeId, Any]) -> None:
 
     server.link_method(server.get_node(ua.NodeId(ACKNOWLEDGE)), acknowledge)
     server.link_method(server.get_node(ua.NodeId(CONFIRM)), confirm)
+    # a condition instance's own Acknowledge method node (its copy of the type's) answers the same
+    methods.update(Acknowledge=acknowledge, Confirm=confirm)
 
 
 async def _call(action: str, registry: dict[ua.NodeId, Any], object_id: ua.NodeId, event_id: Any,

@@ -49,10 +49,11 @@ class ConditionNodes:
 
     def __init__(self, server: Any, alarm_type: Node, source: Node,
                  fire: Callable[[dict[str, Any], dt.datetime | None], Awaitable[list[bytes]]],
-                 registry: dict[ua.NodeId, Any] | None = None) -> None:
+                 registry: dict[ua.NodeId, Any] | None = None, methods: dict[str, Any] | None = None) -> None:
         self.server, self.alarm_type, self.source, self.fire = server, alarm_type, source, fire
         self.conditions: dict[ua.NodeId, Condition] = {}
         self.registry = registry if registry is not None else {}  # the server's ConditionId -> ConditionNodes
+        self.methods = methods if methods is not None else {}    # Acknowledge, Confirm (acknowledge.bind)
 
     def state_fields(self, values: dict[str, Any]) -> dict[str, Any]:
         """The event's values with the condition's acknowledgement states after it: a condition that goes
@@ -144,6 +145,11 @@ class ConditionNodes:
         await nodes["ConditionName"].write_value(ua.Variant(name, ua.VariantType.String))
         await nodes["EnabledState"].write_value(ua.Variant(ua.LocalizedText("Enabled"), ua.VariantType.LocalizedText))
         await nodes["EnabledState/Id"].write_value(ua.Variant(True, ua.VariantType.Boolean))
+        callbacks = self.methods
+        for method in await obj.get_children(refs=ua.ObjectIds.HasComponent, nodeclassmask=ua.NodeClass.Method):
+            name = (await method.read_browse_name()).Name
+            if name in callbacks:  # a client may call the instance's copy of Acknowledge instead of the type's
+                self.server.link_method(method, callbacks[name])
         condition = Condition(nodes)
         self.conditions[condition_id] = condition
         self.registry[condition_id] = self

@@ -76,6 +76,7 @@ class Namespaces:
         self.server_events = server_events  # one generator on the Server object, shared by every machine
         self.server_template = copy.deepcopy(server_events.event)
         self.conditions: dict[ua.NodeId, Any] = {}  # every machine's ConditionId -> its ConditionNodes (Acknowledge)
+        self.ack_methods: dict[str, Any] = {}  # Acknowledge, Confirm callbacks (acknowledge.bind)
 
     @classmethod
     async def register(cls, server: Server) -> Namespaces:
@@ -164,7 +165,7 @@ class MachineNodes:
         self.events = await self.server.get_event_generator(self.ns.alarm_type, self.messages)
         self.event_template = copy.deepcopy(self.events.event)
         self.conditions = ConditionNodes(self.server, self.ns.alarm_type, self.messages, self._trigger,
-                                         self.ns.conditions)
+                                         self.ns.conditions, self.ns.ack_methods)
         return self
 
     async def _folder(self, name: str) -> Any:

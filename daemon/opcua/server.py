@@ -102,7 +102,7 @@ async def build_server(options: Options) -> tuple[Server, Namespaces, Any]:
         log.info("opcua.own_model", detail="no --nodesets folder: millsense's own model only, no MachineToolType "
                  "instances (docs/opcua.md)")
     ns = await Namespaces.register(server)
-    bind_acknowledge(server, ns.conditions)
+    bind_acknowledge(server, ns.conditions, ns.ack_methods)
     root = await server.nodes.objects.add_folder(ua.NodeId("millsense", ns.ms), ua.QualifiedName("millsense", ns.ms))
     await root.set_event_notifier([ua.EventNotifier.SubscribeToEvents])
     await server.nodes.server.add_reference(root.nodeid, ua.ObjectIds.HasNotifier)

@@ -92,6 +92,9 @@ def test_only_an_operator_acknowledges_and_confirms_and_nothing_else_changes(tmp
                 assert await call(operator, CONFIRM, *args) == ua.StatusCodes.Good
                 await wait_async(lambda: fired("torque_nm", **{"ConfirmedState/Id": True}), SLOW_S, "the confirm event")
                 assert await (await condition.get_child(["0:ConfirmedState", "0:Id"])).read_value() is True
+                # The instance's own copy of Acknowledge answers like the type's (a refusal here: done already).
+                own = await condition.get_child(["0:Acknowledge"])
+                assert await call(operator, own.nodeid, *args) == ua.StatusCodes.BadConditionBranchAlreadyAcked
                 # The held feed acknowledged stays held.
                 held = await wait_async(lambda: fired("FeedHeld"), SLOW_S, "FeedHeld's event")
                 feed = operator.get_node(ua.NodeId("m1/Notification/Messages/FeedHeld", ms))
