@@ -63,7 +63,18 @@ def test_only_an_operator_acknowledges_and_confirms_and_nothing_else_changes(tmp
             first = await wait_async(lambda: fired("torque_nm"), SLOW_S, "the overload's event")
             assert getattr(first, "AckedState/Id") is False and getattr(first, "ConfirmedState/Id") is False
             event_id = first.EventId
+            # The condition is a node at its ConditionId (before issue 42: BadNodeIdUnknown), of the event's type,
+            # named by HasCondition from its source, its state that of the event.
             condition = operator.get_node(ua.NodeId("m1/Notification/Messages/torque_nm", ms))
+            assert await condition.read_type_definition() == ns.alarm_type.nodeid
+            source = operator.get_node(ua.NodeId("m1/Notification/Messages", ms))
+            named = await source.get_referenced_nodes(refs=ua.ObjectIds.HasCondition, direction=ua.BrowseDirection.Forward)
+            assert condition.nodeid in [n.nodeid for n in named]
+            assert await (await condition.get_child(["0:ActiveState", "0:Id"])).read_value() is True
+            assert await (await condition.get_child(["0:Retain"])).read_value() is True
+            assert await (await condition.get_child(["0:Severity"])).read_value() == 800
+            assert "overload torque_nm 31.7" in (await (await condition.get_child(["0:Message"])).read_value()).Text
+            assert await (await condition.get_child(["0:EventId"])).read_value() == event_id
             args = (ua.Variant(event_id, ua.VariantType.ByteString),
                     ua.Variant(ua.LocalizedText("seen, chip jam cleared"), ua.VariantType.LocalizedText))
 
@@ -102,6 +113,13 @@ def test_only_an_operator_acknowledges_and_confirms_and_nothing_else_changes(tmp
                 assert await call(operator, ACKNOWLEDGE, *held_args, on=feed) == ua.StatusCodes.Good
                 assert await (await feed.get_child(["0:ActiveState", "0:Id"])).read_value() is True
                 assert await (await feed.get_child(["0:Retain"])).read_value() is True
+            # The daemon clears it: inactive, no longer retained, acknowledged and confirmed as it was.
+            await machine.apply("alarm", {**OVERLOAD, "seq": 2, "t": 1.7e9 + 0.2, "level": "clear", "value": 10.0,
+                                          "interlock": None})
+            assert await (await condition.get_child(["0:ActiveState", "0:Id"])).read_value() is False
+            assert await (await condition.get_child(["0:Retain"])).read_value() is False
+            assert await (await condition.get_child(["0:AckedState", "0:Id"])).read_value() is True
+            assert await (await condition.get_child(["0:LastSeverity"])).read_value() == 800
             audit = [e for e in logs if e["event"] == "opcua.audit"]
             assert [(e["action"], e["comment"], e["user"]) for e in audit] == [
                 ("acknowledge", "seen, chip jam cleared", "client.der"), ("confirm", "seen, chip jam cleared", "client.der"),

@@ -87,33 +87,3 @@ def test_inbox_keeps_the_newest_value_and_bounds_the_events():
     assert len(alarms) == MAX_EVENTS and alarms[-1] == MAX_EVENTS + 9 and inbox.dropped == 10
     assert inbox.take() == []
 
-
-def test_each_alarm_event_has_its_condition_instance_at_its_condition_id():
-    """Issue 42: a client reading the node an event names as its ConditionId found nothing (BadNodeIdUnknown)."""
-    async def scenario():
-        server, m = await _machine("m2")
-        await m.apply("alarm", {"t": 1.7e9, "seq": 1, "run_id": "r", "level": "overload", "quantity": "torque_nm",
-                                "value": 31.7, "limit": 30.0, "interlock": "feed_hold", "rev": 9})
-        condition = server.get_node(m._id("Notification", "Messages", "torque_nm"))
-        assert await condition.read_type_definition() == m.ns.alarm_type.nodeid
-        assert await (await condition.get_child(["0:ActiveState", "0:Id"])).read_value() is True
-        assert await (await condition.get_child(["0:Retain"])).read_value() is True
-        assert await (await condition.get_child(["0:Severity"])).read_value() == 800
-        assert "overload torque_nm 31.7" in (await (await condition.get_child(["0:Message"])).read_value()).Text
-        assert await (await condition.get_child(["0:ConditionName"])).read_value() == "torque_nm"
-        # The source names it by HasCondition, as Part 9 asks.
-        named = await m.messages.get_referenced_nodes(refs=ua.ObjectIds.HasCondition, direction=ua.BrowseDirection.Forward)
-        assert condition.nodeid in [n.nodeid for n in named]
-        # Gone active: unacknowledged and unconfirmed (test_acknowledge.py acknowledges one).
-        assert await (await condition.get_child(["0:AckedState", "0:Id"])).read_value() is False
-        assert await (await condition.get_child(["0:ConfirmedState", "0:Id"])).read_value() is False
-        await m.apply("alarm", {"t": 1.7e9 + 0.2, "seq": 2, "run_id": "r", "level": "clear", "quantity": "torque_nm",
-                                "value": 10.0, "limit": 30.0, "interlock": None, "rev": 11})
-        assert await (await condition.get_child(["0:ActiveState", "0:Id"])).read_value() is False
-        assert await (await condition.get_child(["0:Retain"])).read_value() is False
-        assert await (await condition.get_child(["0:LastSeverity"])).read_value() == 800
-        # The held feed's condition too (feed_held.py): active from the trip.
-        held = server.get_node(m._id("Notification", "Messages", "FeedHeld"))
-        assert await (await held.get_child(["0:ActiveState", "0:Id"])).read_value() is True
-
-    asyncio.run(scenario())
