@@ -700,6 +700,11 @@ class AfcSettings(_Section):
         return AFC_QUANTITIES[self.quantity]
 
 
+# --------------------------------------------------------------------------- [opcua] (issue 42)
+# Its own module (the OPC UA server's keys); imported here, after _Section, for the file's model below.
+from millsense.daemon.config.opcua_section import OpcuaSettings  # noqa: E402
+
+
 # --------------------------------------------------------------------------- the file
 class Settings(_Section):
     """The whole configuration file. Required: machine, [daq], [channels.*], [motor], [[gears]], [tool]."""
@@ -727,3 +732,4 @@ class Settings(_Section):
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     log: LogSettings = Field(default_factory=LogSettings)
     afc: AfcSettings = Field(default_factory=AfcSettings)
+    opcua: OpcuaSettings = Field(default_factory=OpcuaSettings)   # (issue 42, additive) read by `millsense opcua`

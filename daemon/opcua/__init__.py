@@ -7,8 +7,13 @@ The modules, in the order a sample travels:
 - `fields.py`: which payload field becomes which OPC UA variable (pure: no asyncua, no Zenoh).
 - `machine_nodes.py`: one machine's part of the address space, its tool life (OPC 40501 names) and
   its alarm events (an AlarmConditionType subtype).
+- `conditions.py`: the condition instance at each event's ConditionId, its state from the events it fires.
+- `acknowledge.py`: Acknowledge and Confirm of a condition, for operators only, audited.
 - `feed_held.py`: the held feed as one retained condition per machine, `FeedHeld` (pure: when it goes
   active and inactive, and what its event says).
+- `nodesets.py`: the OPC Foundation's NodeSet2 files (DI ... MachineTool) imported at start (issue 42).
+- `machine_tool.py`: with them, one machine as an OPC 40501 MachineToolType under Objects/Machines.
+- `settings.py`: the `[opcua]` section of `--config` (config/opcua_section.py) and the machine's identification.
 - `security.py`: the server certificate, the trust list of client certificates, who may open a session.
 - `server.py`: the asyncua Server and the loop that drains the inbox into the address space.
 

@@ -23,8 +23,9 @@ from typing import Any
 from millsense.daemon.status_text import TRIP_LEVELS, hold_of
 
 NAME = "FeedHeld"
-# A held feed stops the machine: at least an overload's severity, more when its cause is graver.
-MIN_SEVERITY = 800
+# A held feed stops the machine: among the gravest conditions (issue 42: at least 900, a tool breakage's), more
+# when its cause is graver (a crash, 1000). Alarm clients commonly show >= 900 as critical.
+MIN_SEVERITY = 900
 # An alarm's `t` is its sample's time, a status's the moment it was built: a status that says "released"
 # must have been built this long after the tripping sample to be about this hold (statuses come every 1 s,
 # a trip is decided well within it).

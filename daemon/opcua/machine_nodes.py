@@ -27,6 +27,7 @@ import structlog
 from asyncua import Node, Server, ua
 
 from millsense.daemon.opcua import fields as F
+from millsense.daemon.opcua.conditions import ConditionNodes
 from millsense.daemon.opcua.feed_held import NAME as FEED_HELD
 from millsense.daemon.opcua.feed_held import Change, FeedHeldTrack
 from millsense.daemon.publish.alarm_state import ShownAlarms, catch_up, caught_up
@@ -74,6 +75,8 @@ class Namespaces:
         self.ms, self.mt, self.alarm_type = ms, mt, alarm_type
         self.server_events = server_events  # one generator on the Server object, shared by every machine
         self.server_template = copy.deepcopy(server_events.event)
+        self.conditions: dict[ua.NodeId, Any] = {}  # every machine's ConditionId -> its ConditionNodes (Acknowledge)
+        self.ack_methods: dict[str, Any] = {}  # Acknowledge, Confirm callbacks (acknowledge.bind)
 
     @classmethod
     async def register(cls, server: Server) -> Namespaces:
@@ -137,6 +140,7 @@ class MachineNodes:
         self.tools_folder: Any = None
         self.events: Any = None
         self.event_template: Any = None
+        self.conditions: Any = None                      # the condition instances (conditions.py)
         self._tools_full_logged = False
 
     def _id(self, *parts: str) -> ua.NodeId:
@@ -160,6 +164,8 @@ class MachineNodes:
         self.tools_folder = await equipment.add_folder(self._id("Equipment", "Tools"), ua.QualifiedName("Tools", mt))
         self.events = await self.server.get_event_generator(self.ns.alarm_type, self.messages)
         self.event_template = copy.deepcopy(self.events.event)
+        self.conditions = ConditionNodes(self.server, self.ns.alarm_type, self.messages, self._trigger,
+                                         self.ns.conditions, self.ns.ack_methods)
         return self
 
     async def _folder(self, name: str) -> Any:
@@ -292,7 +298,10 @@ class MachineNodes:
         log.info("opcua.feed_held", machine=self.machine, active=change.active, reason=change.reason)
         await self._trigger(values, when)
 
-    async def _trigger(self, values: dict[str, Any], when: dt.datetime | None) -> None:
+    async def _trigger(self, values: dict[str, Any], when: dt.datetime | None) -> list[bytes]:
+        """Fire one event of a condition; returns its EventIds (one per copy)."""
+        values = self.conditions.state_fields(values)  # its AckedState and ConfirmedState (conditions.py)
+        event_ids: list[bytes] = []
         # The machine's Messages (OPC 40501's notifier) first, the Server object last: asyncua keeps the last
         # copy of a retained condition for ConditionRefresh, and plant alarm clients subscribe to Server.
         for generator, template in ((self.events, self.event_template), (self.ns.server_events, self.ns.server_template)):
@@ -301,6 +310,15 @@ class MachineNodes:
                 setattr(event, name, v)
             generator.event = event
             await generator.trigger(time_attr=when)
+            event_ids.append(event.EventId.Value if isinstance(event.EventId, ua.Variant) else event.EventId)
+        # the condition instance at the event's ConditionId; after the events, and never in their way: a node
+        # that cannot be written costs a log line, not an event
+        try:
+            await self.conditions.update(values, event_ids, when)
+        except Exception as exc:  # noqa: BLE001
+            log.warning("opcua.condition_node_error", machine=self.machine, condition=str(values.get("ConditionName")),
+                        error=f"{type(exc).__name__}: {exc}")
+        return event_ids
 
     async def _tool_life(self, payload: dict[str, Any]) -> None:
         tool = F.convert(payload.get("tool"), F.INT64)

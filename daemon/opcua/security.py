@@ -94,7 +94,7 @@ def load_server_identity(cert_path: Path, key_path: Path) -> ServerIdentity:
             exc).lower() else "not a private key (PEM or DER)"
         raise OpcuaSetupError(f"--key {key_path}: {why}") from None
     if not isinstance(key, rsa.RSAPrivateKey) or not 2048 <= key.key_size <= 4096:
-        raise OpcuaSetupError(f"--key {key_path}: Basic256Sha256 needs an RSA key of 2048 to 4096 bits")
+        raise OpcuaSetupError(f"--key {key_path}: the security policies (Basic256Sha256, Aes128_Sha256_RsaOaep, Aes256_Sha256_RsaPss) need an RSA key of 2048 to 4096 bits")
     if key.public_key().public_numbers() != cert.public_key().public_numbers():
         raise OpcuaSetupError(f"--key {key_path}: does not belong to the certificate --cert {cert_path}")
     now = dt.datetime.now(dt.timezone.utc)
@@ -116,13 +116,14 @@ def load_server_identity(cert_path: Path, key_path: Path) -> ServerIdentity:
 class TrustList:
     """The client certificates in a directory, read afresh at each question."""
 
-    def __init__(self, directory: Path) -> None:
+    def __init__(self, directory: Path, option: str = "--trust-dir") -> None:
         self.directory = directory
+        self.option = option  # what an error names
 
     def check(self) -> int:
         """How many certificates the directory holds now. Raises OpcuaSetupError when it is not a directory."""
         if not self.directory.is_dir():
-            raise OpcuaSetupError(f"--trust-dir {self.directory}: not a directory (put the client certificates "
+            raise OpcuaSetupError(f"{self.option} {self.directory}: not a directory (put the client certificates "
                                   "you trust there, one file each)")
         return len(self.trusted())
 
@@ -178,10 +179,12 @@ def client_validator(trust: TrustList, refused: list[str]) -> Any:
 
 
 class SessionUsers:
-    """asyncua's user manager: every session's certificate must be in the trust list."""
+    """asyncua's user manager: every session's certificate must be in the trust list; those also in the
+    operators' folder may acknowledge and confirm alarms (acknowledge.py)."""
 
-    def __init__(self, trust: TrustList) -> None:
+    def __init__(self, trust: TrustList, operators: TrustList | None = None) -> None:
         self.trust = trust
+        self.operators = operators
 
     def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
                  certificate: Any = None) -> Any:
@@ -192,7 +195,9 @@ class SessionUsers:
         here only with --allow-anonymous (`identity_tokens`), and a channel without a certificate
         (security None, offered by no endpoint but open for discovery) never gets a session.
         """
-        from asyncua.crypto.permission_rules import User, UserRole
+        from asyncua.crypto.permission_rules import UserRole
+
+        from millsense.daemon.opcua.acknowledge import SessionUser
 
         if username is not None:
             log.warning("opcua.user_refused", reason="user names and passwords are not accepted")
@@ -205,7 +210,8 @@ class SessionUsers:
         if name is None:
             log.warning("opcua.user_refused", reason="certificate not in the trust list", sha256=thumbprint(der))
             return None
-        return User(role=UserRole.User, name=name)
+        operator = self.operators is not None and self.operators.contains(der)
+        return SessionUser(role=UserRole.User, name=name, operator=operator, sha256=thumbprint(der))
 
 
 def identity_tokens(allow_anonymous: bool) -> list[Any]:

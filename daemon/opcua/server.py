@@ -11,14 +11,20 @@ from __future__ import annotations
 import asyncio
 import logging
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
 import structlog
 from asyncua import Server, ua
 
+from millsense.daemon.opcua.acknowledge import CallerRuleset
+from millsense.daemon.opcua.acknowledge import bind as bind_acknowledge
 from millsense.daemon.opcua.inbox import Inbox, subscribe
 from millsense.daemon.opcua.machine_nodes import MachineNodes, Namespaces
+from millsense.daemon.opcua.machine_tool import MachineToolInstance
+from millsense.daemon.opcua.nodesets import NodesetError, import_nodesets
+from millsense.daemon.opcua.settings import Identification
 from millsense.daemon.opcua.security import (
     OpcuaSetupError,
     ServerIdentity,
@@ -34,6 +40,10 @@ MIN_UPDATE_S = 0.05
 MAX_MACHINES = 256
 DEFAULT_PORT = 4840
 REFRESH_EVENT_SEVERITY = 100
+# Sign & Encrypt only, each of the three RSA policies of OPC UA 1.04/1.05 that asyncua serves (issue 42):
+# no None endpoint, no Sign-only one, none of the deprecated Basic128Rsa15/Basic256.
+SECURITY_POLICIES = ("Basic256Sha256_SignAndEncrypt", "Aes128Sha256RsaOaep_SignAndEncrypt",
+                     "Aes256Sha256RsaPss_SignAndEncrypt")
 
 
 @dataclass
@@ -43,6 +53,10 @@ class Options:
     trust: TrustList
     allow_anonymous: bool = False
     machine: str = "*"
+    nodesets: Path | None = None  # the folder of the companion specifications' NodeSet2 files (nodesets.py)
+    identities: dict[str, Identification] = field(default_factory=dict)  # [opcua] of --config, by machine id
+    tools: list[int] = field(default_factory=list)  # its [tools.N] numbers
+    operators: TrustList | None = None  # who may acknowledge and confirm alarms (acknowledge.py); none: nobody
     refused: list[str] = field(default_factory=list)  # client refusals, newest last (tests and the status line)
 
 
@@ -63,7 +77,7 @@ def parse_endpoint(text: str) -> tuple[str, int]:
 
 
 async def build_server(options: Options) -> tuple[Server, Namespaces, Any]:
-    server = Server(user_manager=SessionUsers(options.trust))
+    server = Server(user_manager=SessionUsers(options.trust, options.operators))
     # ConditionRefresh (and Refresh2): a client that connects while a condition is active (a held feed)
     # asks for the retained conditions. asyncua binds the methods only when told; the value is the
     # severity of its RefreshStart/RefreshEnd events (an int: True would make it 1).
@@ -72,12 +86,23 @@ async def build_server(options: Options) -> tuple[Server, Namespaces, Any]:
     server.set_endpoint(options.endpoint)
     server.set_server_name("millsense")
     await server.set_application_uri(options.identity.application_uri)
-    server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+    # CallerRuleset: asyncua's own rules, noting each request's user for Acknowledge and Confirm (acknowledge.py)
+    server.set_security_policy([getattr(ua.SecurityPolicyType, p) for p in SECURITY_POLICIES],
+                               permission_ruleset=CallerRuleset())
     server.set_identity_tokens(identity_tokens(options.allow_anonymous))
     await server.load_certificate(options.identity.certificate_der, format="der")
     await server.load_private_key(options.identity.private_key_pem, format="pem")
     server.set_certificate_validator(client_validator(options.trust, options.refused))
+    if options.nodesets is not None:
+        try:
+            await import_nodesets(server, options.nodesets)
+        except NodesetError as exc:  # never a silent fallback to the own model: the operator asked for these
+            raise OpcuaSetupError(f"--nodesets {exc}") from None
+    else:
+        log.info("opcua.own_model", detail="no --nodesets folder: millsense's own model only, no MachineToolType "
+                 "instances (docs/opcua.md)")
     ns = await Namespaces.register(server)
+    bind_acknowledge(server, ns.conditions, ns.ack_methods)
     root = await server.nodes.objects.add_folder(ua.NodeId("millsense", ns.ms), ua.QualifiedName("millsense", ns.ms))
     await root.set_event_notifier([ua.EventNotifier.SubscribeToEvents])
     await server.nodes.server.add_reference(root.nodeid, ua.ObjectIds.HasNotifier)
@@ -85,11 +110,14 @@ async def build_server(options: Options) -> tuple[Server, Namespaces, Any]:
 
 
 class Feeder:
-    """Drains the inbox into the address space; one MachineNodes per machine seen (at most MAX_MACHINES)."""
+    """Drains the inbox into the address space; one MachineNodes per machine seen (at most MAX_MACHINES), and
+    with the nodesets loaded one MachineToolType object per machine whose identification is configured."""
 
-    def __init__(self, server: Server, ns: Namespaces, root: Any) -> None:
+    def __init__(self, server: Server, ns: Namespaces, root: Any, options: Options | None = None) -> None:
         self.server, self.ns, self.root = server, ns, root
+        self.options = options
         self.machines: dict[str, MachineNodes] = {}
+        self.typed: dict[str, MachineToolInstance] = {}
         self.errors = 0
         self._full_logged = False
 
@@ -104,6 +132,20 @@ class Feeder:
         nodes = await MachineNodes(self.server, self.ns, name).create(self.root)
         self.machines[name] = nodes
         log.info("opcua.machine_added", machine=name)
+        options = self.options
+        if options is not None and options.nodesets is not None:
+            identification = options.identities.get(name)
+            if identification is None:  # 40001-1's Identification is mandatory, and only the configuration knows it
+                log.warning("opcua.machine_untyped", machine=name,
+                            reason="no [opcua] manufacturer, serial_number and product_instance_uri for this machine "
+                                   "in --config: no MachineToolType object, only Objects/millsense/" + name)
+            else:
+                try:
+                    self.typed[name] = await MachineToolInstance(self.server, name, self.ns.ms).create(
+                        identification, options.tools, nodes.obj)
+                except Exception as exc:  # noqa: BLE001 - its own nodes still serve; the log says what is missing
+                    log.error("opcua.machine_tool_failed", machine=name, error=f"{type(exc).__name__}: {exc}",
+                              detail="no MachineToolType object for this machine; Objects/millsense/" + name + " serves")
         return nodes
 
     async def apply(self, items: list[tuple[str, str, dict[str, Any]]]) -> None:
@@ -114,9 +156,13 @@ class Feeder:
                     continue
                 if kind in ("alive", "gone"):
                     await nodes.set_alive(kind == "alive")
+                    if kind == "gone" and machine in self.typed:
+                        await self.typed[machine].gone()
                     log.info("opcua.machine_" + kind, machine=machine)
                 else:
                     await nodes.apply(kind, payload)
+                    if machine in self.typed:
+                        await self.typed[machine].apply(kind, payload)
             except Exception as exc:  # noqa: BLE001 - one bad payload must not stop the others
                 self.errors += 1
                 if self.errors <= 10 or self.errors % 1000 == 0:
@@ -145,7 +191,7 @@ async def serve(options: Options, session: Any, stop: asyncio.Event, on_ready: A
             pass  # the loop closed while Zenoh still delivered: nothing left to feed
 
     inbox = Inbox(wake_soon)
-    feeder = Feeder(server, ns, root)
+    feeder = Feeder(server, ns, root, options)
     entities = subscribe(session, inbox, options.machine)
     log.info("opcua.listening", endpoint=options.endpoint, application_uri=options.identity.application_uri,
              trusted_clients=len(options.trust.trusted()), allow_anonymous=options.allow_anonymous)

@@ -88,7 +88,7 @@ def test_unknown_section_at_top_level():
     assert problems_of(doc) == [
         "alarm: unknown key, did you mean \"alarms\"? (expected one of: machine, calibration, daq, channels, motor, gears, "
         "tool, tools, material, materials, operations, cut, depth, feed_force, alarms, interlock, signals, context, learning, history, zenoh, log, "
-        "afc)"
+        "afc, opcua)"
     ]
 
 

@@ -55,13 +55,14 @@ def start_opcua(procs: Procs, name: str, pki: Pki, ua_port: int, z_port: int, *e
     return p
 
 
-async def connect(port: int, cert: Path | None, key: Path | None, *, user_cert: bool = True) -> Client:
-    """A connected client: the channel signed and encrypted with `cert` (none: no security at all),
+async def connect(port: int, cert: Path | None, key: Path | None, *, user_cert: bool = True,
+                  policy: Any = SecurityPolicyBasic256Sha256) -> Client:
+    """A connected client: the channel signed and encrypted with `cert` under `policy` (none: no security at all),
     and the session's user that certificate (`user_cert`) or anonymous."""
     client = Client(f"opc.tcp://127.0.0.1:{port}", timeout=10)
     client.application_uri = CLIENT_URI
     if cert is not None:
-        await client.set_security(SecurityPolicyBasic256Sha256, str(cert), str(key),
+        await client.set_security(policy, str(cert), str(key),
                                   mode=ua.MessageSecurityMode.SignAndEncrypt)
         if user_cert:
             await client.load_client_certificate(str(cert))

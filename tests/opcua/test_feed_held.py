@@ -6,7 +6,7 @@ simulator (the step scenario, a torque limit it crosses at its depth step), `mil
 asyncua clients over loopback:
 
 1. a proof test holds the feed while the cut is shallow: `FeedHeld` goes active (reason `test-trip`,
-   severity 800, the trip time in its message); the reset releases it: one inactive event;
+   severity 900, the trip time in its message); the reset releases it: one inactive event;
 2. the overload at the depth step holds it again: active, severity at least the overload's, the reason
    naming the overload; the overload's own condition clears, `FeedHeld` stays active while statuses come;
 3. a client that connects after the trip sees it active (Retain) through ConditionRefresh.
@@ -188,9 +188,9 @@ def test_the_track_fires_once_per_transition_and_never_on_a_status_from_before_t
     assert off is not None and not off.active and off.severity == 1000 and off.t == 104.0
     assert "feed released (held, since 1970-01-01T00:01:41Z: crash p_gap_w" in off.message("m")
     assert track.on_status(_status(105.0, "armed", daq_feed_hold=False)) is None
-    # A hold this server only learns from a status (a proof test, the DAQ's watchdog): at least 800.
+    # A hold this server only learns from a status (a proof test, the DAQ's watchdog): at least 900 (issue 42).
     device = track.on_status(_status(106.0, "held_by_device", watchdog_tripped=True))
-    assert device.active and device.severity == 800 and "watchdog" in device.reason
+    assert device.active and device.severity == 900 and "watchdog" in device.reason
     # A warning raised while held says feed_hold too; it is not a trip.
     assert FeedHeldTrack(SEVERITY).on_alarm({"t": 1.0, "level": "warning", "interlock": "feed_hold"}) is None
 
@@ -198,12 +198,16 @@ def test_the_track_fires_once_per_transition_and_never_on_a_status_from_before_t
 @pytest.mark.quick
 def test_a_hold_whose_cause_ranks_below_an_overload_is_still_an_overloads_severity():
     """An envelope alarm (600) or envelope_low stops the machine as surely as an overload: FeedHeld is at least
-    800 whatever its cause ranks (`MIN_SEVERITY`), more only for a graver one."""
+    900 whatever its cause ranks (`MIN_SEVERITY`; issue 42 raised it from an overload's 800: a held feed is among
+    the gravest conditions), more only for a crash. (The name is kept: docs/testing.md's mutant table cites it.)"""
     for level, side in (("envelope_high", ">"), ("envelope_low", "<")):
         assert SEVERITY[level] < 800
         on = FeedHeldTrack(SEVERITY).on_alarm({"t": 10.0, "level": level, "quantity": "torque_nm", "value": 4.2,
                                                "limit": 3.9, "interlock": "feed_hold"})
-        assert on.active and on.severity == 800 and on.reason == f"{level} torque_nm 4.2 {side} 3.9"
+        assert on.active and on.severity == 900 and on.reason == f"{level} torque_nm 4.2 {side} 3.9"
+    overload = FeedHeldTrack(SEVERITY).on_alarm({"t": 10.0, "level": "overload", "quantity": "torque_nm",
+                                                 "value": 9.3, "limit": 9.0, "interlock": "feed_hold"})
+    assert SEVERITY["overload"] == 800 and overload.severity == 900
 
 
 @pytest.mark.quick

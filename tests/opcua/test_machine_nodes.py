@@ -86,3 +86,4 @@ def test_inbox_keeps_the_newest_value_and_bounds_the_events():
     assert estimates == [{"rev": 999}]
     assert len(alarms) == MAX_EVENTS and alarms[-1] == MAX_EVENTS + 9 and inbox.dropped == 10
     assert inbox.take() == []
+

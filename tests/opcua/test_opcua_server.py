@@ -168,6 +168,8 @@ def test_a_client_whose_certificate_is_not_trusted_is_refused(rig):
     assert isinstance(refused, ua.UaStatusCodeError), refused
     assert refused.code == ua.StatusCodes.BadCertificateUntrusted, refused
     wait_for(lambda: "opcua.client_refused" in procs.text("strict"), 10.0, "the refusal in the server's log")
+    # Started without --nodesets: it says it serves millsense's own model (issue 42).
+    assert "opcua.own_model" in procs.text("strict"), procs.text("strict")
     assert "not in the trust list" in procs.text("strict")
     # No certificate at all: the server offers no unsecured endpoint.
     assert asyncio.run(attempt(None, None)) is not None
