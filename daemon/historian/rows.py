@@ -163,8 +163,12 @@ class LoadSeconds:
         return out
 
     def close_idle(self, now: float, idle_s: float = 2.0) -> list[list[Any]]:
-        """The seconds whose last revolution came more than `idle_s` ago (all of them with idle_s < 0)."""
+        """The seconds whose last revolution came more than `idle_s` ago (the machine stopped publishing)."""
         return [self._close(m) for m, (_, acc) in list(self._open.items()) if now - acc["received_at"] > idle_s]
+
+    def close_all(self) -> list[list[Any]]:
+        """Every open second (the historian stops: it is all it will see of them)."""
+        return [self._close(m) for m in list(self._open)]
 
     def _close(self, machine: str) -> list[Any]:
         second, acc = self._open.pop(machine)

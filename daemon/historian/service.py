@@ -96,8 +96,12 @@ class Rows:
         else:
             self.writer.add(table, row)
 
-    def close_idle(self, now: float, idle_s: float = 2.0) -> None:
-        for row in self.load.close_idle(now, idle_s):
+    def close_idle(self, now: float) -> None:
+        for row in self.load.close_idle(now):
+            self.writer.add("load_1s", row)
+
+    def close_all(self) -> None:   # the historian stops: every open second is all it will see of it
+        for row in self.load.close_all():
             self.writer.add("load_1s", row)
 
 
@@ -125,7 +129,7 @@ def serve(session: Any, machines: str, writer: Writer, rows: Rows, stop: threadi
             except Exception:  # noqa: BLE001 - the session may be closing
                 pass
         _drain(inbox, rows, until=0.0, stop=None)
-        rows.close_idle(0.0, idle_s=-1.0)   # every open second: it is all the historian will see of it
+        rows.close_all()
         writer.close()
         _status(log, inbox, rows, writer, on_status, event="historian.stopped")
 
