@@ -5,7 +5,7 @@ package creates (`runuser`), or by the user running the tests when that is not r
 mkdtemp under the system's temp folder, not under pytest's tmp_path: pytest's folders are the test user's own
 (mode 0700), which the postgres user cannot enter; the folder is removed when the server stops. It listens on
 127.0.0.1 at a port from `free_tcp_port()` (no Unix socket in a shared place), fsync off (a test's data need not
-survive a power cut). The superuser is reached without a password from this host's loopback only as `postgres`;
+survive a power cut, only the server's death). The superuser is reached without a password from this host's loopback only as `postgres`;
 the role the historian uses, `historian`, needs its password (scram-sha-256), which the tests write into a libpq
 passfile as the historian's users must.
 
@@ -73,7 +73,9 @@ class PgServer:
     def start(self) -> None:
         self._run("pg_ctl", "start", "-w", "-D", str(self.data), "-l", str(self.folder / "log"), "-o",
                   f"-p {self.port} -c listen_addresses=127.0.0.1 -c unix_socket_directories='' -c fsync=off "
-                  "-c synchronous_commit=off -c full_page_writes=off -c max_connections=40")
+                  "-c full_page_writes=off -c max_connections=40")
+        # fsync off, never synchronous_commit off: a commit must be in the WAL (the OS's cache is enough) before
+        # the client hears of it, or a server killed mid-run (test_live.py) loses transactions it acknowledged
 
     def stop(self, mode: str = "fast") -> None:
         self._run("pg_ctl", "stop", "-w", "-D", str(self.data), "-m", mode)
