@@ -29,10 +29,15 @@ def _str(value: Any) -> str | None:
     return value if isinstance(value, str) else None
 
 
+# A daemon's `t` outside these (2001 … 2100) is no clock's: taken, it would make a day partition of year 33658, or
+# overflow Python's datetime and stop the writer.
+T_MIN, T_MAX = 1.0e9, 4102444800.0
+
+
 def payload_time(payload: dict[str, Any]) -> float | None:
     """The daemon's time of the payload (`t`, Unix seconds), None when it has none that is usable."""
     t = _num(payload.get("t"))
-    return t if t is not None and t > 0 else None
+    return t if t is not None and T_MIN <= t <= T_MAX else None
 
 
 _FIELD = {"limit_value": "limit"}   # a column named apart from its payload field (LIMIT is an SQL word)
