@@ -39,8 +39,10 @@ class Database:
             extra["passfile"] = passfile
         self.conn = psycopg.connect(dsn, autocommit=True, **extra)
         self.schema_done = schema.ensure_schema(self.conn)
-        self._staged: set[str] = set()
         self._days: dict[str, set] = defaultdict(set)
+        for table in schema.TABLES:   # made here, outside any write's transaction: a failed write keeps them
+            self.conn.execute(sql.SQL("CREATE TEMP TABLE {s} (LIKE {t}) ON COMMIT DELETE ROWS")
+                              .format(s=sql.Identifier(f"stage_{table}"), t=sql.Identifier(table)))
 
     def close(self) -> None:
         self.conn.close()
@@ -64,10 +66,6 @@ class Database:
     def _copy(self, table: str, rows: list[list[Any]]) -> int:
         stage = f"stage_{table}"
         names = schema.column_names(table)
-        if stage not in self._staged:
-            self.conn.execute(sql.SQL("CREATE TEMP TABLE IF NOT EXISTS {s} (LIKE {t}) ON COMMIT DELETE ROWS")
-                              .format(s=sql.Identifier(stage), t=sql.Identifier(table)))
-            self._staged.add(stage)
         jsonb = {i for i, (_, kind) in enumerate(schema.columns(table)) if kind.startswith("jsonb")}
         cols = sql.SQL(", ").join(map(sql.Identifier, names))
         with self.conn.cursor() as cur:
@@ -104,6 +102,7 @@ class Writer:
         self.duplicates = 0                                # rows the database had already (a replay)
         self.late_dropped = 0                              # rows older than their table's retention
         self.spool_failed = 0                              # rows lost because the spool itself could not be written
+        self.rejected = 0                                  # rows PostgreSQL refused for their data
         self.db_error: str | None = None
         self._next_try = 0.0
         self._tries = 0
@@ -186,12 +185,40 @@ class Writer:
         try:
             inserted = self.db.write(by_table)
         except psycopg.Error as exc:
-            self._down(exc)
-            return False
+            if self._connection_lost(exc):
+                self._down(exc)
+                return False
+            return self._row_by_row(by_table, exc)
+        self._count(by_table, inserted)
+        return True
+
+    def _connection_lost(self, exc: BaseException) -> bool:
+        """The server is gone, refused or slow (statement timeout): spool. Anything else is the rows' fault."""
+        return isinstance(exc, psycopg.OperationalError) or self.db is None or self.db.conn.broken or \
+            self.db.conn.closed
+
+    def _row_by_row(self, by_table: dict[str, list[list[Any]]], first: BaseException) -> bool:
+        """A batch PostgreSQL refused for its data (a string it cannot store, a value out of range): each row on
+        its own, the ones refused counted and said, never spooled (they would block the spool for ever)."""
+        rejected = 0
+        for table, table_rows in by_table.items():
+            for row in table_rows:
+                try:
+                    self._count({table: [row]}, self.db.write({table: [row]}))
+                except psycopg.Error as exc:
+                    if self._connection_lost(exc):
+                        self._down(exc)
+                        return False   # the whole batch to the spool: what was written is skipped on replay
+                    rejected += 1
+        self.rejected += rejected
+        self.log.error("historian.rows_rejected", rows=rejected, total=self.rejected,
+                       error=" ".join(str(first).split())[:300])
+        return True
+
+    def _count(self, by_table: dict[str, list[list[Any]]], inserted: dict[str, int]) -> None:
         for table, n in inserted.items():
             self.written[table] += n
             self.duplicates += len(by_table[table]) - n
-        return True
 
     def _to_spool(self, rows: list[tuple[str, list[Any]]]) -> None:
         dropped = self.spool.dropped
@@ -237,5 +264,5 @@ class Writer:
             "db": "up" if self.db is not None else "down", "db_error": self.db_error,
             "written": dict(self.written), "duplicates": self.duplicates, "late_dropped": self.late_dropped,
             "spooled_rows": self.spool.rows_waiting(), "spool_bytes": self.spool.size_bytes(),
-            "spool_dropped": self.spool.dropped, "spool_failed": self.spool_failed,
+            "spool_dropped": self.spool.dropped, "spool_failed": self.spool_failed, "rejected": self.rejected,
         }
