@@ -15,6 +15,7 @@ to install (no skip: the historian's claims are about a real server).
 
 from __future__ import annotations
 
+import atexit
 import os
 import secrets
 import shutil
@@ -60,6 +61,7 @@ class PgServer:
         (self.data / "pg_hba.conf").write_text(
             "host all postgres 127.0.0.1/32 trust\nhost all all 127.0.0.1/32 scram-sha-256\n")
         self.start()
+        atexit.register(self.remove)   # a worker that dies without its fixture's teardown leaves no server behind
         with self.admin() as conn:
             conn.execute(f"CREATE ROLE {HISTORIAN_ROLE} LOGIN PASSWORD '{self.password}'")
 
@@ -81,10 +83,13 @@ class PgServer:
         self._run("pg_ctl", "stop", "-w", "-D", str(self.data), "-m", mode)
 
     def remove(self) -> None:
-        try:
-            self.stop("immediate")
-        except AssertionError:
-            pass
+        if not self.folder.exists():
+            return
+        if (self.data / "postmaster.pid").exists():
+            try:
+                self.stop("immediate")
+            except (AssertionError, OSError, subprocess.SubprocessError):
+                pass
         shutil.rmtree(self.folder, ignore_errors=True)
 
     def admin(self, dbname: str = "postgres") -> psycopg.Connection:
