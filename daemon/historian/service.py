@@ -128,22 +128,35 @@ def serve(session: Any, machines: str, writer: Writer, rows: Rows, stop: threadi
                 sub.undeclare()
             except Exception:  # noqa: BLE001 - the session may be closing
                 pass
-        _drain(inbox, rows, until=0.0, stop=None)
+        _drain_all(inbox, rows)
         rows.close_all()
         writer.close()
         _status(log, inbox, rows, writer, on_status, event="historian.stopped")
 
 
 def _drain(inbox: Inbox, rows: Rows, until: float, stop: threading.Event | None) -> None:
-    """Take what the inbox holds until the flush is due (or, `until` past, what it holds now)."""
+    """Take what comes until the flush is due: then return, however much is still coming (a steady flood must
+    not hold back the flush; what is left waits for the next cycle)."""
     while True:
         timeout = until - time.monotonic()
+        if timeout <= 0:
+            return
         try:
-            item = inbox.q.get(timeout=min(timeout, 0.2)) if timeout > 0 else inbox.q.get_nowait()
+            item = inbox.q.get(timeout=min(timeout, 0.2))
         except queue.Empty:
-            if timeout <= 0 or (stop is not None and stop.is_set()):
+            if stop is not None and stop.is_set():
                 return
             continue
+        rows.take(*item)
+
+
+def _drain_all(inbox: Inbox, rows: Rows) -> None:
+    """Everything queued now (the historian stops)."""
+    while True:
+        try:
+            item = inbox.q.get_nowait()
+        except queue.Empty:
+            return
         rows.take(*item)
 
 

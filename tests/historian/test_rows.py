@@ -33,3 +33,41 @@ def test_the_load_of_a_second_closes_when_the_next_second_starts():
     assert load.close_idle(t0 + 0.5) == []                # its last revolution came just now
     (last,) = load.close_all()
     assert last[0] == t0 + 1 and last[3:6] == [1, 1, 0]
+
+
+def test_a_steady_flood_of_payloads_does_not_hold_back_the_flush(tmp_path):
+    """The loop takes payloads until the flush is due, then flushes, however many still come (before: it took
+    them until the queue was empty, which a flood faster than it never lets be)."""
+    import threading
+    import time
+
+    from millsense.daemon.historian import schema
+    from millsense.daemon.historian.service import Inbox, Rows, _drain
+    from millsense.daemon.historian.spool import Spool
+    from millsense.daemon.historian.writer import Writer
+
+    writer = Writer("host=127.0.0.1 port=1", "", Spool(tmp_path / "spool", 10**6), {t: 1.0 for t in schema.TABLES},
+                    None)
+    inbox, taker = Inbox(), Rows(writer, revolutions_for={"m"})
+    stop = threading.Event()
+
+    def flood():
+        t, rev = time.time(), 0
+        while not stop.is_set():
+            for _ in range(200):
+                rev += 1
+                inbox.q.put(("estimate", "m", {"t": t + rev * 1e-4, "rev": rev, "valid": True, "torque_nm": 1.0},
+                             t))
+
+    producer = threading.Thread(target=flood, daemon=True)
+    producer.start()
+    try:
+        done = threading.Event()
+        drainer = threading.Thread(target=lambda: (_drain(inbox, taker, time.monotonic() + 0.3, None), done.set()),
+                                   daemon=True)
+        drainer.start()
+        assert done.wait(20.0), "the drain never gave the flush its turn"
+        assert writer.pending   # it took some, and left the rest for the next cycle
+    finally:
+        stop.set()
+        producer.join(5.0)
