@@ -33,11 +33,11 @@ class Spool:
         self._segments: list[tuple[int, Path]] = sorted(
             (int(m[1]), self.directory / name) for name in os.listdir(self.directory) if (m := _SEGMENT.match(name)))
         self._current: Any = None
-        self._current_rows = 0
+        self._rows = {path: self._count(path) for _, path in self._segments}   # counted once, then kept
 
     # ------------------------------------------------------------------ state
     def rows_waiting(self) -> int:
-        return sum(self._count(path) for _, path in self._segments)
+        return sum(self._rows.get(path, 0) for _, path in self._segments)
 
     def empty(self) -> bool:
         return not self._segments
@@ -59,10 +59,11 @@ class Spool:
             os.fsync(self._current.fileno())
         except (OSError, ValueError) as exc:
             raise SpoolError(f"spool {self.directory}: {getattr(exc, 'strerror', None) or exc}") from None
-        self._current_rows += len(rows)
+        current = self._segments[-1][1]
+        self._rows[current] = self._rows.get(current, 0) + len(rows)
         while self.size_bytes() > self.max_bytes and len(self._segments) > 1:
             _, oldest = self._segments.pop(0)
-            self.dropped += self._count(oldest)
+            self.dropped += self._rows.pop(oldest, 0)
             oldest.unlink(missing_ok=True)
 
     def _open_next(self) -> None:
@@ -71,7 +72,7 @@ class Spool:
         path = self.directory / f"spool-{n:012d}.jsonl"
         self._current = open(path, "ab")   # noqa: SIM115 - kept open while it is the segment written
         self._segments.append((n, path))
-        self._current_rows = 0
+        self._rows[path] = 0
 
     def close(self) -> None:
         if self._current is not None:
@@ -100,6 +101,7 @@ class Spool:
     def done(self, path: Path) -> None:
         """The segment at `path` is in PostgreSQL: delete it."""
         self._segments = [(n, p) for n, p in self._segments if p != path]
+        self._rows.pop(path, None)
         path.unlink(missing_ok=True)
 
     @staticmethod

@@ -54,3 +54,16 @@ def test_rows_spool_within_the_bound_the_oldest_dropped_and_counted_then_replaye
     with psycopg.connect(server.dsn(name), passfile=str(passfile)) as conn:
         assert conn.execute("SELECT count(*) FROM alarms").fetchone()[0] == kept
     writer.close()
+
+
+def test_a_spool_left_by_a_stopped_historian_is_taken_up_in_order_by_the_next(tmp_path):
+    first = Spool(tmp_path / "spool", 40_000)
+    for i in range(30):
+        first.append([("alarms", [float(i), 0.0, "m1"])])
+    first.close()
+    (tmp_path / "spool" / "spool-000000000009.jsonl").write_bytes(b'["alarms",[99.0,0.0,"m1"]]\n["alar')  # cut short
+    second = Spool(tmp_path / "spool", 40_000)
+    assert second.rows_waiting() == 31   # whole lines: the torn one is not counted
+    second.append([("alarms", [30.0, 0.0, "m1"])])
+    order = [row[0] for _, segment in second.segments() for _, row in segment]
+    assert order == [float(i) for i in range(30)] + [99.0, 30.0]   # the torn line skipped, the rest in order
