@@ -69,3 +69,13 @@ def test_history_refuses_a_password_on_its_command_line(millsense_cmd):
     p = subprocess.run(millsense_cmd + ["history", "--what", "load", "--db", "x.sqlite3"], capture_output=True,
                        text=True, timeout=60)
     assert p.returncode == 2 and "only the plant's database (--dsn) keeps it" in p.stderr, p.stderr
+
+
+def test_history_says_in_one_line_when_the_plant_database_cannot_be_reached(millsense_cmd, tmp_path):
+    from tests.conftest import free_tcp_port
+
+    p = subprocess.run(millsense_cmd + ["history", "--dsn", f"host=127.0.0.1 port={free_tcp_port()} dbname=m user=h",
+                                        "--what", "load"], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 1, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("millsense history: error: the plant's database: "), p.stderr
