@@ -38,11 +38,15 @@ class Database:
         if passfile:
             extra["passfile"] = passfile
         self.conn = psycopg.connect(dsn, autocommit=True, **extra)
-        self.schema_done = schema.ensure_schema(self.conn)
         self._days: dict[str, set] = defaultdict(set)
-        for table in schema.TABLES:   # made here, outside any write's transaction: a failed write keeps them
-            self.conn.execute(sql.SQL("CREATE TEMP TABLE {s} (LIKE {t}) ON COMMIT DELETE ROWS")
-                              .format(s=sql.Identifier(f"stage_{table}"), t=sql.Identifier(table)))
+        try:
+            self.schema_done = schema.ensure_schema(self.conn)
+            for table in schema.TABLES:   # made here, outside any write's transaction: a failed write keeps them
+                self.conn.execute(sql.SQL("CREATE TEMP TABLE {s} (LIKE {t}) ON COMMIT DELETE ROWS")
+                                  .format(s=sql.Identifier(f"stage_{table}"), t=sql.Identifier(table)))
+        except BaseException:
+            self.conn.close()
+            raise
 
     def close(self) -> None:
         self.conn.close()
@@ -114,9 +118,9 @@ class Writer:
 
     # ------------------------------------------------------------------ the cycle
     def flush(self) -> None:
-        rows, self.pending = self._keep_in_retention(self.pending), []
         if self.db is None:
-            self._connect()
+            self._connect()   # SchemaError: raised with the rows still pending (close() spools them)
+        rows, self.pending = self._keep_in_retention(self.pending), []
         if self.db is not None and not self.spool.empty():
             self._replay()
         if self.db is not None and self.spool.empty():
@@ -128,8 +132,14 @@ class Writer:
             self._retention()
 
     def close(self) -> None:
-        self.flush()
-        self.spool.close()
+        try:
+            self.flush()
+        except schema.SchemaError:   # a newer schema met on reconnecting: keep the rows for a newer historian
+            self._to_spool(self._keep_in_retention(self.pending))
+            self.pending = []
+            raise
+        finally:
+            self.spool.close()
         if self.db is not None:
             self.db.close()
 

@@ -170,3 +170,24 @@ def test_a_row_postgresql_refuses_for_its_data_is_counted_and_the_rest_written_n
     with connect(pg_db) as conn:
         assert [r[0] for r in conn.execute("SELECT alarm_seq FROM alarms ORDER BY alarm_seq")] == [1, 2, 4, 5]
     writer.close()
+
+
+def test_a_newer_schema_met_on_reconnecting_stops_the_writer_with_its_rows_spooled(pg_db, tmp_path):
+    """Another (newer) historian upgraded the database while this one's connection was cut: it must stop writing,
+    and keep what it holds for the newer one (the spool), never drop it."""
+    server, name, passfile = pg_db
+    writer = Writer(server.dsn(name), str(passfile), Spool(tmp_path / "spool", 10**6),
+                    {t: 30.0 for t in schema.TABLES}, Log())
+    writer.flush()
+    now = time.time()
+    with server.admin(name) as admin:
+        admin.execute("INSERT INTO schema_version (version) VALUES (2)")
+        admin.execute("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE usename = 'historian'")
+    writer.add("alarms", rows.alarm_row("m1", alarm(now, 1), now))
+    writer.flush()                       # the cut connection: spooled
+    writer._next_try = 0.0               # the retry back-off's clock
+    writer.add("alarms", rows.alarm_row("m1", alarm(now + 1, 2), now))
+    with pytest.raises(schema.SchemaError, match="version 2, newer"):
+        writer.close()
+    at = schema.column_names("alarms").index("alarm_seq")
+    assert [row[at] for _, seg in writer.spool.segments() for _, row in seg] == [1, 2]
