@@ -38,6 +38,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "afc": ("millsense.daemon.commands.afc", "adaptive feed control: on, off, or its state (authorised like reset)"),
     "opcua": ("millsense.daemon.commands.opcua", "an OPC UA server for every machine seen on Zenoh (the opcua extra)"),
     "dashboard": ("millsense.daemon.commands.dashboard", "a web page of every machine on Zenoh: tiles, live plots, alarms, reset"),
+    "historian": ("millsense.daemon.commands.historian", "the plant's history: every machine's alarms, processes, status and load into PostgreSQL (the historian extra)"),
     "router": ("millsense.daemon.commands.router", "Zenoh's router for the plant (TLS, access control), from pip"),
 }
 

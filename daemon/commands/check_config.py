@@ -77,8 +77,26 @@ def run(args: argparse.Namespace) -> int:
 
     from millsense.daemon.config.warnings import config_warnings
 
+    if _historian_file(args.file):   # issue 43: `millsense historian`'s own file (docs/historian.md)
+        from millsense.daemon.config import historian
+
+        settings = historian.load_historian_config(args.file)   # ConfigError: the same exit 78
+        print(f"{args.file}: OK ({historian.summary(settings)})")
+        return 0
     settings = load_config(args.file)  # ConfigError -> the CLI prints the problems, exit 78
     for warning in config_warnings(settings, args.file):
         print(f"warning: {warning}")
     print(f"{args.file}: OK ({summary(settings)})")
     return 0
+
+
+def _historian_file(path: str) -> bool:
+    """The file is a historian's (a `[historian]` section and no `[daq]`); an unreadable one goes to the daemon's
+    loader, which says what is wrong with it."""
+    from pathlib import Path
+
+    from millsense.daemon.config.checks import read_toml
+    from millsense.daemon.config.historian import CONFIG_WHAT, is_historian_file
+
+    data, _ = read_toml(Path(path), path, CONFIG_WHAT)
+    return is_historian_file(data)

@@ -7,6 +7,9 @@ read-only, so an export runs while the daemon writes. Only `machine` and
 `[history]` are read from the config: an operator exporting data need not be
 able to read the daemon's token file.
 
+With `--dsn` it reads the plant's PostgreSQL that `millsense historian` writes (docs/historian.md) instead:
+every machine or those named by `--machine`, times printed in UTC with their offset.
+
 Exit codes: 0 done; 1 no database, or one that cannot be read; 2 a bad option;
 78 a config error (named section.key).
 """
@@ -30,10 +33,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", "-c", metavar="FILE", default=None,
                         help="the daemon's configuration (its machine and [history]; nothing else is read)")
     parser.add_argument("--db", metavar="PATH", default=None, help="the history file itself (wins over --config)")
-    parser.add_argument("--what", default="revolutions", choices=("revolutions", "processes", "alarms", "limits"),
-                        help="which rows (default: revolutions)")
+    parser.add_argument("--dsn", metavar="DSN", default=None,
+                        help="read the plant's PostgreSQL (`millsense historian`, docs/historian.md) instead: a libpq "
+                             "connection string without password (the password from --passfile or PGPASSFILE)")
+    parser.add_argument("--passfile", metavar="FILE", default=None, help="with --dsn: the libpq password file")
+    parser.add_argument("--machine", "-m", action="append", metavar="ID", default=None,
+                        help="with --dsn: only this machine (repeatable; 'all' or none: every machine)")
+    parser.add_argument("--what", default="revolutions",
+                        choices=("revolutions", "processes", "alarms", "limits", "load", "status"),
+                        help="which rows (default: revolutions; with --dsn also load (per second), status (its "
+                             "changes); limits: with --dsn the learned limits' changes)")
     parser.add_argument("--from", dest="t_from", metavar="T", default=None,
-                        help="from this time on: ISO 8601 (2026-11-23T08:00:00Z; no zone = local time) or Unix seconds")
+                        help="from this time on: ISO 8601 with its offset (2026-11-23T08:00:00+01:00, or Z for "
+                             "UTC; no offset = this computer's local time zone) or Unix seconds")
     parser.add_argument("--to", dest="t_to", metavar="T", default=None, help="before this time (as --from)")
     parser.add_argument("--program", type=str, default=None, metavar="N", help="only this CNC program number")
     parser.add_argument("--tool", type=str, default=None, metavar="N", help="only this tool number (T12: 12)")
@@ -84,8 +96,15 @@ def run(args: argparse.Namespace) -> int:
         if t_from is not None and t_to is not None and t_to <= t_from:
             raise _Usage("--to must be after --from")
         numbers = {name: _number(getattr(args, name), f"--{name}") for name in ("program", "tool", "operation")}
-        if args.db is None and args.config is None:
-            raise _Usage("give --config FILE (the daemon's) or --db PATH (the history file)")
+        if args.dsn is None and (args.machine or args.passfile):
+            raise _Usage("--machine and --passfile read the plant's database: give --dsn")
+        if args.dsn is None and args.what in ("load", "status"):
+            raise _Usage(f"--what {args.what}: only the plant's database (--dsn) keeps it")
+        if args.dsn is None and args.db is None and args.config is None:
+            raise _Usage("give --config FILE (the daemon's), --db PATH (the history file) or --dsn (the plant's "
+                         "PostgreSQL)")
+        if args.dsn is not None:
+            return _run_dsn(args, t_from, t_to, numbers)
     except _Usage as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -157,3 +176,47 @@ def find_database(config: Path) -> tuple[list[str], Path]:
     if not (os.environ.get("STATE_DIRECTORY") or "").strip() and not path.exists() and unit_path.exists():
         path = unit_path
     return [], path
+
+
+def _run_dsn(args: argparse.Namespace, t_from: float | None, t_to: float | None, numbers: dict) -> int:
+    """The plant's database (issue 43). Raises _Usage for a bad option."""
+    from millsense.daemon.config.historian import dsn_problem
+    from millsense.daemon.publish.cli_args import MACHINE_RE
+
+    problem = dsn_problem(args.dsn)
+    if problem:
+        raise _Usage(f"--dsn: {problem}".replace("named by historian.passfile", "given by --passfile"))
+    machines = [m for m in (args.machine or []) if m != "all"]
+    for m in machines:
+        if not MACHINE_RE.match(m):
+            raise _Usage(f"--machine {m!r}: a machine id (letters, digits, '_' and '-') or 'all'")
+    with_numbers = {"revolutions", "processes", "alarms"}
+    if args.what not in with_numbers and any(v is not None for v in numbers.values()):
+        raise _Usage(f"--what {args.what}: no program, tool or operation to filter on")
+    try:
+        from millsense.daemon.historian import read
+    except ImportError:
+        print(f"{PROG}: error: --dsn needs the 'historian' extra (psycopg 3): pip install 'millsense[historian]'",
+              file=sys.stderr)
+        return EXIT_FAILURE
+    import psycopg
+
+    try:
+        with read.connect(args.dsn, args.passfile) as conn:
+            items = read.rows(conn, args.what, machines=machines, t_from=t_from, t_to=t_to, **numbers)
+            if args.out is None:
+                n = read.write(sys.stdout, args.what, items, args.format)
+                sys.stdout.flush()
+            else:
+                try:
+                    with open(args.out, "w", encoding="utf-8", newline="") as out:
+                        n = read.write(out, args.what, items, args.format)
+                except OSError as exc:
+                    print(f"{PROG}: error: cannot write {args.out}: {exc.strerror or exc}", file=sys.stderr)
+                    return EXIT_FAILURE
+                print(f"{PROG}: wrote {n} {args.what} rows to {args.out}", file=sys.stderr)
+    except psycopg.Error as exc:
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"{PROG}: error: the plant's database: {message}", file=sys.stderr)
+        return EXIT_FAILURE
+    return 0

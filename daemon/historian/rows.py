@@ -1,0 +1,185 @@
+"""A daemon's payload → the historian's rows (pure; docs/historian.md, docs/zenoh.md for the payloads).
+
+A row is a list of JSON values in `schema.column_names(table)` order, `time` and `received_at` as Unix seconds
+(UTC), so that the spool can hold it as one JSON line and the writer turns it into timestamptz. What a payload
+does not carry is `null`; a field the daemon adds later stays in `payload` (jsonb) until a schema version gives it
+a column.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from typing import Any
+
+from millsense.daemon.historian.schema import column_names, columns
+
+
+def _num(value: Any) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    return float(value) if math.isfinite(value) else None
+
+
+def _int(value: Any) -> int | None:
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+def _str(value: Any) -> str | None:
+    return value if isinstance(value, str) else None
+
+
+# A daemon's `t` outside these (2001 … 2100) is no clock's: taken, it would make a day partition of year 33658, or
+# overflow Python's datetime and stop the writer.
+T_MIN, T_MAX = 1.0e9, 4102444800.0
+
+
+def payload_time(payload: dict[str, Any]) -> float | None:
+    """The daemon's time of the payload (`t`, Unix seconds), None when it has none that is usable."""
+    t = _num(payload.get("t"))
+    return t if t is not None and T_MIN <= t <= T_MAX else None
+
+
+_FIELD = {"limit_value": "limit"}   # a column named apart from its payload field (LIMIT is an SQL word)
+
+
+def _row(table: str, t: float, received_at: float, machine: str, payload: dict[str, Any],
+         extra: dict[str, Any] | None = None) -> list[Any]:
+    out: list[Any] = [t, received_at, machine]
+    for name, kind in columns(table)[3:]:
+        if extra and name in extra:
+            out.append(extra[name])
+            continue
+        raw = payload if name == "payload" else payload.get(_FIELD.get(name, name))
+        if kind.startswith("double precision"):
+            out.append(_num(raw))
+        elif kind.startswith(("bigint", "integer")):
+            out.append(_int(raw))
+        elif kind.startswith("boolean"):
+            out.append(raw if isinstance(raw, bool) else None)
+        elif kind.startswith("jsonb"):
+            out.append(raw)
+        else:
+            out.append(_str(raw))
+    return out
+
+
+def alarm_row(machine: str, payload: dict[str, Any], received_at: float) -> list[Any] | None:
+    t = payload_time(payload)
+    if t is None or not isinstance(payload.get("level"), str):
+        return None
+    return _row("alarms", t, received_at, machine, payload)
+
+
+def process_row(machine: str, payload: dict[str, Any], received_at: float) -> list[Any] | None:
+    t = payload_time(payload)
+    return None if t is None else _row("processes", t, received_at, machine, payload)
+
+
+def revolution_row(machine: str, payload: dict[str, Any], received_at: float) -> list[Any] | None:
+    t = payload_time(payload)
+    if t is None or _int(payload.get("rev")) is None:
+        return None
+    row = _row("revolutions", t, received_at, machine, payload)
+    row[column_names("revolutions").index("valid")] = payload.get("valid") is True
+    return row
+
+
+STATUS_FIELDS = ("state", "daq_link", "interlock", "alarm", "faults", "run_id")
+
+
+class StatusChanges:
+    """A status is a row only when what it says changed (state, DAQ link, interlock, worst alarm, faults, run):
+    the daemon publishes one a second, the plant keeps the changes."""
+
+    def __init__(self) -> None:
+        self._last: dict[str, tuple[Any, ...]] = {}
+
+    def row(self, machine: str, payload: dict[str, Any], received_at: float) -> list[Any] | None:
+        t = payload_time(payload)
+        if t is None:
+            return None
+        seen = tuple(repr(payload.get(f)) for f in STATUS_FIELDS)
+        if self._last.get(machine) == seen:
+            return None
+        self._last[machine] = seen
+        faults = payload.get("faults")
+        return _row("status_changes", t, received_at, machine, payload, {"faults": faults if faults is not None else None})
+
+
+class LimitChanges:
+    """The learned limits' changes the daemon's publications show: a key's `envelope` (learning, pending, active)
+    in its process summaries, and a key whose `learned` count fell (relearned). The operator's commands themselves
+    (widen, narrow, …) are in the daemon's audit log; the daemon publishes no event of them (docs/historian.md)."""
+
+    def __init__(self) -> None:
+        self._last: dict[tuple[str, str], tuple[Any, Any]] = {}
+
+    def row(self, machine: str, payload: dict[str, Any], received_at: float) -> list[Any] | None:
+        t, key = payload_time(payload), payload.get("key")
+        if t is None or not isinstance(key, str):
+            return None
+        envelope, learned = _str(payload.get("envelope")), _int(payload.get("learned"))
+        last = self._last.get((machine, key))
+        self._last[(machine, key)] = (envelope, learned)
+        if last is None or envelope is None:
+            return None   # the first summary the historian sees of a key says nothing of a change
+        if last[0] != envelope:
+            change = f"{last[0]}->{envelope}"
+        elif learned is not None and last[1] is not None and learned < last[1]:
+            change = "relearn"
+        else:
+            return None
+        return [t, received_at, machine, key, change, envelope, learned, _int(payload.get("process"))]
+
+
+class LoadSeconds:
+    """Per machine and second of the daemon's clock, the revolutions' aggregate: counts of valid and invalid, min,
+    mean and max of torque, force and input power over the valid ones. A second is closed when a revolution of a
+    later second comes, or by `close_idle` (the machine stopped publishing)."""
+
+    def __init__(self) -> None:
+        self._open: dict[str, tuple[int, dict[str, Any]]] = {}
+
+    def add(self, machine: str, payload: dict[str, Any], received_at: float) -> list[list[Any]]:
+        t = payload_time(payload)
+        if t is None:
+            return []
+        second = math.floor(t)
+        out = []
+        current = self._open.get(machine)
+        if current is not None and current[0] != second:
+            if second < current[0]:
+                return []   # an estimate older than the open second: its second was written already
+            out.append(self._close(machine))
+        if machine not in self._open:
+            self._open[machine] = (second, {"received_at": received_at, "valid": 0, "invalid": 0,
+                                            "values": defaultdict(list)})
+        acc = self._open[machine][1]
+        acc["received_at"] = received_at
+        if payload.get("valid") is True:
+            acc["valid"] += 1
+            for name, field in (("torque", "torque_nm"), ("force", "force_n"), ("power", "p_in_w")):
+                v = _num(payload.get(field))
+                if v is not None:
+                    acc["values"][name].append(v)
+        else:
+            acc["invalid"] += 1
+        return out
+
+    def close_idle(self, now: float, idle_s: float = 2.0) -> list[list[Any]]:
+        """The seconds whose last revolution came more than `idle_s` ago (the machine stopped publishing)."""
+        return [self._close(m) for m, (_, acc) in list(self._open.items()) if now - acc["received_at"] > idle_s]
+
+    def close_all(self) -> list[list[Any]]:
+        """Every open second (the historian stops: it is all it will see of them)."""
+        return [self._close(m) for m in list(self._open)]
+
+    def _close(self, machine: str) -> list[Any]:
+        second, acc = self._open.pop(machine)
+        row: list[Any] = [float(second), acc["received_at"], machine, acc["valid"] + acc["invalid"], acc["valid"],
+                          acc["invalid"]]
+        for name in ("torque", "force", "power"):
+            values = acc["values"].get(name) or []
+            row += [min(values), math.fsum(values) / len(values), max(values)] if values else [None, None, None]
+        return row

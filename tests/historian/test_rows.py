@@ -1,0 +1,73 @@
+"""A payload → the historian's rows (pure): a `t` that is no clock's is refused (it would make a partition of
+year 33658 or overflow the writer), the per-second load closes a second when the next one starts."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from millsense.daemon.historian import rows
+
+pytestmark = pytest.mark.quick
+
+
+@pytest.mark.parametrize("t", [None, "1795324800", True, math.nan, math.inf, -1.0, 0.0, 1e20, 1e12])
+def test_a_time_that_is_no_clocks_makes_no_row(t):
+    payload = {"t": t, "level": "warning", "rev": 3, "valid": True, "torque_nm": 1.0}
+    assert rows.alarm_row("m", payload, 1795324800.0) is None
+    assert rows.revolution_row("m", payload, 1795324800.0) is None
+    assert rows.LoadSeconds().add("m", payload, 1795324800.0) == []
+
+
+def test_the_load_of_a_second_closes_when_the_next_second_starts():
+    load = rows.LoadSeconds()
+    t0 = 1795324800.0
+    revs = [(0.1, True, 2.0), (0.4, False, None), (0.7, True, 4.0), (0.9, True, 3.0)]
+    for dt, valid, torque in revs:
+        assert load.add("m", {"t": t0 + dt, "valid": valid, "torque_nm": torque, "force_n": 10.0, "p_in_w": 500.0},
+                        t0) == []
+    (row,) = load.add("m", {"t": t0 + 1.05, "valid": True, "torque_nm": 9.0}, t0)
+    assert row[0] == t0 and row[3:9] == [4, 3, 1, 2.0, 3.0, 4.0]
+    assert row[9:] == [10.0, 10.0, 10.0, 500.0, 500.0, 500.0]
+    assert load.close_idle(t0 + 0.5) == []                # its last revolution came just now
+    (last,) = load.close_all()
+    assert last[0] == t0 + 1 and last[3:6] == [1, 1, 0]
+
+
+def test_a_steady_flood_of_payloads_does_not_hold_back_the_flush(tmp_path):
+    """The loop takes payloads until the flush is due, then flushes, however many still come (before: it took
+    them until the queue was empty, which a flood faster than it never lets be)."""
+    import threading
+    import time
+
+    from millsense.daemon.historian import schema
+    from millsense.daemon.historian.service import Inbox, Rows, _drain
+    from millsense.daemon.historian.spool import Spool
+    from millsense.daemon.historian.writer import Writer
+
+    writer = Writer("host=127.0.0.1 port=1", "", Spool(tmp_path / "spool", 10**6), {t: 1.0 for t in schema.TABLES},
+                    None)
+    inbox, taker = Inbox(), Rows(writer, revolutions_for={"m"})
+    stop = threading.Event()
+
+    def flood():
+        t, rev = time.time(), 0
+        while not stop.is_set():
+            for _ in range(200):
+                rev += 1
+                inbox.q.put(("estimate", "m", {"t": t + rev * 1e-4, "rev": rev, "valid": True, "torque_nm": 1.0},
+                             t))
+
+    producer = threading.Thread(target=flood, daemon=True)
+    producer.start()
+    try:
+        done = threading.Event()
+        drainer = threading.Thread(target=lambda: (_drain(inbox, taker, time.monotonic() + 0.3, None), done.set()),
+                                   daemon=True)
+        drainer.start()
+        assert done.wait(20.0), "the drain never gave the flush its turn"
+        assert writer.pending   # it took some, and left the rest for the next cycle
+    finally:
+        stop.set()
+        producer.join(5.0)
