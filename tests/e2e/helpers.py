@@ -135,10 +135,15 @@ class Procs:
 class Subscriber:
     """A Zenoh peer in the test, connected to the daemon over loopback TCP, scouting off."""
 
-    def __init__(self, connect: list[str], machine: str = "*", mode: str = "peer", read: bool = True):
+    def __init__(self, connect: list[str], machine: str = "*", mode: str = "peer", read: bool = True,
+                 listen: list[str] | None = None):
+        """`listen`: endpoints the daemon connects to instead (its `[zenoh] connect`): the subscriptions are
+        declared before the daemon starts, so it is seen from the daemon's first publication on."""
         conf = zenoh.Config()
         conf.insert_json5("mode", json.dumps(mode))
         conf.insert_json5("connect/endpoints", json.dumps(connect))
+        if listen:
+            conf.insert_json5("listen/endpoints", json.dumps(listen))
         conf.insert_json5("scouting/multicast/enabled", "false")
         self.session = zenoh.open(conf)
         self.lock = threading.Lock()

@@ -40,26 +40,28 @@ def rig(tmp_path_factory):
     six = fetched.folder()
     tmp = tmp_path_factory.mktemp("opcua-mt")
     pki = make_pki(tmp / "pki")
-    z_port, ua_port = free_tcp_port(), free_tcp_port()
+    z_port, ua_port, sub_port = free_tcp_port(), free_tcp_port(), free_tcp_port()
     # Everything the server needs from the [opcua] section, its certificate paths relative to the file's folder.
     opcua = "\n".join([f'endpoint = "opc.tcp://127.0.0.1:{ua_port}"', 'cert = "pki/server.der"',
                        'key = "pki/server.pem"', 'trust_dir = "pki/trusted"', f'nodesets_dir = "{six}"',
                        *(f'{k} = "{v}"' for k, v in IDENTITY.items())])
     cfg = write_config(tmp / "d.toml", machine=MACHINE, daq='transport = "sim"\nscenario = "step"',
-                       zenoh_listen=[tcp(z_port)])
+                       zenoh_listen=[tcp(z_port)], zenoh_connect=[tcp(sub_port)])
     cfg.write_text(cfg.read_text() + f"\n[opcua]\n{opcua}\n\n[tools.12]\ndiameter_mm = 10.0\nflutes = 4\n")
     with Procs(tmp) as procs:
         server = procs.start("opcua", ["opcua", "--config", str(cfg), "--connect", tcp(z_port), "--no-scouting",
                                        "--log-format", "json"])
         wait_for(lambda: "opcua.listening" in procs.text("opcua") or server.poll() is not None, SLOW_S, "listening")
         assert server.poll() is None, procs.text("opcua")
-        yield {"procs": procs, "pki": pki, "cfg": cfg, "z_port": z_port, "port": ua_port}
+        yield {"procs": procs, "pki": pki, "cfg": cfg, "z_port": z_port, "port": ua_port, "sub_port": sub_port}
 
 
 @pytest.mark.slow
 def test_the_machine_is_a_machine_tool_with_its_identification_and_live_monitoring(rig):
     pki, procs = rig["pki"], rig["procs"]
-    sub = Subscriber([tcp(rig["z_port"])], MACHINE)  # what the daemon really published
+    # What the daemon really published, from its first estimate on: the daemon connects to this subscriber (a
+    # subscriber connecting to the daemon could join after the estimate that turned IsRotating true: seen once).
+    sub = Subscriber([], MACHINE, listen=[tcp(rig["sub_port"])])
 
     async def scenario():
         client = await connect(rig["port"], pki.client_cert, pki.client_key)
