@@ -14,6 +14,10 @@ The suite mostly waits on real processes, so pyproject runs it in several worker
   test to the last (a readers–writer lock on files, with writers first: a waiting
   serial test stops new tests from starting, then waits for those running to end).
   The kernel drops a dead worker's lock, so a crash cannot wedge the others.
+- **Shares of the box.** `--cpu-shares N`: a running test holds shares of the box, a `slow` test one (it
+  streams at 1× real time and mostly waits: about 0.3 of a core), any other test two (it mostly computes);
+  N in all. pyproject runs 6 workers with 8 shares: at most 4 computing tests at once, as with 4 workers,
+  and while slow tests stream the workers they leave beside them run computing tests in the idle core.
 - **CPU, not only time.** `--cpu-report N` prints the N tests that used most CPU
   (the worker process and the children it waited for): on a 2-core box the suite's
   time is bounded by CPU, and a test can be quick and still eat the others' share.
@@ -33,6 +37,11 @@ from pathlib import Path
 import pytest
 
 SERIAL_GROUP = "serial"
+# What a running test holds of `--cpu-shares`: a slow test streams at 1x real time and mostly waits (the slow
+# tests of stop 33's CI: 310 CPU s in 1 002 s of a worker's time, 0.3 of a core each), any other mostly computes
+# (0.45 of a core on average, an estimator test a whole core)
+SLOW_SHARES = 1
+OTHER_SHARES = 2
 _holding_serial = False
 _locks: dict[str, int] = {}
 
@@ -40,6 +49,9 @@ _locks: dict[str, int] = {}
 def pytest_addoption(parser):
     parser.addoption("--cpu-report", type=int, default=0, metavar="N",
                      help="print the N tests that used the most CPU seconds (worker and waited-for children)")
+    parser.addoption("--cpu-shares", type=int, default=0, metavar="N",
+                     help=f"shares of the box the running tests hold, N in all: a slow test {SLOW_SHARES}, any "
+                          f"other {OTHER_SHARES} (0: no limit but the workers'; docs/testing.md)")
     parser.addoption("--timeline", default=None, metavar="FILE",
                      help="append one JSON line per test to FILE: worker, start and end (Unix time), CPU s, serial; "
                           "says where a run's cores sat idle (docs/testing.md)")
@@ -164,6 +176,9 @@ def pytest_runtest_protocol(item, nextitem):
     serial = _is(item, "serial")
     if parallel:
         _enter(serial)
+    shares = _take_shares(item) if parallel and not serial else []
+    if parallel:
+        _enter(serial)
     item.stash[_CPU_START] = _cpu_s()
     started = time.time()
     try:
@@ -172,7 +187,46 @@ def pytest_runtest_protocol(item, nextitem):
         ended = time.time()   # inside the lock, like the start: a serial test's span and another's never overlap
         if parallel:
             _leave(serial, _is(nextitem, "serial"))
+        _give_back(shares)
         _timeline(item, started, ended, serial)
+
+
+def _take_shares(item) -> list[int]:
+    """Hold this test's shares of `--cpu-shares` (one lock file each) until it ends; wait while they are taken.
+    One worker at a time picks (the `shares` lock): it takes what is free and waits on a taken one for the rest.
+    No deadlock: a holder gives its shares back when its test ends and needs no lock to do it; a serial test
+    takes none (it runs alone anyway)."""
+    total = item.config.getoption("--cpu-shares")
+    if total <= 0:
+        return []
+    need = min(total, SLOW_SHARES if _is(item, "slow") else OTHER_SHARES)
+    held: list[int] = []
+    fcntl.flock(_fd("shares"), fcntl.LOCK_EX)
+    try:
+        while len(held) < need:
+            for i in range(total):
+                if len(held) < need and i not in held and _try_lock(_fd(f"share.{i}")):
+                    held.append(i)
+            if len(held) < need:   # every share taken: wait for one (its holder's test ends), then look again
+                i = next(j for j in range(total) if j not in held)
+                fcntl.flock(_fd(f"share.{i}"), fcntl.LOCK_EX)
+                held.append(i)
+    finally:
+        fcntl.flock(_fd("shares"), fcntl.LOCK_UN)
+    return held
+
+
+def _try_lock(fd: int) -> bool:
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    return True
+
+
+def _give_back(shares: list[int]) -> None:
+    for i in shares:
+        fcntl.flock(_fd(f"share.{i}"), fcntl.LOCK_UN)
 
 
 def _timeline(item, started: float, ended: float, serial: bool) -> None:

@@ -73,3 +73,72 @@ def test_the_timeline_names_a_serial_test_that_did_not_run_alone(tmp_path):
     path.write_text("".join(json.dumps(r) + "\n" for r in [*alone, row("c::beside", 35, 36, worker="gw2")]))
     said = summarise(str(path))
     assert "SERIAL TESTS THAT DID NOT RUN ALONE (1): b::timed" in said, said
+
+
+SHARED = '''
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+RUN = Path(os.environ["SHARES_DIR"])
+
+
+def _meet(name):
+    """Say this test started, then wait (at most 3 s) for the two others to start too: a test the shares
+    let run beside this one starts now, one they hold back does not."""
+    (RUN / name).touch()
+    deadline = time.monotonic() + 3.0
+    while len(list(RUN.iterdir())) < 3 and time.monotonic() < deadline:
+        time.sleep(0.02)
+
+
+@pytest.mark.slow
+def test_streams():
+    _meet("streams")
+
+
+def test_computes_a():
+    _meet("a")
+
+
+def test_computes_b():
+    _meet("b")
+'''
+
+
+def test_cpu_shares_hold_back_a_second_computing_test_but_not_a_slow_one_beside_it(tmp_path):
+    """`--cpu-shares 3` in 3 workers: a slow test takes one share, any other two, so the slow test and one
+    computing test run at once and the second computing test waits for the first to end. Each test waits for
+    the others to start: without the shares all three run at once (watched: `--cpu-shares 0`)."""
+    import json
+    import os
+
+    (tmp_path / "test_shares.py").write_text(textwrap.dedent(SHARED))
+    (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers =\n    slow: s\n    serial: s\n")
+
+    def run(shares: int) -> dict[str, dict]:
+        meet = tmp_path / f"met-{shares}"
+        meet.mkdir()
+        timeline = tmp_path / f"timeline-{shares}.jsonl"
+        done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "tests.parallel",
+                               "-n", "3", "--dist", "loadgroup", "--no-loadscope-reorder", f"--cpu-shares={shares}",
+                               f"--timeline={timeline}", "test_shares.py"],
+                              cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                              env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "SHARES_DIR": str(meet),
+                                   "TMPDIR": os.environ.get("TMPDIR", "/tmp")})
+        assert done.returncode == 0, done.stdout + done.stderr
+        rows = [json.loads(line) for line in timeline.read_text().splitlines()]
+        return {r["test"].split("::")[1]: r for r in rows}
+
+    def overlap(x: dict, y: dict) -> bool:
+        return x["start"] < y["end"] and y["start"] < x["end"]
+
+    held = run(3)
+    a, b, streams = held["test_computes_a"], held["test_computes_b"], held["test_streams"]
+    assert len({a["worker"], b["worker"], streams["worker"]}) == 3, held
+    assert not overlap(a, b), held
+    assert overlap(streams, a) or overlap(streams, b), held
+    free = run(0)
+    assert overlap(free["test_computes_a"], free["test_computes_b"]), free
