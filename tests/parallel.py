@@ -49,9 +49,13 @@ _locks: dict[str, int] = {}
 def pytest_addoption(parser):
     parser.addoption("--cpu-report", type=int, default=0, metavar="N",
                      help="print the N tests that used the most CPU seconds (worker and waited-for children)")
-    parser.addoption("--cpu-shares", type=int, default=0, metavar="N",
+    parser.addoption("--cpu-shares", type=int, default=None, metavar="N",
                      help=f"shares of the box the running tests hold, N in all: a slow test {SLOW_SHARES}, any "
-                          f"other {OTHER_SHARES} (0: no limit but the workers'; docs/testing.md)")
+                          f"other {OTHER_SHARES} (0: no limit but the workers'; default: the ini's cpu_shares; "
+                          f"docs/testing.md)")
+    # an ini key, not an addopt: a pytest run under pyproject's options without this plugin (bench/mutants.py's
+    # own test of its options) would refuse an unknown command-line option
+    parser.addini("cpu_shares", default="0", help="the default of --cpu-shares")
     parser.addoption("--timeline", default=None, metavar="FILE",
                      help="append one JSON line per test to FILE: worker, start and end (Unix time), CPU s, serial; "
                           "says where a run's cores sat idle (docs/testing.md)")
@@ -197,6 +201,8 @@ def _take_shares(item) -> list[int]:
     No deadlock: a holder gives its shares back when its test ends and needs no lock to do it; a serial test
     takes none (it runs alone anyway)."""
     total = item.config.getoption("--cpu-shares")
+    if total is None:
+        total = int(item.config.getini("cpu_shares") or 0)
     if total <= 0:
         return []
     need = min(total, SLOW_SHARES if _is(item, "slow") else OTHER_SHARES)
