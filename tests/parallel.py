@@ -114,7 +114,7 @@ def _tell_the_controller_the_groups(items) -> None:
     """xdist 3.8's loadgroup tags a grouped test's node id (`id@group`), which pytest 9 no longer lets it change:
     its groups are silently ignored. Each worker writes the groups of its collection (the same in every worker)
     to the run's folder instead, and the controller's scheduler (`GroupScheduling`) reads them."""
-    if not os.environ.get("PYTEST_XDIST_WORKER"):
+    if not items or not _is_worker(items[0].config):
         return
     groups = {}
     for item in items:
@@ -126,6 +126,13 @@ def _tell_the_controller_the_groups(items) -> None:
     tmp = path.with_name(f"groups.{os.getpid()}.tmp")
     tmp.write_text(json.dumps(groups))
     os.replace(tmp, path)
+
+
+def _is_worker(config) -> bool:
+    """An xdist worker of this run, not a pytest a test started inside one (tests/dashboard/test_ci_browser.py runs
+    `pytest -n 0` on another file): that one inherits the worker's environment, PYTEST_XDIST_WORKER included, and
+    taking the run's locks and shares beside its parent, which holds its own, would wedge the run."""
+    return hasattr(config, "workerinput")
 
 
 def _shares_a_module_fixture(item) -> bool:
@@ -176,7 +183,7 @@ def _leave(serial: bool, next_serial: bool) -> None:
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
-    parallel = bool(os.environ.get("PYTEST_XDIST_WORKER"))
+    parallel = _is_worker(item.config)
     serial = _is(item, "serial")
     if parallel:
         _enter(serial)

@@ -142,3 +142,37 @@ def test_cpu_shares_hold_back_a_second_computing_test_but_not_a_slow_one_beside_
     assert overlap(streams, a) or overlap(streams, b), held
     free = run(0)
     assert overlap(free["test_computes_a"], free["test_computes_b"]), free
+
+
+OUTER = '''
+import os
+import subprocess
+import sys
+
+
+def test_runs_a_pytest_of_its_own():
+    """As tests/dashboard/test_ci_browser.py does: a pytest inside a worker, in the worker's environment."""
+    done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "tests.parallel",
+                           "-n", "0", "nested/test_inner.py"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_another():
+    pass
+'''
+
+
+def test_a_pytest_started_by_a_test_takes_none_of_the_runs_shares(tmp_path):
+    """A pytest that a test runs inside a worker inherits PYTEST_XDIST_WORKER. Taken for a worker, it waited for
+    shares its own parent held until the parent's test ended: the whole run wedged (stop 34, found by the first
+    whole-suite run with shares: tests/dashboard/test_ci_browser.py). Watched timing out with the environment
+    taken for the worker's test."""
+    (tmp_path / "test_outer.py").write_text(textwrap.dedent(OUTER))
+    (tmp_path / "nested").mkdir()
+    (tmp_path / "nested" / "test_inner.py").write_text("def test_inner():\n    pass\n")
+    (tmp_path / "pytest.ini").write_text("[pytest]\ncpu_shares = 2\nmarkers =\n    slow: s\n    serial: s\n")
+    done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "tests.parallel",
+                           "-n", "2", "--dist", "loadgroup", "--no-loadscope-reorder", "test_outer.py"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                          env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+    assert done.returncode == 0 and "2 passed" in done.stdout, done.stdout[-3000:] + done.stderr[-2000:]
