@@ -204,9 +204,11 @@ def pytest_runtest_protocol(item, nextitem):
 
 def _take_shares(item) -> list[int]:
     """Hold this test's shares of `--cpu-shares` (one lock file each) until it ends; wait while they are taken.
-    One worker at a time picks (the `shares` lock): it takes what is free and waits on a taken one for the rest.
-    No deadlock: a holder gives its shares back when its test ends and needs no lock to do it; a serial test
-    takes none (it runs alone anyway)."""
+    One worker at a time picks (the `shares` lock): it takes what is free and looks again every 10 ms for the
+    rest. Not a blocking wait on one taken share: the lowest are the slow tests' (handed out first), and a wait
+    on one of those held every worker behind it for a minute while other shares came free. No deadlock: a holder
+    gives its shares back when its test ends and needs no lock to do it; a serial test takes none (it runs
+    alone anyway)."""
     total = item.config.getoption("--cpu-shares")
     if total is None:
         total = int(item.config.getini("cpu_shares") or 0)
@@ -220,10 +222,8 @@ def _take_shares(item) -> list[int]:
             for i in range(total):
                 if len(held) < need and i not in held and _try_lock(_fd(f"share.{i}")):
                     held.append(i)
-            if len(held) < need:   # every share taken: wait for one (its holder's test ends), then look again
-                i = next(j for j in range(total) if j not in held)
-                fcntl.flock(_fd(f"share.{i}"), fcntl.LOCK_EX)
-                held.append(i)
+            if len(held) < need:   # every share taken: a running test's end gives one back
+                time.sleep(0.01)
     finally:
         fcntl.flock(_fd("shares"), fcntl.LOCK_UN)
     return held

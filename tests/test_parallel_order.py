@@ -176,3 +176,38 @@ def test_a_pytest_started_by_a_test_takes_none_of_the_runs_shares(tmp_path):
                           cwd=tmp_path, capture_output=True, text=True, timeout=120,
                           env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
     assert done.returncode == 0 and "2 passed" in done.stdout, done.stdout[-3000:] + done.stderr[-2000:]
+
+
+
+def test_a_test_waiting_for_shares_takes_the_first_that_comes_free(tmp_path):
+    """`--cpu-shares 3` in 2 workers, share 0 held all along (by this test, as a long slow test would): the two
+    computing tests need two shares each, so one waits for the other and must start when the other ends. A
+    blocking wait on one taken share (the first version: the lowest, a slow test's) held it, and every worker
+    behind it, until that share came free (watched failing so)."""
+    import fcntl
+    import os
+
+    (tmp_path / "test_two.py").write_text("def test_a():\n    pass\n\n\ndef test_b():\n    pass\n")
+    (tmp_path / "pytest.ini").write_text("[pytest]\nmarkers =\n    slow: s\n    serial: s\n")
+    run = tmp_path / "millsense-pytest-held"
+    run.mkdir()
+    fd = os.open(run / "share.0", os.O_RDWR | os.O_CREAT, 0o600)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    try:
+        inner = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "tests.parallel",
+                                  "-n", "2", "--dist", "loadgroup", "--no-loadscope-reorder", "--cpu-shares=3",
+                                  "--testrunuid=held", "test_two.py"],
+                                 cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                 env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "TMPDIR": str(tmp_path)})
+        try:
+            out, _ = inner.communicate(timeout=120)   # a stall lasts until share 0 comes free: forever here
+            stalled = False
+        except subprocess.TimeoutExpired:
+            stalled = True
+    finally:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        os.close(fd)
+    if stalled:
+        out, _ = inner.communicate(timeout=60)
+    assert not stalled, "the waiting test started only once share 0 came free: " + out[-2000:]
+    assert inner.returncode == 0 and "2 passed" in out, out[-2000:]
