@@ -14,10 +14,6 @@ The suite mostly waits on real processes, so pyproject runs it in several worker
   test to the last (a readers–writer lock on files, with writers first: a waiting
   serial test stops new tests from starting, then waits for those running to end).
   The kernel drops a dead worker's lock, so a crash cannot wedge the others.
-- **Shares of the box.** `--cpu-shares N`: a running test holds shares of the box, a `slow` test one (it
-  streams at 1× real time and mostly waits: about 0.3 of a core), any other test two (it mostly computes);
-  N in all. pyproject runs 6 workers with 8 shares: at most 4 computing tests at once, as with 4 workers,
-  and while slow tests stream the workers they leave beside them run computing tests in the idle core.
 - **CPU, not only time.** `--cpu-report N` prints the N tests that used most CPU
   (the worker process and the children it waited for): on a 2-core box the suite's
   time is bounded by CPU, and a test can be quick and still eat the others' share.
@@ -37,11 +33,6 @@ from pathlib import Path
 import pytest
 
 SERIAL_GROUP = "serial"
-# What a running test holds of `--cpu-shares`: a slow test streams at 1x real time and mostly waits (the slow
-# tests of stop 33's CI: 310 CPU s in 1 002 s of a worker's time, 0.3 of a core each), any other mostly computes
-# (0.45 of a core on average, an estimator test a whole core)
-SLOW_SHARES = 1
-OTHER_SHARES = 2
 _holding_serial = False
 _locks: dict[str, int] = {}
 
@@ -49,13 +40,6 @@ _locks: dict[str, int] = {}
 def pytest_addoption(parser):
     parser.addoption("--cpu-report", type=int, default=0, metavar="N",
                      help="print the N tests that used the most CPU seconds (worker and waited-for children)")
-    parser.addoption("--cpu-shares", type=int, default=None, metavar="N",
-                     help=f"shares of the box the running tests hold, N in all: a slow test {SLOW_SHARES}, any "
-                          f"other {OTHER_SHARES} (0: no limit but the workers'; default: the ini's cpu_shares; "
-                          f"docs/testing.md)")
-    # an ini key, not an addopt: a pytest run under pyproject's options without this plugin (bench/mutants.py's
-    # own test of its options) would refuse an unknown command-line option
-    parser.addini("cpu_shares", default="0", help="the default of --cpu-shares")
     parser.addoption("--timeline", default=None, metavar="FILE",
                      help="append one JSON line per test to FILE: worker, start and end (Unix time), CPU s, serial; "
                           "says where a run's cores sat idle (docs/testing.md)")
@@ -114,7 +98,7 @@ def _tell_the_controller_the_groups(items) -> None:
     """xdist 3.8's loadgroup tags a grouped test's node id (`id@group`), which pytest 9 no longer lets it change:
     its groups are silently ignored. Each worker writes the groups of its collection (the same in every worker)
     to the run's folder instead, and the controller's scheduler (`GroupScheduling`) reads them."""
-    if not items or not _is_worker(items[0].config):
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
         return
     groups = {}
     for item in items:
@@ -126,13 +110,6 @@ def _tell_the_controller_the_groups(items) -> None:
     tmp = path.with_name(f"groups.{os.getpid()}.tmp")
     tmp.write_text(json.dumps(groups))
     os.replace(tmp, path)
-
-
-def _is_worker(config) -> bool:
-    """An xdist worker of this run, not a pytest a test started inside one (tests/dashboard/test_ci_browser.py runs
-    `pytest -n 0` on another file): that one inherits the worker's environment, PYTEST_XDIST_WORKER included, and
-    taking the run's locks and shares beside its parent, which holds its own, would wedge the run."""
-    return hasattr(config, "workerinput")
 
 
 def _shares_a_module_fixture(item) -> bool:
@@ -183,11 +160,8 @@ def _leave(serial: bool, next_serial: bool) -> None:
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
-    parallel = _is_worker(item.config)
+    parallel = bool(os.environ.get("PYTEST_XDIST_WORKER"))
     serial = _is(item, "serial")
-    if parallel:
-        _enter(serial)
-    shares = _take_shares(item) if parallel and not serial else []
     if parallel:
         _enter(serial)
     item.stash[_CPU_START] = _cpu_s()
@@ -198,48 +172,7 @@ def pytest_runtest_protocol(item, nextitem):
         ended = time.time()   # inside the lock, like the start: a serial test's span and another's never overlap
         if parallel:
             _leave(serial, _is(nextitem, "serial"))
-        _give_back(shares)
         _timeline(item, started, ended, serial)
-
-
-def _take_shares(item) -> list[int]:
-    """Hold this test's shares of `--cpu-shares` (one lock file each) until it ends; wait while they are taken.
-    One worker at a time picks (the `shares` lock): it takes what is free and looks again every 10 ms for the
-    rest. Not a blocking wait on one taken share: the lowest are the slow tests' (handed out first), and a wait
-    on one of those held every worker behind it for a minute while other shares came free. No deadlock: a holder
-    gives its shares back when its test ends and needs no lock to do it; a serial test takes none (it runs
-    alone anyway)."""
-    total = item.config.getoption("--cpu-shares")
-    if total is None:
-        total = int(item.config.getini("cpu_shares") or 0)
-    if total <= 0:
-        return []
-    need = min(total, SLOW_SHARES if _is(item, "slow") else OTHER_SHARES)
-    held: list[int] = []
-    fcntl.flock(_fd("shares"), fcntl.LOCK_EX)
-    try:
-        while len(held) < need:
-            for i in range(total):
-                if len(held) < need and i not in held and _try_lock(_fd(f"share.{i}")):
-                    held.append(i)
-            if len(held) < need:   # every share taken: a running test's end gives one back
-                time.sleep(0.01)
-    finally:
-        fcntl.flock(_fd("shares"), fcntl.LOCK_UN)
-    return held
-
-
-def _try_lock(fd: int) -> bool:
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return False
-    return True
-
-
-def _give_back(shares: list[int]) -> None:
-    for i in shares:
-        fcntl.flock(_fd(f"share.{i}"), fcntl.LOCK_UN)
 
 
 def _timeline(item, started: float, ended: float, serial: bool) -> None:

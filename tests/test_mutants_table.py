@@ -73,7 +73,7 @@ def test_a_search_string_that_matches_twice_or_never_is_refused(tmp_path):
 
 
 def test_a_failing_target_under_the_projects_pytest_options_is_a_kill_in_the_tables_order(tmp_path):
-    """The script's own pytest run, under the project's options (pyproject's addopts: 6 xdist workers): a failing
+    """The script's own pytest run, under the project's options (pyproject's addopts: 4 xdist workers): a failing
     test is `killed`, the first of the targets in their order. Run in workers, `-x` ends the session "Interrupted"
     with exit code 2, which the script records as `error`, and the targets run in no set order: every kill of the
     table read as an error once the suite went parallel (issue 37)."""
