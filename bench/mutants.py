@@ -197,6 +197,13 @@ MUTANTS: tuple[Mutant, ...] = (
            'self._check_rate = bool(getattr(getattr(settings, "daq", None), "check_sample_rate", True))',
            "self._check_rate = True",
            ("tests/faults/test_sample_rate.py",)),
+    Mutant("sc-rate-check-off-by-default", "signal checks",
+           "config: `[daq] check_sample_rate` defaults to false (a test bench's setting for parts at speed leaks "
+           "into every machine: a stream at the wrong rate, or played faster, passes)",
+           "daemon/config/models.py",
+           "check_sample_rate: bool = True",
+           "check_sample_rate: bool = False",
+           ("tests/faults/test_sample_rate.py",)),
     # -- command authorisation ---------------------------------------------------------------------------------
     Mutant("ca-mac-compare-eq", "command authorisation",
            "proof check: `==` for `hmac.compare_digest` (a timing side channel on the MAC)",

@@ -16,6 +16,15 @@ holds). Shared by the test (tests/e2e/test_afc_closed_loop.py) and the report
 Estimates and truth are paired by time: the emulator's status log has the
 wall time of its first sample (`start`), the truth the plant time of each
 revolution's end, and an estimate's `t` is the wall time of its last sample.
+
+`speed` plays the plant and the CNC faster than real time (`millsense sim
+--speed K`): K plant seconds a wall second, every lag of the plant and the CNC
+on the samples' clock. A wall interval is then K times as long in plant time
+(`Loop.plant_time`), the daemon's own reaction included (a command's few wall
+ms are K times as many samples), and the daemon runs with `[daq]
+check_sample_rate = false` (the samples arrive K times faster than the
+descriptor's rate says, on purpose). Speed 1 (the default) is real time with
+the check on, as a machine runs.
 """
 
 from __future__ import annotations
@@ -35,6 +44,10 @@ from tests.e2e.helpers import CMD, Procs, Subscriber, read_jsonl, tcp, wait_for,
 
 SETTLE_BAND = 0.05        # the issue's ±5 % of the target
 OVERSHOOT_MAX = 0.15      # the issue's 15 %
+# Plant seconds a wall second where pacing is not what a test checks (`run_loop(speed=SPEED)`; docs/testing.md,
+# "The AFC loop at speed"): the fastest at which every assertion held with margin, run after run, on the loaded
+# 2-core box
+SPEED = 2.0
 CNC_LAG_MS = 40.0         # the emulator's override response (its default), which the acceptance scales with
 # The example configs' breakage check (config/mch10-spindle-power.toml: a 2-flute cutter loses ~25 % with a flute):
 # armed in every closed-loop run, so that a feed that moves must not look like a broken tool
@@ -51,43 +64,73 @@ class Loop:
     daemon_log: str
     alarms: list[dict] = field(default_factory=list)  # as the daemon published them
     events: list[dict] = field(default_factory=list)  # the plant's truth events (tool_breakage, feed_hold, ...)
+    speed: float = 1.0           # plant seconds a wall second, as the emulator's `start` event says
 
     def plant_time(self, est: dict) -> float:
-        return float(est["t"]) - self.start_wall
+        """Plant time of an estimate's revolution's end. The emulator makes its first sample when the daemon
+        connects (--start-on-connect), so the daemon counts the plant's revolutions from the same first one: its
+        `rev` is the truth's. Its `t` (the wall time of the revolution's last sample) is the fallback: on a
+        loaded host the daemon's sample clock puts a revolution handled behind a backlog early by the backlog ×
+        (1 − 1/speed) (it counts samples at the descriptor's rate): at speed 3 that was up to 12 revolutions."""
+        t = self._rev_t().get(est.get("rev"))
+        return t if t is not None else self.wall_to_plant(float(est["t"]))
+
+    def _rev_t(self) -> dict:
+        if getattr(self, "_rev_t_cache", None) is None:
+            self._rev_t_cache = {int(r["rev"]): float(r["t_end_s"]) for r in self.truth}
+        return self._rev_t_cache
+
+    def wall_to_plant(self, wall_s: float) -> float:
+        """Plant time of a wall time (an estimate's or an alarm's `t`): the wall seconds since the first
+        sample, `speed` plant seconds each."""
+        return (wall_s - self.start_wall) * self.speed
+
+    def mono_of_plant(self, plant_s: float) -> float:
+        """The emulator's monotonic time (its status log's `mono`) when the plant was at `plant_s`."""
+        start = next(e["mono"] for e in self.log if e.get("event") == "start")
+        return start + plant_s / self.speed
 
     def cutting(self) -> list[dict]:
         return [e for e in self.estimates if e.get("valid", True) and e.get("cutting")]
 
 
 def daemon_config(path: Path, *, machine: str, daq_port: int, z_port: int, feed_mm_min: float,
-                  afc: dict | None) -> Path:
-    """The simulated machine's config with `[afc]` (None: no [afc] section, the controller off)."""
+                  afc: dict | None, check_sample_rate: bool = True) -> Path:
+    """The simulated machine's config with `[afc]` (None: no [afc] section, the controller off);
+    `check_sample_rate` false only for a stream played faster than real time (`run_loop(speed=...)`)."""
     extra = f"\n[cut]\nmode = \"slot\"\nfeed_mm_min = {feed_mm_min}\n"
     if afc is not None:
         extra += "\n[afc]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in afc.items())
-    return write_config(path, machine=machine, daq=f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}',
+    daq = f'transport = "tcp"\nhost = "127.0.0.1"\ntcp_port = {daq_port}'
+    if not check_sample_rate:
+        daq += "\ncheck_sample_rate = false"
+    return write_config(path, machine=machine, daq=daq,
                         zenoh_listen=[tcp(z_port)], interlock="enabled = true\nheartbeat_ms = 50\nwatchdog_ms = 1000",
                         alarms=ALARMS, extra=extra)
 
 
 def run_loop(tmp: Path, scenario: str, *, feed_mm_min: float, afc: dict | None, sim_args: tuple[str, ...] = (),
-             timeout_s: float = 180.0) -> Loop:
-    """One real-time pass of `scenario` with the daemon closing the loop; returns what both sides saw."""
+             timeout_s: float = 180.0, speed: float = 1.0) -> Loop:
+    """One pass of `scenario` with the daemon closing the loop; returns what both sides saw. `speed`: plant
+    seconds a wall second (1: real time; above it, the daemon's sample-rate check is off for this stream)."""
     tmp.mkdir(parents=True, exist_ok=True)
     daq_port, z_port = free_tcp_port(), free_tcp_port()
     machine = f"afc-{scenario}".replace(".", "-")
     cfg = daemon_config(tmp / "daemon.toml", machine=machine, daq_port=daq_port, z_port=z_port,
-                        feed_mm_min=feed_mm_min, afc=afc)
+                        feed_mm_min=feed_mm_min, afc=afc, check_sample_rate=speed == 1.0)
+    pace = ("--realtime",) if speed == 1.0 else ("--realtime", "--speed", repr(speed))
     status_log, truth = tmp / "status.jsonl", tmp / "truth.jsonl"
     for old in (status_log, truth):  # the emulator appends to its status log
         old.unlink(missing_ok=True)
     with Procs(tmp) as procs:
-        # the daemon first: it waits for the DAQ, so it sees the plant from its first sample
+        # the daemon first: it waits for the DAQ; the emulator makes its first sample when the daemon connects
+        # (--start-on-connect), so a daemon that starts slowly on a loaded host still sees the plant from its start
         daemon = procs.start("daemon", ["run", "--config", str(cfg), "--connect-timeout", "120"])
         sub = Subscriber([tcp(z_port)], machine)
         try:
             sim = procs.start("sim", ["sim", "--scenario", scenario, "--protocol", "2", "--tcp",
-                                      f"127.0.0.1:{daq_port}", "--realtime", "--once", "--watchdog-ms", "1000",
+                                      f"127.0.0.1:{daq_port}", *pace, "--start-on-connect", "--once",
+                                      "--watchdog-ms", "1000",
                                       "--status-log", str(status_log), "--truth", str(truth), *sim_args])
             try:
                 sim.wait(timeout_s)
@@ -108,7 +151,7 @@ def run_loop(tmp: Path, scenario: str, *, feed_mm_min: float, afc: dict | None, 
         assert start is not None, "the emulator's status log has no start event"
         return Loop(scenario, sub.get("estimate"), [r for r in read_jsonl(truth) if "rev" in r], log,
                     float(start["wall"]), procs.text("daemon"), sub.get("alarm"),
-                    [r for r in read_jsonl(truth) if "event" in r])
+                    [r for r in read_jsonl(truth) if "event" in r], float(start.get("speed", 1.0)))
 
 
 # ----------------------------------------------------------------------------- reading a run

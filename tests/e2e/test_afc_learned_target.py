@@ -4,8 +4,9 @@ A daemon with `[afc] target_factor = 1.1` and no target in its config learns
 the part program's three operations from the emulator (played as fast as the
 daemon takes it, looping until each key's envelope is active), and keeps them
 in its history database. A second daemon, started on the same database,
-watches one part played in real time by the emulator, whose CNC follows the
-override: where the CONTEXT flag allows it (operations 10 and 20) the
+watches one part played by the emulator at `afc_run.SPEED` times real time
+(the CNC's lags on the samples' clock, the daemon's sample-rate check off for
+that stream), whose CNC follows the override: where the CONTEXT flag allows it (operations 10 and 20) the
 controller holds the torque at 1.1 × the learned mean over the cut, read back
 with `millsense limits show`; operation 30 (never allowed) runs at the
 programmed feed. Before anything is learned the controller has no target and
@@ -24,6 +25,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import free_tcp_port
+from tests.e2e.afc_run import SPEED
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for
 
 pytestmark = pytest.mark.slow  # over about 10 s each: handed out first (tests/parallel.py)
@@ -90,9 +92,11 @@ def test_the_target_is_the_factor_times_the_learned_mean_of_each_operation(tmp_p
 
         # 2. a part under control, the learned limits restored from the history database
         sub = Subscriber([tcp(z_port)], MACHINE)
-        daemon = procs.start("control", ["run", "--config", str(cfg), "--connect-timeout", "60"])
+        at_speed = _config(tmp_path, daq_port, z_port, at_speed=True)   # the same history database
+        daemon = procs.start("control", ["run", "--config", str(at_speed), "--connect-timeout", "60"])
         sim = procs.start("sim", ["sim", "--scenario", "part-program", "--parts", "1", "--protocol", "2",
-                                  "--tcp", f"127.0.0.1:{daq_port}", "--realtime", "--once", "--watchdog-ms", "1000"])
+                                  "--tcp", f"127.0.0.1:{daq_port}", "--realtime", "--speed", repr(SPEED), "--once",
+                                  "--watchdog-ms", "1000"])
         sim.wait(120)
         assert sim.returncode == 0, procs.text("sim")
         learned = {key: _limits(cfg, "show", key) for key in ("1001/11/10", "1001/4/20")}

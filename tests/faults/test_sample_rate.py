@@ -150,3 +150,22 @@ def test_the_check_can_be_turned_off_for_a_stream_played_at_speed(tmp_path):
         st = wait_status(sub, machine, lambda s: s["samples_received"] > JUDGED_SAMPLES, 120.0, "15 s of samples")
         assert "signals" not in st.get("faults", {}), st["faults"]
         assert any(e["valid"] for e in sub.get("estimate"))
+
+
+@pytest.mark.slow  # not serial: as above, the daemon's 10 s average on arrival
+def test_a_stream_played_at_speed_is_the_wrong_rate_while_the_check_is_on(tmp_path):
+    """`millsense sim --speed 2` (how the AFC and first-part tests play parts faster than real time): samples at
+    twice the descriptor's rate on the host's clock. With `[daq] check_sample_rate` at its default the daemon says
+    so and holds the feed: a faster playback never passes for a DAQ at its stated rate; only a config that turns
+    the check off lets it through (the test above)."""
+    machine = "rate-04"
+    with live_daemon(tmp_path, machine, ["--speed", "2"]) as (procs, daemon, sub, sim_log):
+        st = wait_status(sub, machine, lambda s: "signals" in s.get("faults", {}) or s["samples_received"] > 60000,
+                         120.0, "fault signals")
+        assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
+        reason = st["faults"].get("signals", "")
+        assert "per second, the DAQ states 1000 Hz" in reason, st["faults"]
+        rate = float(re.search(r"samples arrive at (\d+) per second", reason).group(1))
+        assert abs(rate - 2000.0) <= 40.0, reason
+        assert wait_for(lambda: outputs(read_jsonl(sim_log), feed_hold=True, cause="command"), 10.0,
+                        "the daemon holds the feed (on_blind = hold)")
