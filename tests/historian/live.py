@@ -13,9 +13,10 @@ from tests.e2e.test_expected_live import _operations
 
 
 def p1001_daemon(path: Path, machine: str, *, zenoh: dict, interlock: dict | None = None,
-                 operations: bool = False) -> Path:
+                 operations: bool = False, alarms: dict | None = None) -> Path:
     """A daemon of program 1001 on the in-process emulator; `zenoh` its [zenoh] (scouting off always);
-    `operations`: every operation's [operations] entry as the program really cuts (the expected band)."""
+    `operations`: every operation's [operations] entry as the program really cuts (the expected band);
+    `alarms`: keys that replace the file's [alarms] ones."""
     from millsense.sim.program import PROGRAMS
 
     doc = tomllib.loads(CONFIG.read_text())
@@ -25,6 +26,7 @@ def p1001_daemon(path: Path, machine: str, *, zenoh: dict, interlock: dict | Non
         ops = PROGRAMS["part-program"].operations
         t11 = next(op for op in ops if op.tool_number == 11)
         doc["operations"] = _operations(max(t11.depths_mm))
+    doc["alarms"].update(alarms or {})
     doc["interlock"] = interlock or {"enabled": True, "heartbeat_ms": 50, "watchdog_ms": 1000, "reset": "open"}
     doc["zenoh"] = {"mode": "peer", "listen": [], "connect": [], **zenoh, "multicast_scouting": False}
     doc["log"] = {"level": "info", "format": "json"}
