@@ -237,7 +237,7 @@ class OperatorControls(Controls):
     def _publish_limits_change(self, args: dict, key: str, before: Any, after: Any, requester: str) -> None:
         """An applied change of one key's limits on `limits/change` (docs/zenoh.md), for the plant's historian:
         handed to the sink's queue (its publisher thread sends it), never on the estimator's path."""
-        publish = getattr(self._report.sink, "limits_change", None)   # the sink the runner started with
+        publish = getattr(getattr(self._report, "sink", None), "limits_change", None)   # the runner's sink
         if publish is None:
             return
         who = requester or "unknown"
