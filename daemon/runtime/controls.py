@@ -218,13 +218,14 @@ class OperatorControls(Controls):
         if not isinstance(args, dict):
             return {"ok": False, "error": "the arguments must be a JSON object"}
         key = args.get("key")
+        reads = args.get("action") in ("list", "show")
         with self._alarm_lock:
-            before = monitor.bounds(key)
+            before = None if reads else monitor.bounds(key)   # reads (a query flood) add nothing under the lock
             result = monitor.command(dict(args))
             changed = list(result.pop("changed_keys", ()) or ())
             tools_changed = bool(result.pop("tools_changed", False))
             after = monitor.bounds(key) if key in changed else None
-        if args.get("action") not in ("list", "show"):  # a read changes nothing: a flood of them logs nothing
+        if not reads:  # a read changes nothing: a flood of them logs nothing
             log.warning("limits.command", requester=requester or "unknown", action=args.get("action"),
                         key=args.get("key"), tool=args.get("tool"), pct=args.get("pct"), ok=result.get("ok"),
                         error=result.get("error"))
