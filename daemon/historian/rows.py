@@ -108,16 +108,24 @@ class StatusChanges:
 
 
 class LimitChanges:
-    """The learned limits' changes the daemon's publications show: a key's `envelope` (learning, pending, active)
-    in its process summaries, and a key whose `learned` count fell (relearned). The operator's commands themselves
-    (widen, narrow, …) are in the daemon's audit log; the daemon publishes no event of them (docs/historian.md)."""
+    """The learned limits' changes: the operator's, as the daemon publishes them (`limits/change`: the action, the
+    bounds before and after, who asked and by what authority), and those only the process summaries show (a key's
+    `envelope` going learning → pending → active as it learns, a `learned` count falling: a relearn by a daemon
+    that does not publish `limits/change`).
+
+    A published change sets the key's state as the summaries' inference knows it: the summaries after it show
+    that state, so the operator's change is one row (its action), never a second inferred one. A summary older
+    than the key's last published change (the two keys travel apart) says nothing new and is passed over."""
 
     def __init__(self) -> None:
         self._last: dict[tuple[str, str], tuple[Any, Any]] = {}
+        self._changed_at: dict[tuple[str, str], float] = {}   # the key's last published change's t
 
     def row(self, machine: str, payload: dict[str, Any], received_at: float) -> list[Any] | None:
         t, key = payload_time(payload), payload.get("key")
         if t is None or not isinstance(key, str):
+            return None
+        if t <= self._changed_at.get((machine, key), -math.inf):
             return None
         envelope, learned = _str(payload.get("envelope")), _int(payload.get("learned"))
         last = self._last.get((machine, key))
@@ -130,7 +138,23 @@ class LimitChanges:
             change = "relearn"
         else:
             return None
-        return [t, received_at, machine, key, change, envelope, learned, _int(payload.get("process"))]
+        return _row("limit_changes", t, received_at, machine, {}, {
+            "key": key, "change": change, "envelope": envelope, "learned": learned,
+            "process": _int(payload.get("process")), "payload": None})
+
+    def published(self, machine: str, payload: dict[str, Any], received_at: float) -> list[Any] | None:
+        """A `limits/change` payload's row (`change` is its action); None when it has no time, key or action."""
+        t, key, action = payload_time(payload), payload.get("key"), _str(payload.get("action"))
+        if t is None or not isinstance(key, str) or action is None:
+            return None
+        after = payload.get("after") if isinstance(payload.get("after"), dict) else {}
+        before = payload.get("before") if isinstance(payload.get("before"), dict) else None
+        envelope, learned = _str(after.get("state")), _int(after.get("learned"))
+        self._changed_at[(machine, key)] = max(t, self._changed_at.get((machine, key), -math.inf))
+        self._last[(machine, key)] = (envelope, learned)
+        return _row("limit_changes", t, received_at, machine, payload, {
+            "change": action, "envelope": envelope, "learned": learned, "process": None, "before": before,
+            "after": after or None})
 
 
 class LoadSeconds:

@@ -19,11 +19,17 @@ from typing import Any
 
 from psycopg import sql
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+# The columns a version added to `limit_changes` (version 2: the operator's published changes, `limits/change`).
+# An upgrade only ever appends columns, at the end: a row spooled by an older historian is the same row with the
+# new columns null (writer.py pads it).
+_LIMIT_CHANGES_V2 = [("action", "text"), ("pct", "double precision"), ("requester", "text"),
+                     ("authority", "text"), ("before", "jsonb"), ("after", "jsonb"), ("payload", "jsonb")]
 # UPGRADES[v]: the statements taking a database of version v to v + 1, run in one transaction with the version's
-# update. Version 1 is the first: nothing upgrades to it yet (tests/historian/test_schema.py proves the machinery
-# with a synthetic version 2).
-UPGRADES: dict[int, list[str]] = {}
+# update (tests/historian/test_schema.py upgrades version 1's dump, tests/historian/schema_v1.sql).
+UPGRADES: dict[int, list[str]] = {
+    1: ["ALTER TABLE limit_changes " + ", ".join(f"ADD COLUMN {name} {kind}" for name, kind in _LIMIT_CHANGES_V2)],
+}
 DAYS_AHEAD = 2   # day partitions made at least this far ahead of today (UTC)
 
 _T = [("time", "timestamptz NOT NULL"), ("received_at", "timestamptz NOT NULL"), ("machine", "text NOT NULL")]
@@ -52,7 +58,7 @@ TABLES: dict[str, tuple[list[tuple[str, str]], tuple[str, ...], list[tuple[str, 
     ], ("machine", "time"), []),
     "limit_changes": ([
         ("key", "text NOT NULL"), ("change", "text NOT NULL"), ("envelope", "text"), ("learned", "integer"),
-        ("process", "bigint"),
+        ("process", "bigint"), *_LIMIT_CHANGES_V2,
     ], ("machine", "time", "key", "change"), []),
     "load_1s": ([
         ("revolutions", "integer NOT NULL"), ("valid", "integer NOT NULL"), ("invalid", "integer NOT NULL"),

@@ -17,7 +17,7 @@ from typing import Any
 from millsense.daemon.historian import rows as rowmod
 from millsense.daemon.historian.writer import Writer
 
-KINDS = ("alarm", "process", "status", "estimate")
+KINDS = ("alarm", "process", "status", "estimate", "limits/change")
 FLUSH_S = 1.0
 STATUS_EVERY_S = 10.0
 MAX_PAYLOAD_BYTES = 256 * 1024
@@ -26,7 +26,7 @@ MAX_QUEUED = 500_000   # payloads waiting for the loop: past it they are counted
 
 def machine_of(key: str) -> str | None:
     parts = key.split("/")
-    return parts[1] if len(parts) == 3 and parts[0] == "millsense" else None
+    return parts[1] if len(parts) in (3, 4) and parts[0] == "millsense" else None
 
 
 class Inbox:
@@ -85,6 +85,8 @@ class Rows:
             row = self.limit_changes.row(machine, payload, received_at)
             if row is not None:
                 add("limit_changes", row)
+        elif kind == "limits/change":
+            self._add("limit_changes", self.limit_changes.published(machine, payload, received_at))
         elif kind == "status":
             row = self.status_changes.row(machine, payload, received_at)
             if row is not None:

@@ -76,6 +76,7 @@ class Database:
             with cur.copy(sql.SQL("COPY {s} ({c}) FROM STDIN").format(s=sql.Identifier(stage), c=cols)) as copy:
                 for row in rows:
                     out = list(row)
+                    out += [None] * (len(names) - len(out))   # spooled by an older version: its later columns null
                     out[0], out[1] = _ts(row[0]), _ts(row[1])
                     for i in jsonb:
                         if out[i] is not None:

@@ -581,6 +581,30 @@ class ProcessMonitor:
         """One key's whole state, JSON-safe (the `limits` argument takes it back)."""
         return self.keys[key].to_dict()
 
+    def bounds(self, key: Any) -> dict[str, Any] | None:
+        """One key's limits in a few numbers, for `limits/change`'s before and after (docs/zenoh.md); None: no
+        such key. The band's extremes, not its arrays: a change is told, the band itself is `limits show`'s."""
+        ks = self.keys.get(key) if isinstance(key, str) else None
+        if ks is None:
+            return None
+        env = ks.envelope
+        out: dict[str, Any] = {"state": ks.state, "learned": env.n if env is not None else len(ks.taught),
+                               "low_check": ks.low_check, "widening": None, "torque_high_max_nm": None,
+                               "torque_low_min_nm": None, "force_high_max_n": None, "expected_widening": None}
+        if env is not None:
+            out["widening"] = round(env.widening(), 6)
+            highs = [v for v in env.torque.high if v is not None]
+            lows = [v for v in env.torque.low if v is not None]
+            out["torque_high_max_nm"] = round(max(highs), 6) if highs else None
+            out["torque_low_min_nm"] = round(min(lows), 6) if lows else None
+            if env.force is not None:
+                fh = [v for v in env.force.high if v is not None]
+                out["force_high_max_n"] = round(max(fh), 6) if fh else None
+        if ks.expected_widening is not None:
+            out["expected_widening"] = {"high": round(ks.expected_widening.high, 6),
+                                        "low": round(ks.expected_widening.low, 6)}
+        return out
+
     def export_tools(self) -> dict[str, Any]:
         return {str(t): w.to_dict() for t, w in sorted(self.tools.items())}
 

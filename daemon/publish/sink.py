@@ -17,6 +17,7 @@ Keys (interfaces.md), prefix `millsense/<machine>`:
 | `alarm` | publisher, CongestionControl.BLOCK, Priority.REAL_TIME, express |
 | `status` | publisher (DROP) and queryable |
 | `process` | publisher, CongestionControl.BLOCK, Priority.DATA_HIGH, reliable, batched |
+| `limits/change` | publisher, as `process`: `limits_change()`, an operator's applied change of one key's limits (runtime/controls.py) |
 | `config` | queryable: `controls.config()` |
 | `limits` | queryable, reads only: `controls.limits()`, or with `{"key": K}` `controls.limits_command({"action": "show", ...})` |
 | `cmd/reset`, `cmd/test-trip` | queryables: the challenge–response of command_auth.py, then `controls.reset(requester=...)` / `controls.test_trip(requester=...)` |
@@ -208,6 +209,7 @@ class ZenohSink:
         self._queue_size = queue_size
         self._alarms: collections.deque[dict] = collections.deque()
         self._processes: collections.deque[dict] = collections.deque()
+        self._limit_changes: collections.deque[dict] = collections.deque()   # an operator's: rare, never many
         self._lock = threading.Lock()
         self._wake = _Wake()
         self._closing = False
@@ -222,6 +224,8 @@ class ZenohSink:
         self._errors = 0
         self._process_published = 0
         self._process_dropped = 0
+        self._limit_changes_published = 0
+        self._limit_changes_dropped = 0
         self._context_taken = 0
         self._context_refused = 0
         self._context_refusals = Throttle(LOG_EVERY_S)
@@ -271,6 +275,16 @@ class ZenohSink:
                     encoding=encoding,
                     # Rare and wanted by historians: wait for the network rather than lose one.
                     congestion_control=zenoh.CongestionControl.BLOCK,
+                    priority=zenoh.Priority.DATA_HIGH,
+                    reliability=zenoh.Reliability.RELIABLE,
+                    express=False,
+                )
+            )
+            self._pub_limit_change = self._keep(
+                session.declare_publisher(
+                    f"{self.prefix}/limits/change",
+                    encoding=encoding,
+                    congestion_control=zenoh.CongestionControl.BLOCK,   # rare, and the plant's record of who
                     priority=zenoh.Priority.DATA_HIGH,
                     reliability=zenoh.Reliability.RELIABLE,
                     express=False,
@@ -327,6 +341,18 @@ class ZenohSink:
                 self._processes.popleft()
                 self._process_dropped += 1
             self._processes.append(dict(payload))
+        self._wake.set()
+
+    def limits_change(self, payload: dict) -> None:
+        """An operator's applied change of one key's limits (`limits/change`): queued like a process summary."""
+        with self._lock:
+            if self._closing:
+                self._limit_changes_dropped += 1
+                return
+            if len(self._limit_changes) >= PROCESS_QUEUE:
+                self._limit_changes.popleft()
+                self._limit_changes_dropped += 1
+            self._limit_changes.append(dict(payload))
         self._wake.set()
 
     def _enqueue(self, kind: int, payload: dict) -> None:
@@ -410,6 +436,8 @@ class ZenohSink:
             "publish_errors": self._errors,
             "process_published": self._process_published,
             "process_dropped": self._process_dropped,
+            "limit_changes_published": self._limit_changes_published,
+            "limit_changes_dropped": self._limit_changes_dropped,
             "context_taken": self._context_taken,
             "context_refused": self._context_refused,
             **(self._queries.stats() if self._queries is not None else {}),
@@ -419,10 +447,16 @@ class ZenohSink:
 
     def _run(self) -> None:
         name_os_thread("ms-zenoh-sink")
-        queue, alarms, processes = self._queue, self._alarms, self._processes
+        queue, alarms, processes, changes = self._queue, self._alarms, self._processes, self._limit_changes
         while True:
             if alarms:
                 self._put(self._pub_alarm, alarms.popleft(), alarm=True)
+                continue
+            if changes:
+                with self._lock:
+                    payload = changes.popleft() if changes else None
+                if payload is not None and self._put(self._pub_limit_change, payload):
+                    self._limit_changes_published += 1
                 continue
             if processes:
                 with self._lock:

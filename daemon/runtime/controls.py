@@ -217,17 +217,40 @@ class OperatorControls(Controls):
             return {"ok": False, "error": "learning is off ([learning] enabled = false)"}
         if not isinstance(args, dict):
             return {"ok": False, "error": "the arguments must be a JSON object"}
+        key = args.get("key")
+        reads = args.get("action") in ("list", "show")
         with self._alarm_lock:
+            before = None if reads else monitor.bounds(key)   # reads (a query flood) add nothing under the lock
             result = monitor.command(dict(args))
             changed = list(result.pop("changed_keys", ()) or ())
             tools_changed = bool(result.pop("tools_changed", False))
-        if args.get("action") not in ("list", "show"):  # a read changes nothing: a flood of them logs nothing
+            after = monitor.bounds(key) if key in changed else None
+        if not reads:  # a read changes nothing: a flood of them logs nothing
             log.warning("limits.command", requester=requester or "unknown", action=args.get("action"),
                         key=args.get("key"), tool=args.get("tool"), pct=args.get("pct"), ok=result.get("ok"),
                         error=result.get("error"))
         if changed or tools_changed:
             self._persist_limits(set(changed), tools_changed)
+        if key in changed:
+            self._publish_limits_change(args, key, before, after, requester)
         return result
+
+    def _publish_limits_change(self, args: dict, key: str, before: Any, after: Any, requester: str) -> None:
+        """An applied change of one key's limits on `limits/change` (docs/zenoh.md), for the plant's historian:
+        handed to the sink's queue (its publisher thread sends it), never on the estimator's path."""
+        publish = getattr(getattr(self._report, "sink", None), "limits_change", None)   # the runner's sink
+        if publish is None:
+            return
+        who = requester or "unknown"
+        if who.startswith("local "):
+            authority = "local"     # the control socket, by the peer's uid (runtime/local_control.py)
+        else:
+            from millsense.daemon.publish.command_auth import policy_and_token
+            authority = policy_and_token(self)[0]   # "token": the reset token's proof; "open": anyone's (reads)
+        payload = {"machine": self.machine, "t": time.time(), "key": key, "action": args.get("action"),
+                   "pct": args.get("pct"), "before": before, "after": after, "requester": who,
+                   "authority": authority}
+        safe(publish, payload)
 
     def afc_command(self, args: dict, requester: str = "") -> dict[str, Any]:
         """`cmd/afc`, `millsense afc`: switch adaptive feed control on or off (the caller authorised it)."""

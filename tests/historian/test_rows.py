@@ -71,3 +71,31 @@ def test_a_steady_flood_of_payloads_does_not_hold_back_the_flush(tmp_path):
     finally:
         stop.set()
         producer.join(5.0)
+
+
+def _summary(t: float, envelope: str, learned: int, process: int) -> dict:
+    return {"machine": "m", "t": t, "key": "1234/12/3", "envelope": envelope, "learned": learned,
+            "process": process}
+
+
+def test_a_published_change_is_one_row_and_the_summaries_after_it_infer_no_second():
+    """`accept` published: one row (`accept`), never also `pending->active` from the next summary; a summary older
+    than the change (the keys travel apart) is passed over; a change no command made is still inferred."""
+    from millsense.daemon.historian.schema import column_names
+
+    names = column_names("limit_changes")
+    changes, t0 = rows.LimitChanges(), 1795324800.0
+    assert changes.row("m", _summary(t0, "learning", 4, 1), t0) is None        # the first seen: no change
+    (learned,) = [r for r in [changes.row("m", _summary(t0 + 10, "pending", 5, 2), t0)] if r is not None]
+    assert learned[names.index("change")] == "learning->pending" and learned[names.index("action")] is None
+    accept = {"machine": "m", "t": t0 + 20, "key": "1234/12/3", "action": "accept", "pct": None,
+              "before": {"state": "pending", "learned": 5}, "after": {"state": "active", "learned": 5},
+              "requester": "local uid=0 pid=7", "authority": "local"}
+    row = dict(zip(names, changes.published("m", accept, t0 + 20)))
+    assert (row["change"], row["action"], row["envelope"], row["learned"], row["requester"], row["authority"]) == \
+        ("accept", "accept", "active", 5, "local uid=0 pid=7", "local")
+    assert row["before"] == {"state": "pending", "learned": 5} and row["payload"] == accept
+    assert changes.row("m", _summary(t0 + 15, "pending", 5, 3), t0) is None    # older than the change: passed over
+    assert changes.row("m", _summary(t0 + 30, "active", 5, 4), t0) is None     # the change's own state: no row
+    relearn = changes.row("m", _summary(t0 + 40, "active", 2, 5), t0)          # a count that falls: still inferred
+    assert relearn is not None and relearn[names.index("change")] == "relearn"

@@ -38,7 +38,7 @@ def test_a_new_database_gets_every_table_partitioned_by_day_with_a_default_and_v
     for table in schema.TABLES:
         db.ensure_days(table, set(schema.ahead(today)))
     with connect(pg_db) as conn:
-        assert schema.stored_version(conn) == schema.SCHEMA_VERSION == 1
+        assert schema.stored_version(conn) == schema.SCHEMA_VERSION == 2
         for table in schema.TABLES:
             kinds = dict(conn.execute("SELECT column_name, data_type FROM information_schema.columns "
                                       "WHERE table_name = %s", (table,)).fetchall())
@@ -55,17 +55,57 @@ def test_a_new_database_gets_every_table_partitioned_by_day_with_a_default_and_v
 def test_a_newer_schema_is_refused_and_an_older_one_upgraded_in_one_transaction(pg_db):
     with connect(pg_db) as conn:
         assert schema.ensure_schema(conn) == "created"
-        # version 1 is the first: the upgrade machinery is proved with a synthetic version 2
-        broken = {1: ["ALTER TABLE alarms ADD COLUMN operator text", "ALTER TABLE nowhere ADD COLUMN x int"]}
-        with pytest.raises(schema.SchemaError, match=r"from version 1 to 2 failed, nothing changed: UndefinedTable"):
-            schema.ensure_schema(conn, version=2, upgrades=broken)
-        assert schema.stored_version(conn) == 1
+        # the machinery with a synthetic version 3 (the real upgrade from 1: the next test, from version 1's dump)
+        broken = {2: ["ALTER TABLE alarms ADD COLUMN operator text", "ALTER TABLE nowhere ADD COLUMN x int"]}
+        with pytest.raises(schema.SchemaError, match=r"from version 2 to 3 failed, nothing changed: UndefinedTable"):
+            schema.ensure_schema(conn, version=3, upgrades=broken)
+        assert schema.stored_version(conn) == 2
         assert "operator" not in schema_columns(conn, "alarms")   # the first statement rolled back with the second
-        good = {1: ["ALTER TABLE alarms ADD COLUMN operator text"]}
-        assert schema.ensure_schema(conn, version=2, upgrades=good) == "upgraded from 1"
-        assert schema.stored_version(conn) == 2 and "operator" in schema_columns(conn, "alarms")
-        with pytest.raises(schema.SchemaError, match="version 2, newer than this historian's 1: upgrade millsense"):
+        good = {2: ["ALTER TABLE alarms ADD COLUMN operator text"]}
+        assert schema.ensure_schema(conn, version=3, upgrades=good) == "upgraded from 2"
+        assert schema.stored_version(conn) == 3 and "operator" in schema_columns(conn, "alarms")
+        with pytest.raises(schema.SchemaError, match="version 3, newer than this historian's 2: upgrade millsense"):
             schema.ensure_schema(conn)
+
+
+def test_version_1s_dump_is_upgraded_its_rows_kept_and_a_published_limits_change_written_beside_them(pg_db, tmp_path):
+    """tests/historian/schema_v1.sql (pg_dump of a version-1 database) restored with psql, then the historian's
+    Database: upgraded in its transaction, the version-1 row kept (its new columns null), a version-2 row written,
+    and a row spooled by a version-1 historian (8 values) written too, its later columns null."""
+    import os
+    import subprocess
+    from pathlib import Path
+
+    server, name, passfile = pg_db
+    dump = Path(__file__).with_name("schema_v1.sql")
+    done = subprocess.run([str(server.bin / "psql"), "-X", "-q", "-v", "ON_ERROR_STOP=1", "-f", str(dump),
+                           server.dsn(name)], capture_output=True, text=True, timeout=60,
+                          env=dict(os.environ, PGPASSFILE=str(passfile)))
+    assert done.returncode == 0, done.stderr
+    with connect(pg_db) as conn:
+        assert schema.stored_version(conn) == 1 and "requester" not in schema_columns(conn, "limit_changes")
+    writer = Writer(server.dsn(name), str(passfile), Spool(tmp_path / "spool", 10**6),
+                    {t: 3650.0 for t in schema.TABLES}, Log())
+    writer.flush()
+    assert writer.db.schema_done == "upgraded from 1"
+    now = time.time()
+    change = {"machine": "m1", "t": now, "key": "1234/12/3", "action": "widen", "pct": 10,
+              "before": {"state": "active", "widening": 1.0}, "after": {"state": "active", "widening": 1.1},
+              "requester": "zid:ab12 (self-declared)", "authority": "token"}
+    writer.add("limit_changes", rows.LimitChanges().published("m1", change, now))
+    writer.add("limit_changes", [now - 1, now, "m1", "1234/12/4", "learning->pending", "pending", 5, 40])  # v1's
+    writer.flush()
+    assert writer.written["limit_changes"] == 2 and writer.rejected == 0, writer.status()
+    writer.close()
+    with connect(pg_db) as conn:
+        assert schema.stored_version(conn) == 2
+        got = conn.execute("SELECT machine, key, change, envelope, learned, action, pct, requester, authority, "
+                           "before->>'widening', after->>'widening' FROM limit_changes ORDER BY time").fetchall()
+    assert got == [
+        ("mch-v1", "1234/12/3", "learning->pending", "pending", 5, None, None, None, None, None, None),
+        ("m1", "1234/12/4", "learning->pending", "pending", 5, None, None, None, None, None, None),
+        ("m1", "1234/12/3", "widen", "active", None, "widen", 10.0, "zid:ab12 (self-declared)", "token", "1.0", "1.1"),
+    ], got
 
 
 def schema_columns(conn, table):
@@ -87,7 +127,7 @@ def test_the_historian_refuses_a_newer_schema_with_one_line_and_exit_1(pg_db, mi
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 1, p.stderr
     assert p.stderr.strip().splitlines()[-1] == ("millsense historian: error: the database's schema is version 7, "
-                                                 "newer than this historian's 1: upgrade millsense (a historian never "
+                                                 "newer than this historian's 2: upgrade millsense (a historian never "
                                                  "writes into tables it does not know)")
     assert "Traceback" not in p.stderr
 
@@ -181,13 +221,13 @@ def test_a_newer_schema_met_on_reconnecting_stops_the_writer_with_its_rows_spool
     writer.flush()
     now = time.time()
     with server.admin(name) as admin:
-        admin.execute("INSERT INTO schema_version (version) VALUES (2)")
+        admin.execute("INSERT INTO schema_version (version) VALUES (3)")
         admin.execute("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE usename = 'historian'")
     writer.add("alarms", rows.alarm_row("m1", alarm(now, 1), now))
     writer.flush()                       # the cut connection: spooled
     writer._next_try = 0.0               # the retry back-off's clock
     writer.add("alarms", rows.alarm_row("m1", alarm(now + 1, 2), now))
-    with pytest.raises(schema.SchemaError, match="version 2, newer"):
+    with pytest.raises(schema.SchemaError, match="version 3, newer"):
         writer.close()
     at = schema.column_names("alarms").index("alarm_seq")
     assert [row[at] for _, seg in writer.spool.segments() for _, row in seg] == [1, 2]
