@@ -73,14 +73,21 @@ class LocalControl:
             if self.path.is_socket() or self.path.exists():
                 self.path.unlink()  # left by a daemon that died; one daemon per state directory
             sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            # Bound under a name of its own, listening, then renamed into place: `control.sock` appears only
+            # when a client can connect (a client that saw it between bind and listen was refused: "no daemon
+            # listens", under load in CI).
+            aside = self.path.with_name(f".{self.path.name}.{os.getpid()}")
             try:
-                with unix_address(self.path) as address:   # a deep state_dir: through the folder's fd
+                aside.unlink(missing_ok=True)
+                with unix_address(aside) as address:   # a deep state_dir: through the folder's fd
                     sock.bind(address)
-                os.chmod(self.path, SOCKET_MODE)
+                os.chmod(aside, SOCKET_MODE)
                 sock.listen(8)
                 sock.settimeout(0.2)  # the accept loop looks at the stop flag
+                os.replace(aside, self.path)
             except OSError:
                 sock.close()
+                aside.unlink(missing_ok=True)
                 raise
         except OSError as exc:
             reason = f"cannot open the local control socket {self.path}: {exc}"

@@ -48,3 +48,48 @@ def test_a_short_one_as_before(tmp_path):
         assert local_command(short, "status")["ok"] is True
     finally:
         local.close()
+
+
+def test_the_socket_appears_only_once_it_listens(tmp_path, monkeypatch):
+    """A client that finds `control.sock` can connect: the daemon does not show it between bind and listen (a test
+    that waited for the file was refused once under load). The wait between them is stretched here (a patched
+    `listen`: the one way to widen a window of microseconds); a watcher connects the moment the file shows."""
+    import socket
+    import threading
+    import time
+
+    seen: list[str] = []
+    stop = threading.Event()
+
+    def watch() -> None:
+        path = socket_path(tmp_path)
+        while not stop.is_set():
+            if path.exists():
+                c = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+                try:
+                    c.connect(str(path))
+                    seen.append("connected")
+                except OSError as exc:
+                    seen.append(f"refused: {exc}")
+                finally:
+                    c.close()
+                return
+            time.sleep(0.001)
+
+    real_listen = socket.socket.listen
+
+    def slow_listen(self, *args):
+        time.sleep(0.3)
+        return real_listen(self, *args)
+
+    monkeypatch.setattr(socket.socket, "listen", slow_listen)
+    watcher = threading.Thread(target=watch)
+    watcher.start()
+    local = LocalControl(tmp_path, _controls())
+    try:
+        assert local.start()
+        watcher.join(5.0)
+    finally:
+        stop.set()
+        local.close()
+    assert seen == ["connected"], seen
