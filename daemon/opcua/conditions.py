@@ -56,8 +56,8 @@ class ConditionNodes:
         self.methods = methods if methods is not None else {}    # Acknowledge, Confirm (acknowledge.bind)
 
     def state_fields(self, values: dict[str, Any]) -> dict[str, Any]:
-        """The event's values with the condition's acknowledgement states after it: a condition that goes
-        active is unacknowledged and unconfirmed."""
+        """The event's values with the condition's acknowledgement states after it (a condition that goes
+        active is unacknowledged and unconfirmed) and its Retain: active or unacknowledged."""
         condition = self.conditions.get(values.get("NodeId"))  # type: ignore[arg-type]
         active = bool(values.get("ActiveState/Id"))
         was_active = condition.active if condition is not None else False
@@ -65,8 +65,10 @@ class ConditionNodes:
         confirmed = condition.confirmed if condition is not None else True
         if active and not was_active:
             acked = confirmed = False
+        # Part 9: retained (what ConditionRefresh replays, what an alarm list keeps) while active OR not yet
+        # acknowledged: an overload that cleared in 0.2 s stays in the operator's list until someone acknowledges it.
         return {**values, **_state("AckedState", acked, "Acknowledged", "Unacknowledged"),
-                **_state("ConfirmedState", confirmed, "Confirmed", "Unconfirmed")}
+                **_state("ConfirmedState", confirmed, "Confirmed", "Unconfirmed"), "Retain": active or not acked}
 
     async def update(self, values: dict[str, Any], event_ids: list[bytes], when: dt.datetime | None) -> None:
         """Write one fired event's fields into its condition instance (made at its first event)."""

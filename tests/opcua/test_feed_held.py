@@ -100,7 +100,9 @@ def test_a_held_feed_is_one_retained_condition_from_the_trip_until_the_reset(tmp
                     assert reset["ok"] is True, reset
                     await wait_async(lambda: _count(events, 2), SLOW_S, "FeedHeld inactive after the reset")
                     released = events.named("FeedHeld")[1]
-                    assert getattr(released, "ActiveState/Id") is False and released.Retain is False
+                    # inactive, but nobody acknowledged it: still retained (Part 9, issue 42)
+                    assert getattr(released, "ActiveState/Id") is False and released.Retain is True
+                    assert getattr(released, "AckedState/Id") is False
                     assert "feed released" in released.Message.Text and "test-trip" in released.Message.Text
 
                     # 2. The overload at the depth step: active again, as grave as the overload at least.

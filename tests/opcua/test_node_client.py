@@ -118,6 +118,9 @@ def test_node_opcua_finds_the_machine_by_type_reads_live_values_and_acknowledges
             (refreshed,) = client.steps("refreshed")
             active = [c["condition"] for c in refreshed["conditions"] if c["active"]]
             assert active == ["FeedHeld"], refreshed
+            # The cleared overload nobody acknowledged yet is replayed too, inactive and retained (Part 9).
+            (unacked,) = [c for c in refreshed["conditions"] if c["condition"] == "torque_nm"]
+            assert unacked["active"] is False and unacked["acked"] is False and unacked["retain"] is True, unacked
 
             # The operator's Acknowledge: Good, AckedState true, one event saying so; the feed is still held.
             (acked,) = client.steps("acknowledged")
