@@ -55,7 +55,7 @@ class ConditionNodes:
         self.registry = registry if registry is not None else {}  # the server's ConditionId -> ConditionNodes
         self.methods = methods if methods is not None else {}    # Acknowledge, Confirm (acknowledge.bind)
 
-    def state_fields(self, values: dict[str, Any]) -> dict[str, Any]:
+    def state_fields(self, values: dict[str, Any], reactivated: bool = False) -> dict[str, Any]:
         """The event's values with the condition's acknowledgement states after it (a condition that goes
         active is unacknowledged and unconfirmed) and its Retain: active or unacknowledged."""
         condition = self.conditions.get(values.get("NodeId"))  # type: ignore[arg-type]
@@ -63,7 +63,7 @@ class ConditionNodes:
         was_active = condition.active if condition is not None else False
         acked = condition.acked if condition is not None else True
         confirmed = condition.confirmed if condition is not None else True
-        if active and not was_active:
+        if active and (not was_active or reactivated):
             acked = confirmed = False
         # Part 9: retained (what ConditionRefresh replays, what an alarm list keeps) while active OR not yet
         # acknowledged: an overload that cleared in 0.2 s stays in the operator's list until someone acknowledges it.

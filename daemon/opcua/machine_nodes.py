@@ -30,6 +30,7 @@ from millsense.daemon.opcua import fields as F
 from millsense.daemon.opcua.conditions import ConditionNodes
 from millsense.daemon.opcua.feed_held import NAME as FEED_HELD
 from millsense.daemon.opcua.feed_held import Change, FeedHeldTrack
+from millsense.daemon.opcua.flapping import EventLimiter, Held
 from millsense.daemon.publish.alarm_state import ShownAlarms, catch_up, caught_up
 
 log = structlog.get_logger("millsense.opcua")
@@ -141,6 +142,10 @@ class MachineNodes:
         self.events: Any = None
         self.event_template: Any = None
         self.conditions: Any = None                      # the condition instances (conditions.py)
+        self.limiter = EventLimiter()                    # a flapping condition's events (flapping.py)
+        self.pending: dict[Any, Held] = {}               # ConditionId -> its newest event held back
+        self.events_held = 0                             # alarm events held back, since the server started
+        self.held_node: Any = None
         self._tools_full_logged = False
 
     def _id(self, *parts: str) -> ua.NodeId:
@@ -152,6 +157,8 @@ class MachineNodes:
         await self.obj.set_event_notifier([ua.EventNotifier.SubscribeToEvents])
         self.alive_node = await self.obj.add_variable(self._id("alive"), ua.QualifiedName("alive", ms), False,
                                                       ua.VariantType.Boolean)
+        self.held_node = await self.obj.add_variable(self._id("events_held"), ua.QualifiedName("events_held", ms), 0,
+                                                     ua.VariantType.Int64)
         for folder in dict.fromkeys(f.folder for f in F.FIELDS):
             if folder not in F.OPTIONAL_FOLDERS:
                 await self._folder(folder)
@@ -272,7 +279,33 @@ class MachineNodes:
             "ProcessKey": "/".join(str(payload.get(k)) for k in ("program", "tool", "operation"))
             if payload.get("process") is not None else "",
         }
-        await self._trigger(values, _source_time(payload))
+        await self._limited(values, _source_time(payload))
+
+    async def _limited(self, values: dict[str, Any], when: dt.datetime | None) -> None:
+        """Fire an alarm event, or hold it back while its condition flaps (flapping.py): the newest waits."""
+        key = values["NodeId"]
+        held = self.pending.pop(key, None)
+        activated = held.activated if held is not None else False
+        if self.limiter.allow(key):
+            await self._trigger(values, when, reactivated=activated)
+            return
+        fired = self.conditions.conditions.get(key)
+        before = bool(held.values["ActiveState/Id"]) if held is not None else (fired is not None and fired.active)
+        activated = activated or (bool(values["ActiveState/Id"]) and not before)
+        self.pending[key] = Held(values, when, activated)
+        self.events_held += 1
+        await self.held_node.write_value(ua.DataValue(ua.Variant(self.events_held, ua.VariantType.Int64)))
+        if held is None:
+            log.warning("opcua.events_held", machine=self.machine, condition=str(values.get("ConditionName")),
+                        events_held=self.events_held, detail="the condition flaps: its newest state is fired when its "
+                        "rate allows, the events between are dropped")
+
+    async def flush(self) -> None:
+        """Fire each held-back condition's newest event whose rate allows it now (the server's loop calls this)."""
+        for key, held in list(self.pending.items()):
+            if self.limiter.allow(key):
+                del self.pending[key]
+                await self._trigger(held.values, held.when, reactivated=held.activated)
 
     async def _fire_feed_held(self, change: Change | None) -> None:
         """The FeedHeld condition's event for one transition (None: nothing changed)."""
@@ -298,9 +331,11 @@ class MachineNodes:
         log.info("opcua.feed_held", machine=self.machine, active=change.active, reason=change.reason)
         await self._trigger(values, when)
 
-    async def _trigger(self, values: dict[str, Any], when: dt.datetime | None) -> list[bytes]:
-        """Fire one event of a condition; returns its EventIds (one per copy)."""
-        values = self.conditions.state_fields(values)  # its AckedState and ConfirmedState (conditions.py)
+    async def _trigger(self, values: dict[str, Any], when: dt.datetime | None, *, reactivated: bool = False
+                       ) -> list[bytes]:
+        """Fire one event of a condition; returns its EventIds (one per copy). `reactivated`: a held-back event
+        between this one and the last fired made the condition active again (flapping.py)."""
+        values = self.conditions.state_fields(values, reactivated)  # AckedState, ConfirmedState, Retain
         event_ids: list[bytes] = []
         # The machine's Messages (OPC 40501's notifier) first, the Server object last: asyncua keeps the last
         # copy of a retained condition for ConditionRefresh, and plant alarm clients subscribe to Server.
