@@ -8,8 +8,9 @@ Under `Objects/millsense/<machine>` (namespace `urn:millsense:opcua`):
       Notification/Messages            (OPC 40501 browse names) the source of the alarm events
       Equipment/Tools/<tool>/ToolLife/ (OPC 40501 browse names) ProcessCount and Wear per tool number
 
-Alarm changes are fired as events of `MillsenseAlarmType`, a subtype of AlarmConditionType,
-one condition per judged quantity (`ConditionName` = `torque_nm`, `force_n`, `daq`, ...):
+Alarm changes are fired as events of `MillsenseAlarmType`, a subtype of ExclusiveLevelAlarmType (the
+alarm's limit its HighLimit or LowLimit), or for the discrete conditions (FeedHeld, the DAQ link) of
+`MillsenseOffNormalAlarmType` (OffNormalAlarmType), one condition per judged quantity (`ConditionName` = `torque_nm`, `force_n`, `daq`, ...):
 `ActiveState/Id` true from the alarm until its `clear`. Alarm changes this server missed (it
 connected late, or its link dropped) are fired from the next `status` (publish/alarm_state.py).
 The held feed is one more condition of the machine, `FeedHeld` (feed_held.py): active from the trip
@@ -72,10 +73,13 @@ def percent_unit() -> ua.EUInformation:
 
 
 class Namespaces:
-    def __init__(self, ms: int, mt: int, alarm_type: Any, server_events: Any) -> None:
-        self.ms, self.mt, self.alarm_type = ms, mt, alarm_type
+    def __init__(self, ms: int, mt: int, alarm_type: Any, server_events: Any, discrete_type: Any = None,
+                 discrete_events: Any = None) -> None:
+        self.ms, self.mt, self.alarm_type, self.discrete_type = ms, mt, alarm_type, discrete_type
         self.server_events = server_events  # one generator on the Server object, shared by every machine
         self.server_template = copy.deepcopy(server_events.event)
+        self.discrete_events = discrete_events  # the same for the discrete alarms' type
+        self.discrete_template = copy.deepcopy(discrete_events.event) if discrete_events is not None else None
         self.conditions: dict[ua.NodeId, Any] = {}  # every machine's ConditionId -> its ConditionNodes (Acknowledge)
         self.ack_methods: dict[str, Any] = {}  # Acknowledge, Confirm callbacks (acknowledge.bind)
 
@@ -83,9 +87,23 @@ class Namespaces:
     async def register(cls, server: Server) -> Namespaces:
         ms = await server.register_namespace(MILLSENSE_NS)
         mt = await server.register_namespace(MACHINE_TOOL_NS)
-        alarm_type = await server.create_custom_event_type(ms, "MillsenseAlarmType", ua.ObjectIds.AlarmConditionType,
-                                                           ALARM_FIELDS)
-        return cls(ms, mt, alarm_type, await server.get_event_generator(alarm_type, ua.ObjectIds.Server))
+        # Part 9's types (issue 42): a judged quantity's condition is a limit alarm, its levels the exclusive
+        # states of ExclusiveLevelAlarmType; the held feed and the DAQ link are discrete, OffNormalAlarmType.
+        alarm_type = await server.create_custom_event_type(ms, "MillsenseAlarmType",
+                                                           ua.ObjectIds.ExclusiveLevelAlarmType, ALARM_FIELDS)
+        discrete_type = await server.create_custom_event_type(ms, "MillsenseOffNormalAlarmType",
+                                                              ua.ObjectIds.OffNormalAlarmType, ALARM_FIELDS)
+        return cls(ms, mt, alarm_type, await server.get_event_generator(alarm_type, ua.ObjectIds.Server),
+                   discrete_type, await server.get_event_generator(discrete_type, ua.ObjectIds.Server))
+
+
+DISCRETE_QUANTITIES = (FEED_HELD, "daq")  # conditions that are on or off, no value beside a limit
+LOW_LEVELS = ("envelope_low", "expected_low")  # a value under its limit: LowLimit; every other level: HighLimit
+
+
+def is_discrete(values: dict[str, Any]) -> bool:
+    """Is this condition (by its quantity, fixed for its ConditionId) an OffNormalAlarmType?"""
+    return values.get("Quantity") in DISCRETE_QUANTITIES
 
 
 def condition_class(level: str, quantity: str, mt: int) -> tuple[ua.NodeId, str]:
@@ -171,8 +189,11 @@ class MachineNodes:
         self.tools_folder = await equipment.add_folder(self._id("Equipment", "Tools"), ua.QualifiedName("Tools", mt))
         self.events = await self.server.get_event_generator(self.ns.alarm_type, self.messages)
         self.event_template = copy.deepcopy(self.events.event)
-        self.conditions = ConditionNodes(self.server, self.ns.alarm_type, self.messages, self._trigger,
-                                         self.ns.conditions, self.ns.ack_methods)
+        self.discrete_events = await self.server.get_event_generator(self.ns.discrete_type, self.messages)
+        self.discrete_template = copy.deepcopy(self.discrete_events.event)
+        types = (self.ns.alarm_type, self.ns.discrete_type)
+        self.conditions = ConditionNodes(self.server, types, self.messages, self._trigger,
+                                         self.ns.conditions, self.ns.ack_methods, is_discrete=is_discrete)
         return self
 
     async def _folder(self, name: str) -> Any:
@@ -259,6 +280,9 @@ class MachineNodes:
         if hold:
             text += f"; {hold}"
         rev = F.convert(payload.get("rev"), F.INT64)
+        limits = {}
+        if limit is not None and quantity not in DISCRETE_QUANTITIES:  # LimitAlarmType's HighLimit or LowLimit
+            limits = {"LowLimit" if shown in LOW_LEVELS else "HighLimit": limit}
         values = {
             "Message": ua.LocalizedText(text),
             "Severity": SEVERITY.get(level, 500),
@@ -278,6 +302,7 @@ class MachineNodes:
             "Revolution": rev if rev is not None else -1,
             "ProcessKey": "/".join(str(payload.get(k)) for k in ("program", "tool", "operation"))
             if payload.get("process") is not None else "",
+            **limits,
         }
         await self._limited(values, _source_time(payload))
 
@@ -339,7 +364,9 @@ class MachineNodes:
         event_ids: list[bytes] = []
         # The machine's Messages (OPC 40501's notifier) first, the Server object last: asyncua keeps the last
         # copy of a retained condition for ConditionRefresh, and plant alarm clients subscribe to Server.
-        for generator, template in ((self.events, self.event_template), (self.ns.server_events, self.ns.server_template)):
+        copies = ((self.discrete_events, self.discrete_template), (self.ns.discrete_events, self.ns.discrete_template)) \
+            if is_discrete(values) else ((self.events, self.event_template), (self.ns.server_events, self.ns.server_template))
+        for generator, template in copies:
             event = copy.deepcopy(template)  # asyncua keeps the object of a retained event: one each
             for name, v in values.items():
                 setattr(event, name, v)
