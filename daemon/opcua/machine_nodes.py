@@ -10,7 +10,8 @@ Under `Objects/millsense/<machine>` (namespace `urn:millsense:opcua`):
 
 Alarm changes are fired as events of `MillsenseAlarmType`, a subtype of ExclusiveLevelAlarmType (the
 alarm's limit its HighLimit or LowLimit), or for the discrete conditions (FeedHeld, the DAQ link) of
-`MillsenseOffNormalAlarmType` (OffNormalAlarmType), one condition per judged quantity (`ConditionName` = `torque_nm`, `force_n`, `daq`, ...):
+`MillsenseOffNormalAlarmType` (OffNormalAlarmType), one condition per judged quantity
+(`ConditionName` = `torque_nm`, `force_n`, `daq`, ...):
 `ActiveState/Id` true from the alarm until its `clear`. Alarm changes this server missed (it
 connected late, or its link dropped) are fired from the next `status` (publish/alarm_state.py).
 The held feed is one more condition of the machine, `FeedHeld` (feed_held.py): active from the trip
@@ -364,8 +365,10 @@ class MachineNodes:
         event_ids: list[bytes] = []
         # The machine's Messages (OPC 40501's notifier) first, the Server object last: asyncua keeps the last
         # copy of a retained condition for ConditionRefresh, and plant alarm clients subscribe to Server.
-        copies = ((self.discrete_events, self.discrete_template), (self.ns.discrete_events, self.ns.discrete_template)) \
-            if is_discrete(values) else ((self.events, self.event_template), (self.ns.server_events, self.ns.server_template))
+        if is_discrete(values):
+            copies = ((self.discrete_events, self.discrete_template), (self.ns.discrete_events, self.ns.discrete_template))
+        else:
+            copies = ((self.events, self.event_template), (self.ns.server_events, self.ns.server_template))
         for generator, template in copies:
             event = copy.deepcopy(template)  # asyncua keeps the object of a retained event: one each
             for name, v in values.items():

@@ -29,7 +29,8 @@ OVERLOAD = {"t": 1.7e9, "run_id": "r1", "level": "overload", "quantity": "torque
 
 def _flood(i):
     level = "overload" if i % 2 == 0 else "clear"
-    return {**OVERLOAD, "seq": i + 1, "t": 1.7e9 + i * 0.01, "level": level, "value": 31.7 if level != "clear" else 10.0}
+    return {**OVERLOAD, "seq": i + 1, "t": 1.7e9 + i * 0.01, "level": level,
+            "value": 31.7 if level != "clear" else 10.0}
 
 
 def test_a_flapping_condition_fires_a_few_events_counts_the_rest_and_ends_in_its_newest_state(tmp_path):

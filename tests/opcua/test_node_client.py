@@ -122,6 +122,12 @@ def test_node_opcua_finds_the_machine_by_type_reads_live_values_and_acknowledges
             (unacked,) = [c for c in refreshed["conditions"] if c["condition"] == "torque_nm"]
             assert unacked["active"] is False and unacked["acked"] is False and unacked["retain"] is True, unacked
 
+            # Part 9's types: the overload's condition a limit alarm (its limit the HighLimit), the held feed discrete.
+            (types,) = client.steps("types")
+            assert "ns=0;i=9482" in types["types"]["torque_nm"], types  # ExclusiveLevelAlarmType
+            assert "ns=0;i=10637" in types["types"]["FeedHeld"], types  # OffNormalAlarmType
+            assert types["high_limit"] == TORQUE_LIMIT_NM, types
+
             # The operator's Acknowledge: Good, AckedState true, one event saying so; the feed is still held.
             (acked,) = client.steps("acknowledged")
             assert acked["status"] == "Good" and acked["condition_id"] == overload["condition_id"], acked

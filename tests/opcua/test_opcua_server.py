@@ -21,7 +21,18 @@ from asyncua import ua  # noqa: E402
 
 from tests.conftest import free_tcp_port  # noqa: E402
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for, write_config  # noqa: E402
-from tests.opcua.rig import MS_NS, MT_NS, SLOW_S, alarm_types, child, connect, make_pki, start_opcua, unsecured_session, wait_async  # noqa: E402
+from tests.opcua.rig import (  # noqa: E402
+    MS_NS,
+    MT_NS,
+    SLOW_S,
+    alarm_types,
+    child,
+    connect,
+    make_pki,
+    start_opcua,
+    unsecured_session,
+    wait_async,
+)
 
 MACHINE = "opcua-01"
 # Between the step scenario's cutting torque at 1 mm (about 2.0 N·m) and at 2 mm (3.1 to 4): the overload
