@@ -9,6 +9,7 @@ is real: the server, the events, the client.
 from __future__ import annotations
 
 import asyncio
+import shutil
 
 import pytest
 
@@ -112,3 +113,62 @@ def test_the_limiter_refills_at_its_rate_and_keeps_each_condition_apart():
     assert [limiter.allow("a") for _ in range(2)] == [True, False]
     now[0] += 100.0
     assert [limiter.allow("a") for _ in range(4)] == [True, True, True, False]  # never more than the burst
+
+
+def test_an_alarm_that_came_back_while_held_back_is_unacknowledged_again(tmp_path):
+    """Acknowledged, then cleared and raised again within one held-back interval: the event fired for the newest
+    state (active, as the last one fired) must say unacknowledged: it is a new occurrence nobody has seen."""
+    pki = make_pki(tmp_path / "pki")
+    operators = tmp_path / "operators"
+    operators.mkdir()
+    shutil.copyfile(pki.client_cert, operators / "client.der")
+    port = free_tcp_port()
+    options = Options(endpoint=f"opc.tcp://127.0.0.1:{port}", identity=load_server_identity(pki.server_cert,
+                      pki.server_key), trust=TrustList(pki.trust_dir), operators=TrustList(operators))
+    now = [1000.0]
+
+    async def scenario():
+        server, ns, root = await build_server(options)
+        await server.start()
+        client = None
+        try:
+            client = await connect(port, pki.client_cert, pki.client_key)
+            ms = await client.get_namespace_index(MS_NS)
+            events = []
+
+            class Handler:
+                def event_notification(self, event):
+                    events.append(event)
+
+            subscription = await client.create_subscription(20, Handler())
+            await subscription.subscribe_events(ua.ObjectIds.Server, client.get_node(ns.alarm_type.nodeid))
+            feeder = Feeder(server, ns, root)
+            machine = await feeder.machine("m1")
+            machine.limiter = EventLimiter(per_s=2.0, burst=1, clock=lambda: now[0])
+
+            async def torque(n):
+                got = [e for e in events if e.ConditionName == "torque_nm"]
+                return got if len(got) >= n else None
+
+            await machine.apply("alarm", _flood(0))  # overload: the bucket's one token
+            (raised,) = await wait_async(lambda: torque(1), SLOW_S, "the overload")
+            condition = client.get_node(ua.NodeId("m1/Notification/Messages/torque_nm", ms))
+            await condition.call_method(ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge),
+                                        ua.Variant(raised.EventId, ua.VariantType.ByteString),
+                                        ua.Variant(ua.LocalizedText("seen"), ua.VariantType.LocalizedText))
+            acked = (await wait_async(lambda: torque(2), SLOW_S, "the acknowledgement"))[1]
+            assert getattr(acked, "AckedState/Id") is True
+            await machine.apply("alarm", _flood(1))  # its clear: held back
+            await machine.apply("alarm", _flood(2))  # raised again: held back, replacing the clear
+            now[0] += 1.0
+            await feeder.flush()
+            again = (await wait_async(lambda: torque(3), SLOW_S, "the newest state"))[2]
+            assert getattr(again, "ActiveState/Id") is True and getattr(again, "AckedState/Id") is False
+            assert again.Retain is True
+            assert await (await condition.get_child(["0:AckedState", "0:Id"])).read_value() is False
+        finally:
+            if client is not None:
+                await client.disconnect()
+            await server.stop()
+
+    asyncio.run(scenario())
