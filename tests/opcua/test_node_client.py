@@ -14,7 +14,8 @@ tests/opcua/node_client/client.js) in one Node process. It
 - receives the overload as a condition event, and the held feed's; once the overload's condition has cleared it
   calls ConditionRefresh: the stopped, held machine shows an active condition (FeedHeld) to a client that keeps
   only the active ones;
-- acknowledges the overload's condition with an operator's certificate and reads AckedState true.
+- acknowledges the overload's condition with an operator's certificate and reads AckedState true, then confirms
+  it and reads ConfirmedState true.
 """
 
 from __future__ import annotations
@@ -132,6 +133,7 @@ def test_node_opcua_finds_the_machine_by_type_reads_live_values_and_acknowledges
             (acked,) = client.steps("acknowledged")
             assert acked["status"] == "Good" and acked["condition_id"] == overload["condition_id"], acked
             assert client.steps("acked_state") == [{"step": "acked_state", "acked": True}], said
+            assert client.steps("confirmed") == [{"step": "confirmed", "status": "Good", "confirmed": True}], said
             assert not any(e["condition"] == "FeedHeld" and not e["active"] for e in client.steps("event")), said
             assert "opcua.audit" in procs.text("opcua") and "Traceback" not in procs.text("opcua")
     finally:

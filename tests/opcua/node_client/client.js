@@ -10,7 +10,7 @@
 //      reads its Identification, and subscribes to millsense's torque_nm one reference away;
 //   4. waits for the overload's condition event and the held feed's, calls ConditionRefresh and reports the
 //      conditions it replays; acknowledges the overload's condition (its last EventId, read from the
-//      condition's node) and reads its AckedState.
+//      condition's node) and reads its AckedState, then confirms it and reads its ConfirmedState.
 // Nothing in it is written for millsense's server only: standard services, standard NodeIds, browse names.
 "use strict";
 
@@ -19,7 +19,7 @@ const path = require("path");
 const {
     OPCUAClient, MessageSecurityMode, SecurityPolicy, UserTokenType, AttributeIds, TimestampsToReturn, DataType,
     ClientMonitoredItem, constructEventFilter, makeBrowsePath, resolveNodeId, BrowseDirection, NodeClassMask,
-    callConditionRefresh, acknowledgeCondition, Variant
+    callConditionRefresh, acknowledgeCondition, confirmCondition
 } = require("node-opcua-client");
 const { OPCUACertificateManager } = require("node-opcua-certificate-manager");
 const { readCertificate, readPrivateKey, keyOperationsFromPrivateKey } = require("node-opcua-crypto");
@@ -268,6 +268,14 @@ async function main() {
         say("acked_state", { acked: (await readValue(s, ackedId)).value.value });
         await until("the acknowledgement's event", async () =>
             events.find((e) => e.condition === opts.overload_condition && e.acked === true));
+        // Confirm it: the EventId of the acknowledgement's event, as the condition's node says it now.
+        for (let attempt = 0; attempt < 3; attempt++) {
+            const eventId = (await readValue(s, eventIdNode)).value.value;
+            status = await confirmCondition(s, conditionId, eventId, opts.comment);
+            if (status.name !== "BadEventIdUnknown") break;
+        }
+        const confirmedId = await translate(s, conditionId, ".ConfirmedState.Id");
+        say("confirmed", { status: status.name, confirmed: (await readValue(s, confirmedId)).value.value });
         await subscription.terminate();
     } finally {
         await close(pair);
