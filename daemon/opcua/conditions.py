@@ -4,7 +4,8 @@ acknowledgement (issue 42).
 Every alarm event names its condition (`ConditionId`, the event's `NodeId` field:
 `<machine>/Notification/Messages/<quantity>`, or `.../FeedHeld`). A standard alarms-and-conditions
 client reads that node and browses HasCondition from the source; before this it got BadNodeIdUnknown.
-Each condition is an object of `MillsenseAlarmType` (an AlarmConditionType subtype) at that NodeId,
+Each condition is an object of its event type (`MillsenseAlarmType`, an ExclusiveLevelAlarmType with the
+alarm's HighLimit/LowLimit, or `MillsenseOffNormalAlarmType` for FeedHeld and the DAQ link) at that NodeId,
 made at its first event, with HasCondition from the machine's Messages, and its state variables
 written from each event it fires: ActiveState, AckedState, ConfirmedState (each with its Id), Retain,
 Severity, LastSeverity, Message, Time, EventId, Comment, ClientUserId, ConditionName, ConditionClass,
@@ -47,26 +48,33 @@ class Condition:
 class ConditionNodes:
     """One machine's condition instances, by ConditionId."""
 
-    def __init__(self, server: Any, alarm_type: Node, source: Node,
+    def __init__(self, server: Any, alarm_type: Node | tuple[Node, Node], source: Node,
                  fire: Callable[[dict[str, Any], dt.datetime | None], Awaitable[list[bytes]]],
-                 registry: dict[ua.NodeId, Any] | None = None, methods: dict[str, Any] | None = None) -> None:
-        self.server, self.alarm_type, self.source, self.fire = server, alarm_type, source, fire
+                 registry: dict[ua.NodeId, Any] | None = None, methods: dict[str, Any] | None = None, *,
+                 is_discrete: Callable[[dict[str, Any]], bool] | None = None) -> None:
+        """`alarm_type`: the limit alarms' type, or (it, the discrete alarms' type) chosen by `is_discrete`."""
+        types = alarm_type if isinstance(alarm_type, tuple) else (alarm_type, alarm_type)
+        self.server, self.alarm_type, self.discrete_type = server, types[0], types[1]
+        self.source, self.fire = source, fire
+        self.is_discrete = is_discrete or (lambda values: False)
         self.conditions: dict[ua.NodeId, Condition] = {}
         self.registry = registry if registry is not None else {}  # the server's ConditionId -> ConditionNodes
         self.methods = methods if methods is not None else {}    # Acknowledge, Confirm (acknowledge.bind)
 
-    def state_fields(self, values: dict[str, Any]) -> dict[str, Any]:
-        """The event's values with the condition's acknowledgement states after it: a condition that goes
-        active is unacknowledged and unconfirmed."""
+    def state_fields(self, values: dict[str, Any], reactivated: bool = False) -> dict[str, Any]:
+        """The event's values with the condition's acknowledgement states after it (a condition that goes
+        active is unacknowledged and unconfirmed) and its Retain: active or unacknowledged."""
         condition = self.conditions.get(values.get("NodeId"))  # type: ignore[arg-type]
         active = bool(values.get("ActiveState/Id"))
         was_active = condition.active if condition is not None else False
         acked = condition.acked if condition is not None else True
         confirmed = condition.confirmed if condition is not None else True
-        if active and not was_active:
+        if active and (not was_active or reactivated):
             acked = confirmed = False
+        # Part 9: retained (what ConditionRefresh replays, what an alarm list keeps) while active OR not yet
+        # acknowledged: an overload that cleared in 0.2 s stays in the operator's list until someone acknowledges it.
         return {**values, **_state("AckedState", acked, "Acknowledged", "Unacknowledged"),
-                **_state("ConfirmedState", confirmed, "Confirmed", "Unconfirmed")}
+                **_state("ConfirmedState", confirmed, "Confirmed", "Unconfirmed"), "Retain": active or not acked}
 
     async def update(self, values: dict[str, Any], event_ids: list[bytes], when: dt.datetime | None) -> None:
         """Write one fired event's fields into its condition instance (made at its first event)."""
@@ -77,7 +85,9 @@ class ConditionNodes:
         if condition is None:
             if len(self.conditions) >= MAX_CONDITIONS:
                 return
-            condition = await self._create(condition_id, str(values.get("ConditionName", "")))
+            condition = await self._create(condition_id, str(values.get("ConditionName", "")),
+                                           self.discrete_type if self.is_discrete(values) else self.alarm_type,
+                                           limits=not self.is_discrete(values))
         previous = condition.values.get("Severity")
         condition.active = bool(values["ActiveState/Id"])
         condition.acked = bool(values["AckedState/Id"])
@@ -102,6 +112,8 @@ class ConditionNodes:
         ]
         if event_ids:
             writes.append(("EventId", event_ids[-1], ua.VariantType.ByteString))
+        writes += [(name, float(values[name]), ua.VariantType.Double) for name in ("HighLimit", "LowLimit")
+                   if values.get(name) is not None and name in condition.nodes]
         for name, value, vt in writes:
             await condition.nodes[name].write_value(ua.DataValue(ua.Variant(value, vt), SourceTimestamp=when))
 
@@ -128,8 +140,8 @@ class ConditionNodes:
         await self.fire(values, dt.datetime.now(dt.timezone.utc))
         return ua.StatusCode(ua.StatusCodes.Good)
 
-    async def _create(self, condition_id: ua.NodeId, name: str) -> Condition:
-        (obj, *_) = await instantiate(self.source, self.alarm_type, nodeid=condition_id,
+    async def _create(self, condition_id: ua.NodeId, name: str, alarm_type: Node, *, limits: bool) -> Condition:
+        (obj, *_) = await instantiate(self.source, alarm_type, nodeid=condition_id,
                                       bname=ua.QualifiedName(name, condition_id.NamespaceIndex),
                                       instantiate_optional=False)
         # Part 9: the source names its conditions by HasCondition (asyncua linked it by HasComponent too)
@@ -145,6 +157,11 @@ class ConditionNodes:
         await nodes["ConditionName"].write_value(ua.Variant(name, ua.VariantType.String))
         await nodes["EnabledState"].write_value(ua.Variant(ua.LocalizedText("Enabled"), ua.VariantType.LocalizedText))
         await nodes["EnabledState/Id"].write_value(ua.Variant(True, ua.VariantType.Boolean))
+        if limits:  # LimitAlarmType's optional HighLimit and LowLimit: the alarm's limit, on its side
+            for limit in ("HighLimit", "LowLimit"):
+                nodes[limit] = await obj.add_property(ua.NodeId(f"{condition_id.Identifier}.{limit}",
+                                                                condition_id.NamespaceIndex),
+                                                      ua.QualifiedName(limit, 0), float("nan"), ua.VariantType.Double)
         callbacks = self.methods
         for method in await obj.get_children(refs=ua.ObjectIds.HasComponent, nodeclassmask=ua.NodeClass.Method):
             name = (await method.read_browse_name()).Name

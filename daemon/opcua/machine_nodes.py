@@ -8,8 +8,10 @@ Under `Objects/millsense/<machine>` (namespace `urn:millsense:opcua`):
       Notification/Messages            (OPC 40501 browse names) the source of the alarm events
       Equipment/Tools/<tool>/ToolLife/ (OPC 40501 browse names) ProcessCount and Wear per tool number
 
-Alarm changes are fired as events of `MillsenseAlarmType`, a subtype of AlarmConditionType,
-one condition per judged quantity (`ConditionName` = `torque_nm`, `force_n`, `daq`, ...):
+Alarm changes are fired as events of `MillsenseAlarmType`, a subtype of ExclusiveLevelAlarmType (the
+alarm's limit its HighLimit or LowLimit), or for the discrete conditions (FeedHeld, the DAQ link) of
+`MillsenseOffNormalAlarmType` (OffNormalAlarmType), one condition per judged quantity
+(`ConditionName` = `torque_nm`, `force_n`, `daq`, ...):
 `ActiveState/Id` true from the alarm until its `clear`. Alarm changes this server missed (it
 connected late, or its link dropped) are fired from the next `status` (publish/alarm_state.py).
 The held feed is one more condition of the machine, `FeedHeld` (feed_held.py): active from the trip
@@ -30,6 +32,7 @@ from millsense.daemon.opcua import fields as F
 from millsense.daemon.opcua.conditions import ConditionNodes
 from millsense.daemon.opcua.feed_held import NAME as FEED_HELD
 from millsense.daemon.opcua.feed_held import Change, FeedHeldTrack
+from millsense.daemon.opcua.flapping import EventLimiter, Held
 from millsense.daemon.publish.alarm_state import ShownAlarms, catch_up, caught_up
 
 log = structlog.get_logger("millsense.opcua")
@@ -71,10 +74,13 @@ def percent_unit() -> ua.EUInformation:
 
 
 class Namespaces:
-    def __init__(self, ms: int, mt: int, alarm_type: Any, server_events: Any) -> None:
-        self.ms, self.mt, self.alarm_type = ms, mt, alarm_type
+    def __init__(self, ms: int, mt: int, alarm_type: Any, server_events: Any, discrete_type: Any = None,
+                 discrete_events: Any = None) -> None:
+        self.ms, self.mt, self.alarm_type, self.discrete_type = ms, mt, alarm_type, discrete_type
         self.server_events = server_events  # one generator on the Server object, shared by every machine
         self.server_template = copy.deepcopy(server_events.event)
+        self.discrete_events = discrete_events  # the same for the discrete alarms' type
+        self.discrete_template = copy.deepcopy(discrete_events.event) if discrete_events is not None else None
         self.conditions: dict[ua.NodeId, Any] = {}  # every machine's ConditionId -> its ConditionNodes (Acknowledge)
         self.ack_methods: dict[str, Any] = {}  # Acknowledge, Confirm callbacks (acknowledge.bind)
 
@@ -82,9 +88,23 @@ class Namespaces:
     async def register(cls, server: Server) -> Namespaces:
         ms = await server.register_namespace(MILLSENSE_NS)
         mt = await server.register_namespace(MACHINE_TOOL_NS)
-        alarm_type = await server.create_custom_event_type(ms, "MillsenseAlarmType", ua.ObjectIds.AlarmConditionType,
-                                                           ALARM_FIELDS)
-        return cls(ms, mt, alarm_type, await server.get_event_generator(alarm_type, ua.ObjectIds.Server))
+        # Part 9's types (issue 42): a judged quantity's condition is a limit alarm, its levels the exclusive
+        # states of ExclusiveLevelAlarmType; the held feed and the DAQ link are discrete, OffNormalAlarmType.
+        alarm_type = await server.create_custom_event_type(ms, "MillsenseAlarmType",
+                                                           ua.ObjectIds.ExclusiveLevelAlarmType, ALARM_FIELDS)
+        discrete_type = await server.create_custom_event_type(ms, "MillsenseOffNormalAlarmType",
+                                                              ua.ObjectIds.OffNormalAlarmType, ALARM_FIELDS)
+        return cls(ms, mt, alarm_type, await server.get_event_generator(alarm_type, ua.ObjectIds.Server),
+                   discrete_type, await server.get_event_generator(discrete_type, ua.ObjectIds.Server))
+
+
+DISCRETE_QUANTITIES = (FEED_HELD, "daq")  # conditions that are on or off, no value beside a limit
+LOW_LEVELS = ("envelope_low", "expected_low")  # a value under its limit: LowLimit; every other level: HighLimit
+
+
+def is_discrete(values: dict[str, Any]) -> bool:
+    """Is this condition (by its quantity, fixed for its ConditionId) an OffNormalAlarmType?"""
+    return values.get("Quantity") in DISCRETE_QUANTITIES
 
 
 def condition_class(level: str, quantity: str, mt: int) -> tuple[ua.NodeId, str]:
@@ -141,6 +161,10 @@ class MachineNodes:
         self.events: Any = None
         self.event_template: Any = None
         self.conditions: Any = None                      # the condition instances (conditions.py)
+        self.limiter = EventLimiter()                    # a flapping condition's events (flapping.py)
+        self.pending: dict[Any, Held] = {}               # ConditionId -> its newest event held back
+        self.events_held = 0                             # alarm events held back, since the server started
+        self.held_node: Any = None
         self._tools_full_logged = False
 
     def _id(self, *parts: str) -> ua.NodeId:
@@ -152,6 +176,8 @@ class MachineNodes:
         await self.obj.set_event_notifier([ua.EventNotifier.SubscribeToEvents])
         self.alive_node = await self.obj.add_variable(self._id("alive"), ua.QualifiedName("alive", ms), False,
                                                       ua.VariantType.Boolean)
+        self.held_node = await self.obj.add_variable(self._id("events_held"), ua.QualifiedName("events_held", ms), 0,
+                                                     ua.VariantType.Int64)
         for folder in dict.fromkeys(f.folder for f in F.FIELDS):
             if folder not in F.OPTIONAL_FOLDERS:
                 await self._folder(folder)
@@ -164,8 +190,11 @@ class MachineNodes:
         self.tools_folder = await equipment.add_folder(self._id("Equipment", "Tools"), ua.QualifiedName("Tools", mt))
         self.events = await self.server.get_event_generator(self.ns.alarm_type, self.messages)
         self.event_template = copy.deepcopy(self.events.event)
-        self.conditions = ConditionNodes(self.server, self.ns.alarm_type, self.messages, self._trigger,
-                                         self.ns.conditions, self.ns.ack_methods)
+        self.discrete_events = await self.server.get_event_generator(self.ns.discrete_type, self.messages)
+        self.discrete_template = copy.deepcopy(self.discrete_events.event)
+        types = (self.ns.alarm_type, self.ns.discrete_type)
+        self.conditions = ConditionNodes(self.server, types, self.messages, self._trigger,
+                                         self.ns.conditions, self.ns.ack_methods, is_discrete=is_discrete)
         return self
 
     async def _folder(self, name: str) -> Any:
@@ -252,6 +281,9 @@ class MachineNodes:
         if hold:
             text += f"; {hold}"
         rev = F.convert(payload.get("rev"), F.INT64)
+        limits = {}
+        if limit is not None and quantity not in DISCRETE_QUANTITIES:  # LimitAlarmType's HighLimit or LowLimit
+            limits = {"LowLimit" if shown in LOW_LEVELS else "HighLimit": limit}
         values = {
             "Message": ua.LocalizedText(text),
             "Severity": SEVERITY.get(level, 500),
@@ -271,8 +303,35 @@ class MachineNodes:
             "Revolution": rev if rev is not None else -1,
             "ProcessKey": "/".join(str(payload.get(k)) for k in ("program", "tool", "operation"))
             if payload.get("process") is not None else "",
+            **limits,
         }
-        await self._trigger(values, _source_time(payload))
+        await self._limited(values, _source_time(payload))
+
+    async def _limited(self, values: dict[str, Any], when: dt.datetime | None) -> None:
+        """Fire an alarm event, or hold it back while its condition flaps (flapping.py): the newest waits."""
+        key = values["NodeId"]
+        held = self.pending.pop(key, None)
+        activated = held.activated if held is not None else False
+        if self.limiter.allow(key):
+            await self._trigger(values, when, reactivated=activated)
+            return
+        fired = self.conditions.conditions.get(key)
+        before = bool(held.values["ActiveState/Id"]) if held is not None else (fired is not None and fired.active)
+        activated = activated or (bool(values["ActiveState/Id"]) and not before)
+        self.pending[key] = Held(values, when, activated)
+        self.events_held += 1
+        await self.held_node.write_value(ua.DataValue(ua.Variant(self.events_held, ua.VariantType.Int64)))
+        if held is None:
+            log.warning("opcua.events_held", machine=self.machine, condition=str(values.get("ConditionName")),
+                        events_held=self.events_held, detail="the condition flaps: its newest state is fired when its "
+                        "rate allows, the events between are dropped")
+
+    async def flush(self) -> None:
+        """Fire each held-back condition's newest event whose rate allows it now (the server's loop calls this)."""
+        for key, held in list(self.pending.items()):
+            if self.limiter.allow(key):
+                del self.pending[key]
+                await self._trigger(held.values, held.when, reactivated=held.activated)
 
     async def _fire_feed_held(self, change: Change | None) -> None:
         """The FeedHeld condition's event for one transition (None: nothing changed)."""
@@ -298,13 +357,19 @@ class MachineNodes:
         log.info("opcua.feed_held", machine=self.machine, active=change.active, reason=change.reason)
         await self._trigger(values, when)
 
-    async def _trigger(self, values: dict[str, Any], when: dt.datetime | None) -> list[bytes]:
-        """Fire one event of a condition; returns its EventIds (one per copy)."""
-        values = self.conditions.state_fields(values)  # its AckedState and ConfirmedState (conditions.py)
+    async def _trigger(self, values: dict[str, Any], when: dt.datetime | None, *, reactivated: bool = False
+                       ) -> list[bytes]:
+        """Fire one event of a condition; returns its EventIds (one per copy). `reactivated`: a held-back event
+        between this one and the last fired made the condition active again (flapping.py)."""
+        values = self.conditions.state_fields(values, reactivated)  # AckedState, ConfirmedState, Retain
         event_ids: list[bytes] = []
         # The machine's Messages (OPC 40501's notifier) first, the Server object last: asyncua keeps the last
         # copy of a retained condition for ConditionRefresh, and plant alarm clients subscribe to Server.
-        for generator, template in ((self.events, self.event_template), (self.ns.server_events, self.ns.server_template)):
+        if is_discrete(values):
+            copies = ((self.discrete_events, self.discrete_template), (self.ns.discrete_events, self.ns.discrete_template))
+        else:
+            copies = ((self.events, self.event_template), (self.ns.server_events, self.ns.server_template))
+        for generator, template in copies:
             event = copy.deepcopy(template)  # asyncua keeps the object of a retained event: one each
             for name, v in values.items():
                 setattr(event, name, v)

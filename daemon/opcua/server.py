@@ -148,6 +148,14 @@ class Feeder:
                               detail="no MachineToolType object for this machine; Objects/millsense/" + name + " serves")
         return nodes
 
+    async def flush(self) -> None:
+        """Fire the held-back events of flapping conditions whose rate allows it now (flapping.py)."""
+        for machine, nodes in self.machines.items():
+            try:
+                await nodes.flush()
+            except Exception as exc:  # noqa: BLE001 - one machine's event must not stop the others
+                log.warning("opcua.flush_error", machine=machine, error=f"{type(exc).__name__}: {exc}")
+
     async def apply(self, items: list[tuple[str, str, dict[str, Any]]]) -> None:
         for machine, kind, payload in items:
             try:
@@ -206,6 +214,7 @@ async def serve(options: Options, session: Any, stop: asyncio.Event, on_ready: A
             waker.cancel()
             wake.clear()
             await feeder.apply(inbox.take())
+            await feeder.flush()
             await asyncio.sleep(MIN_UPDATE_S)
     finally:
         for e in entities:

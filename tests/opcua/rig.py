@@ -123,3 +123,19 @@ async def child(node: Any, *names: str) -> Any:
         return await node.get_child(list(names))
     except ua.UaStatusCodeError:
         return None
+
+
+_ALARM_CONDITION = ["0:Types", "0:EventTypes", "0:BaseEventType", "0:ConditionType", "0:AcknowledgeableConditionType",
+                    "0:AlarmConditionType"]
+
+
+async def alarm_types(client: Client) -> list[Any]:
+    """millsense's two alarm event types, found where Part 9's hierarchy puts them (issue 42): the limit alarms'
+    MillsenseAlarmType under ExclusiveLevelAlarmType, the discrete ones' (FeedHeld, the DAQ link) under
+    OffNormalAlarmType. Subscribe to both for every alarm event."""
+    ms = await client.get_namespace_index(MS_NS)
+    limit = await client.nodes.root.get_child([*_ALARM_CONDITION, "0:LimitAlarmType", "0:ExclusiveLimitAlarmType",
+                                               "0:ExclusiveLevelAlarmType", f"{ms}:MillsenseAlarmType"])
+    discrete = await client.nodes.root.get_child([*_ALARM_CONDITION, "0:DiscreteAlarmType", "0:OffNormalAlarmType",
+                                                  f"{ms}:MillsenseOffNormalAlarmType"])
+    return [limit, discrete]

@@ -45,7 +45,7 @@ def test_only_an_operator_acknowledges_and_confirms_and_nothing_else_changes(tmp
             operator = await connect(port, pki.client_cert, pki.client_key)
             stranger = await connect(port, pki.stranger_cert, pki.stranger_key)
             ms = await operator.get_namespace_index(MS_NS)
-            alarm_type = operator.get_node(ns.alarm_type.nodeid)
+            alarm_type = [operator.get_node(ns.alarm_type.nodeid), operator.get_node(ns.discrete_type.nodeid)]
             events = []
 
             class Handler:

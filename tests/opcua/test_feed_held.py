@@ -27,7 +27,7 @@ from millsense.daemon.opcua.machine_nodes import SEVERITY  # noqa: E402
 from millsense.daemon.publish.command_auth import send_command  # noqa: E402
 from tests.conftest import free_tcp_port  # noqa: E402
 from tests.e2e.helpers import Procs, Subscriber, tcp, write_config  # noqa: E402
-from tests.opcua.rig import MS_NS, SLOW_S, child, connect, make_pki, start_opcua, wait_async  # noqa: E402
+from tests.opcua.rig import MS_NS, SLOW_S, alarm_types, child, connect, make_pki, start_opcua, wait_async  # noqa: E402
 
 MACHINE = "held-01"
 TOKEN = "opcua-feed-held-token-of-32-characters-or-more"
@@ -36,10 +36,7 @@ SINCE = re.compile(r", since \d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ")
 
 
 async def _alarm_type(client):
-    ms = await client.get_namespace_index(MS_NS)
-    return ms, await client.nodes.root.get_child(
-        ["0:Types", "0:EventTypes", "0:BaseEventType", "0:ConditionType", "0:AcknowledgeableConditionType",
-         "0:AlarmConditionType", f"{ms}:MillsenseAlarmType"])
+    return await client.get_namespace_index(MS_NS), await alarm_types(client)
 
 
 class _Events:
@@ -100,7 +97,9 @@ def test_a_held_feed_is_one_retained_condition_from_the_trip_until_the_reset(tmp
                     assert reset["ok"] is True, reset
                     await wait_async(lambda: _count(events, 2), SLOW_S, "FeedHeld inactive after the reset")
                     released = events.named("FeedHeld")[1]
-                    assert getattr(released, "ActiveState/Id") is False and released.Retain is False
+                    # inactive, but nobody acknowledged it: still retained (Part 9, issue 42)
+                    assert getattr(released, "ActiveState/Id") is False and released.Retain is True
+                    assert getattr(released, "AckedState/Id") is False
                     assert "feed released" in released.Message.Text and "test-trip" in released.Message.Text
 
                     # 2. The overload at the depth step: active again, as grave as the overload at least.

@@ -20,7 +20,7 @@ from asyncua import ua  # noqa: E402
 from tests.conftest import free_tcp_port  # noqa: E402
 from tests.e2e.helpers import Procs, Subscriber, tcp, wait_for, write_config  # noqa: E402
 from tests.faults.netfault import StreamProxy  # noqa: E402
-from tests.opcua.rig import MS_NS, SLOW_S, child, connect, make_pki, start_opcua, wait_async  # noqa: E402
+from tests.opcua.rig import MS_NS, SLOW_S, alarm_types, child, connect, make_pki, start_opcua, wait_async  # noqa: E402
 
 MACHINE = "late-01"
 TORQUE_LIMIT_NM = 0.8  # below the step scenario's cutting torque from its first millimetre
@@ -45,9 +45,7 @@ def test_a_server_that_connects_after_the_alarm_shows_it_once(tmp_path):
                 client = await connect(ua_port, pki.client_cert, pki.client_key)
                 try:
                     ms = await client.get_namespace_index(MS_NS)
-                    alarm_type = await client.nodes.root.get_child(
-                        ["0:Types", "0:EventTypes", "0:BaseEventType", "0:ConditionType",
-                         "0:AcknowledgeableConditionType", "0:AlarmConditionType", f"{ms}:MillsenseAlarmType"])
+                    alarm_type = await alarm_types(client)
                     events = []
 
                     class Handler:

@@ -21,7 +21,18 @@ from asyncua import ua  # noqa: E402
 
 from tests.conftest import free_tcp_port  # noqa: E402
 from tests.e2e.helpers import CMD, Procs, Subscriber, tcp, wait_for, write_config  # noqa: E402
-from tests.opcua.rig import MS_NS, MT_NS, SLOW_S, child, connect, make_pki, start_opcua, unsecured_session, wait_async  # noqa: E402
+from tests.opcua.rig import (  # noqa: E402
+    MS_NS,
+    MT_NS,
+    SLOW_S,
+    alarm_types,
+    child,
+    connect,
+    make_pki,
+    start_opcua,
+    unsecured_session,
+    wait_async,
+)
 
 MACHINE = "opcua-01"
 # Between the step scenario's cutting torque at 1 mm (about 2.0 N·m) and at 2 mm (3.1 to 4): the overload
@@ -62,9 +73,7 @@ def test_browse_data_change_and_alarm_event_from_a_live_daemon(rig):
         try:
             ms = await client.get_namespace_index(MS_NS)
             mt = await client.get_namespace_index(MT_NS)
-            alarm_type = await client.nodes.root.get_child(
-                ["0:Types", "0:EventTypes", "0:BaseEventType", "0:ConditionType", "0:AcknowledgeableConditionType",
-                 "0:AlarmConditionType", f"{ms}:MillsenseAlarmType"])
+            alarm_type = await alarm_types(client)
             events, changes = [], []
 
             class Handler:
