@@ -9,10 +9,11 @@ gives for its programmed cut at the revolution's measured spindle speed and appl
 (× the operator's widening, `ExpectedWidening`; the high side never above the fixed `[alarms]` limit).
 
 Only *steady* revolutions in cut are judged (docs/validation.md's steady): valid, in cut (called cutting, or —
-a light cut under `[depth] min_torque_nm` — risen above the air just before it by IN_CUT_OF_EXPECTED of the
-operation's own expected torque, `_in_cut`), the spindle not changing speed, a tool radius of path past the (re-)entry into the cut (the engagement still growing before
-it; the entry counted from the revolutions rising out of the air's noise into the cut, `_entry_credit`), the override and the measured feed per tooth each held within STEADY_FEED_PCT over the last
-STEADY_REVOLUTIONS revolutions. Others neither count nor break a run. An unknown override arms nothing
+a light cut under `[depth] min_torque_nm` — risen above the air's level by IN_CUT_OF_EXPECTED of the
+operation's own expected torque, `_in_cut`), the spindle not changing speed, a tool radius of path past the
+(re-)entry into the cut by the end of the revolution (the engagement still growing before it; the entry
+counted from the revolutions rising out of the air's noise into the cut, `_entry_credit`), the override and
+the measured feed per tooth each held within STEADY_FEED_PCT over the last STEADY_REVOLUTIONS revolutions. Others neither count nor break a run. An unknown override arms nothing
 (a note per process, `learning.expected_unarmed`, which the runner logs once a run; the process payload
 says `expected_band: "unarmed"`).
 
@@ -302,8 +303,8 @@ class ExpectedBand:
 
     @staticmethod
     def _entry_credit(air: deque, first_torque: float | None) -> float:
-        """The path already cut when the first revolution over `[depth] min_torque_nm` came: the revolutions just
-        before it whose torque rose out of the air's noise (above ENTRY_NOISE_SIGMAS of its own scatter) and
+        """The path already cut when the first revolution in cut came (`_in_cut`): the revolutions just (up to
+        ENTRY_LOOKBACK) before it whose torque rose out of the air's noise (above ENTRY_NOISE_SIGMAS of its own scatter) and
         below the next one's, each into the cut. A shallow cut's first touch stays under the threshold; without
         this its steady revolutions were judged that many revolutions late. Flat air credits nothing (a
         revolution not below the next breaks the chain), and a revolution or two credited wrongly moves the
