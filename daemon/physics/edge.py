@@ -36,8 +36,9 @@ With K_te = K_re = 0 this is resultant.py's η·√(1 + r₁²). An edge term la
 chip (T_c ≤ 0 or R_c ≤ 0: the law's exponent says the force of a thin chip is smaller than the edge alone)
 is outside what the split can say: None (the caller keeps the chip-only C_f).
 
-Cost: one quadrature (2–10 ms); ``edge_cf`` caches it per cut and feed per tooth to 0.2 % (the live path
-reads it once per operation and feed, then a dict look-up).
+Cost: one quadrature (2–10 ms); ``edge_cf`` caches it per cut on a grid (feed per tooth to 0.2 %, radial
+depth to 0.5 % of R, axial depth to 1 %): a constant cut pays it once, then a dictionary look-up (5 µs);
+depths estimated revolution by revolution fill a few cells of the grid each.
 """
 
 from __future__ import annotations
@@ -53,6 +54,8 @@ from millsense.daemon.physics.resultant import GAUSS_NODES, _period_sums, helix_
 
 FEED_STEP = 0.002   # the cache's feed per tooth: to 0.2 % (C_f moves by about 0.02 % over it)
 EXP_DIGITS = 3      # the chip term's exponents to 0.001 (each value builds resultant.py's S_m table once)
+RATIO_STEP = 0.005  # the cache's radial depth: to 0.5 % of the tool radius (C_f moves by under 0.1 % over it)
+AXIAL_STEP = 0.01   # the cache's axial depth: to 1 % (it moves the helix's lag alone)
 
 
 def has_edge(material: Material) -> bool:
@@ -115,15 +118,21 @@ def edge_cf(mode: str, flutes: int, tool_radius_mm: float, helix_deg: float | No
     if not (math.isfinite(feed_per_tooth_mm) and feed_per_tooth_mm > 0.0):
         return None
     step = round(math.log(feed_per_tooth_mm) / FEED_STEP)
-    radial = 2.0 * tool_radius_mm if mode == "slot" else radial_depth_mm
-    if radial is None or not 0.0 < radial / tool_radius_mm <= 2.0:
+    ratio = 2.0 if mode == "slot" else (math.nan if radial_depth_mm is None else radial_depth_mm / tool_radius_mm)
+    if not 0.0 < ratio <= 2.0:
         return None
-    axial = None if axial_depth_mm is None or not math.isfinite(axial_depth_mm) else float(axial_depth_mm)
-    return _cached(mode, int(flutes), float(tool_radius_mm), helix_deg, step, float(radial), axial, material)
+    # depths estimated revolution by revolution move a little every time: on a grid (RATIO_STEP of R, AXIAL_STEP
+    # relative), so that a cut pays the quadrature once per cell, not once per revolution
+    cell_r = max(1, round(ratio / RATIO_STEP))
+    cell_a = None
+    if axial_depth_mm is not None and math.isfinite(axial_depth_mm) and axial_depth_mm > 0.0:
+        cell_a = round(math.log(axial_depth_mm) / AXIAL_STEP)
+    return _cached(mode, int(flutes), float(tool_radius_mm), helix_deg, step, cell_r, cell_a, material)
 
 
 @functools.lru_cache(maxsize=4096)
-def _cached(mode, flutes, radius_mm, helix_deg, step, radial_mm, axial_mm, material) -> float | None:
-    entry, exit_ = engagement_xp(NP, np.asarray(radial_mm / radius_mm), mode)
-    lag = float(helix_lag_rad(axial_mm, helix_deg, radius_mm))
+def _cached(mode, flutes, radius_mm, helix_deg, step, cell_r, cell_a, material) -> float | None:
+    entry, exit_ = engagement_xp(NP, np.asarray(min(cell_r * RATIO_STEP, 2.0)), mode)
+    axial = None if cell_a is None else math.exp(cell_a * AXIAL_STEP)
+    lag = float(helix_lag_rad(axial, helix_deg, radius_mm))
     return split_cf(flutes, float(entry), float(exit_), lag, math.exp(step * FEED_STEP), material)
