@@ -13,9 +13,10 @@ a light cut under `[depth] min_torque_nm` — risen above the air's level by IN_
 operation's own expected torque, `_in_cut`), the spindle not changing speed, a tool radius of path past the
 (re-)entry into the cut by the end of the revolution (the engagement still growing before it; the entry
 counted from the revolutions rising out of the air's noise into the cut, `_entry_credit`), the override and
-the measured feed per tooth each held within STEADY_FEED_PCT over the last STEADY_REVOLUTIONS revolutions. Others neither count nor break a run. An unknown override arms nothing
-(a note per process, `learning.expected_unarmed`, which the runner logs once a run; the process payload
-says `expected_band: "unarmed"`).
+the measured feed per tooth each held within STEADY_FEED_PCT over the last STEADY_REVOLUTIONS revolutions.
+Others neither count nor break a run. An unknown override arms nothing (a note per process,
+`learning.expected_unarmed`, which the runner logs once a run; the process payload says
+`expected_band: "unarmed"`).
 
 - `expected_high`: `high_revolutions` steady revolutions in a row above the band; holds the feed.
 - `expected_low`: `low_revolutions` in a row below it; holds the feed for `engagement = "constant"`, else a
@@ -233,7 +234,7 @@ class ExpectedBand:
         if exp is None:
             run.leave_cut()
             return out
-        if run.path_mm == 0.0:   # the first revolution called cutting: the entry may have begun under the threshold
+        if run.path_mm == 0.0:   # the first revolution in cut: the entry may have begun under its threshold
             run.path_mm = self._entry_credit(run.air, finite(est.get("torque_nm")))
         run.air.clear()
         run.path_mm += exp.feed_per_tooth_mm * op.flutes   # mm of path at this revolution's end
@@ -304,8 +305,8 @@ class ExpectedBand:
     @staticmethod
     def _entry_credit(air: deque, first_torque: float | None) -> float:
         """The path already cut when the first revolution in cut came (`_in_cut`): the revolutions just (up to
-        ENTRY_LOOKBACK) before it whose torque rose out of the air's noise (above ENTRY_NOISE_SIGMAS of its own scatter) and
-        below the next one's, each into the cut. A shallow cut's first touch stays under the threshold; without
+        ENTRY_LOOKBACK) before it whose torque rose out of the air's noise (above ENTRY_NOISE_SIGMAS of its own
+        scatter) and below the next one's, each into the cut. A shallow cut's first touch stays under the threshold; without
         this its steady revolutions were judged that many revolutions late. Flat air credits nothing (a
         revolution not below the next breaks the chain), and a revolution or two credited wrongly moves the
         first judged one by as much of a tool radius of path, where a slot's engagement is within
