@@ -173,12 +173,28 @@ def force_by_operation(run: Run) -> dict[str, dict]:
         # the daemon's revolutions in cut: called cutting, or a light cut's under `[depth] min_torque_nm` (never
         # called cutting) with over half the true steady torque; one over the threshold yet not cutting is the
         # spindle running up or braking, not in cut
-        mine = [e for e in run.estimates if e.get("program") == proc["program"] and e.get("tool") == proc["tool"]
-                and e.get("operation") == proc["operation"] and e.get("valid", True)
-                and (e.get("cutting") or 0.5 * true_t <= (e.get("torque_nm") or 0.0) < MIN_TORQUE_NM)]
+        mine = _longest_stretch([e for e in run.estimates if e.get("program") == proc["program"]
+                                 and e.get("tool") == proc["tool"] and e.get("operation") == proc["operation"]
+                                 and e.get("valid", True) and (e.get("cutting") or 0.5 * true_t <= (
+                                     e.get("torque_nm") or 0.0) < MIN_TORQUE_NM)])
         inner = mine[head:len(mine) - tail]
         forces = np.array([e["force_n"] for e in inner if e.get("force_n") is not None], dtype=float)
         torques = np.array([e["torque_nm"] for e in inner], dtype=float)
         out[proc["key"]] = {"n": len(inner), "true_force_n": true_f, "force_ratio": forces / true_f,
                             "torque_ratio": torques / true_t, "nulls": len(inner) - len(forces)}
     return out
+
+
+def _longest_stretch(estimates: list[dict]) -> list[dict]:
+    """The longest run of consecutive revolutions (`rev`) among `estimates`: the cut, not a revolution of the
+    spindle braking after it whose torque happens to lie in a light cut's band."""
+    best: list[dict] = []
+    run: list[dict] = []
+    for e in estimates:
+        rev, last = e.get("rev"), run[-1].get("rev") if run else None
+        if rev is None or last is None or rev != last + 1:
+            run = []
+        run.append(e)
+        if len(run) > len(best):
+            best = list(run)
+    return best
