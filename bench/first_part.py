@@ -21,7 +21,8 @@ its torque/R, the tools' helix given as `[tools.N] helix_deg` gives it) against 
 
 Run: .venv/bin/python bench/first_part.py [--quick | --force]
   --quick: the effects all on, batch 0 only; --force: the force part alone (every program, batch 0, per
-  case; and without the plant's edge forces, which the daemon cannot know)
+  case: the material without edge coefficients, with the published order's and 25 % either way; and the
+  plant without edge forces)
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import numpy as np
 
 from millsense.daemon.physics.expected import ProgrammedCut, expected_load
 from millsense.daemon.physics.force import P_MEAN_CF, engaged_cf, resultant_force_n
+from millsense.daemon.physics.materials import STEEL_EDGE_N_MM
 from millsense.daemon.physics.milling import Material
 from millsense.sim.cut_effects import NONE, CutEffects
 from millsense.sim.first_part import FIRST_PART_PROGRAMS, programmed_cut
@@ -56,18 +58,19 @@ STAGES = {
 BATCHES = (-20.0, 0.0, 20.0)
 
 
-def handbook(program) -> Material:
+def handbook(program, edge_n_mm: tuple[float, float] = (0.0, 0.0)) -> Material:
+    """The config's material: the program's law, with edge coefficients (K_te, K_re) where given (edge.py)."""
     m = program.material
-    return Material(m.ks, m.ks_exp, m.r1, m.r1_exp, m.r2, m.r2_exp)
+    return Material(m.ks, m.ks_exp, m.r1, m.r1_exp, m.r2, m.r2_exp, *edge_n_mm)
 
 
-def run(program, faults: ProgramFaults | None = None) -> list[dict]:
+def run(program, faults: ProgramFaults | None = None, edge_n_mm: tuple[float, float] = (0.0, 0.0)) -> list[dict]:
     """Per steady cutting revolution: key, programmed cut, true and expected torque and force."""
     plant = ProgramPlant(program, faults=faults, noise_scale=0.0)
     while not plant.done:
         plant.step(1000)
     revs = [r for r in plant.truth.revolutions() if r["steady"] and r["cutting"]]
-    material = handbook(program)
+    material = handbook(program, edge_n_mm)
     out = []
     for proc in plant.processes():
         op = next(o for o in program.operations if o.number == proc["operation"])
@@ -103,13 +106,14 @@ def fmt(s) -> str:
     return f"bias {s[0]:+6.2f} %  p95 {s[1]:5.2f} %  max {s[2]:5.2f} %  ({s[3]} rev)"
 
 
-def variant(effects: CutEffects, offset: float, names, sharp: bool = False) -> list[dict]:
+def variant(effects: CutEffects, offset: float, names, sharp: bool = False,
+            edge_n_mm: tuple[float, float] = (0.0, 0.0)) -> list[dict]:
     rows = []
     for name in names:
         prog = replace(FIRST_PART_PROGRAMS[name], effects=effects, material_offset_pct=offset)
         if sharp:  # the same operations with new tools
             prog = replace(prog, operations=tuple(replace(op, life_used=0.0) for op in prog.operations))
-        rows += run(prog)
+        rows += run(prog, edge_n_mm=edge_n_mm)
     return rows
 
 
@@ -126,13 +130,21 @@ def per_case(rows: list[dict]) -> None:
 
 
 def force_part() -> int:
-    """The force estimate alone: per case and overall, the plant with every effect, then without edge forces."""
+    """The force estimate alone: per case and overall, the plant with every effect and the config's material
+    without edge coefficients (the ISO table's law alone), with the published order's (STEEL_EDGE_N_MM), with
+    them 25 % lower and higher; then the plant without edge forces and the material without."""
     no_edge = replace(ALL_ON, edge_tangential_n_mm=0.0, edge_radial_n_mm=0.0)
     t0 = time.perf_counter()
     print("the daemon's force from the true torque / true mean resultant, per steady revolution in cut "
           "(engaged_cf at the programmed cut; batch 0)")
-    for label, effects in (("every effect on", ALL_ON), ("every effect but the edge forces", no_edge)):
-        rows = variant(effects, 0.0, CORRECT + OTHERS)
+    kt, kr = STEEL_EDGE_N_MM
+    for label, effects, edge in (
+            ("every effect on; the material's law alone (no edge coefficients)", ALL_ON, (0.0, 0.0)),
+            (f"every effect on; edge coefficients {kt:g} / {kr:g} N/mm", ALL_ON, (kt, kr)),
+            (f"every effect on; edge coefficients {0.75 * kt:g} / {0.75 * kr:g} N/mm", ALL_ON, (0.75 * kt, 0.75 * kr)),
+            (f"every effect on; edge coefficients {1.25 * kt:g} / {1.25 * kr:g} N/mm", ALL_ON, (1.25 * kt, 1.25 * kr)),
+            ("every effect but the edge forces; no edge coefficients", no_edge, (0.0, 0.0))):
+        rows = variant(effects, 0.0, CORRECT + OTHERS, edge_n_mm=edge)
         print(f"\n{label}: {fmt(stats([r['force_est'] for r in rows]))}")
         print(f"  forward model's C_f / the plant's: {fmt(stats([r['cf_expected'] for r in rows]))}")
         for flutes in (2, 3, 4):

@@ -282,6 +282,20 @@ MUTANTS: tuple[Mutant, ...] = (
            "    override_pct = 100.0 if override_pct is None else override_pct\n"
            "    if not math.isfinite(override_pct) or override_pct <= 0.0:\n        return None",
            ("tests/physics/test_expected.py", EXPECTED, "tests/e2e/test_expected_live.py")),
+    Mutant("ex-light-cut-unseen", "learning",
+           "the expected band takes a revolution in cut only over `[depth] min_torque_nm`: a light operation's "
+           "half-depth first part is never judged",
+           "daemon/learning/expected.py",
+           "        return rise >= IN_CUT_OF_EXPECTED * exp.torque_nm and rise > ENTRY_NOISE_SIGMAS * (sigma or 0.0)",
+           "        return False",
+           ("tests/learning/test_expected_entry.py", EXPECTED)),
+    Mutant("ex-air-settling-is-a-cut", "learning",
+           "a light cut's air level taken below 0: the air settling after a spindle run-up is judged as a cut "
+           "missing its stock (a correct part held)",
+           "daemon/learning/expected.py",
+           "        rise = torque - max(min(run.air_torques), 0.0)",
+           "        rise = torque - min(run.air_torques)",
+           ("tests/learning/test_expected_entry.py", EXPECTED)),
     # -- AFC ---------------------------------------------------------------------------------------------------
     Mutant("afc-trip-not-safe", "AFC",
            "a trip no longer puts the override to <= 100 % at once (the next revolution would)",
@@ -352,6 +366,12 @@ MUTANTS: tuple[Mutant, ...] = (
            "return min(FEED_PER_TOOTH_MAX_MM, FEED_PER_TOOTH_MAX_PER_RADIUS * radius_mm)",
            "return max(FEED_PER_TOOTH_MAX_MM, FEED_PER_TOOTH_MAX_PER_RADIUS * radius_mm)",
            ("tests/physics", "tests/estimator/test_preconditions.py", "tests/e2e/test_part_program_depths.py")),
+    Mutant("ph-edge-split-ignored", "physics",
+           "the material's edge coefficients ignored: C_f takes the whole law as chip (thin-chip 3-flute slots 2 % high)",
+           "daemon/physics/force.py",
+           "    if has_edge(material):   # the material's edge forces taken out of its law (edge.py, E3)\n",
+           "    if False:\n",
+           ("tests/physics/test_edge.py", "tests/estimator/test_force_first_part.py")),
     # -- drivers -----------------------------------------------------------------------------------------------
     Mutant("dr-fast-path-crc-unchecked", "drivers",
            "decoder: the one-frame shortcut trusts a frame shaped like the last without checking its CRC",

@@ -254,6 +254,10 @@ class MaterialSettings(_Section):
     r1_exp: float = -0.2667
     r2: float = Field(0.1244, ge=0)
     r2_exp: float = 0.1702
+    # the edge (ploughing) force per mm of engaged edge, N/mm (physics/edge.py; docs/physics.md §5b; additive):
+    # 0, the law taken as all chip, as before
+    edge_t_n_mm: float = Field(0.0, ge=0, le=1000)
+    edge_r_n_mm: float = Field(0.0, ge=0, le=1000)
 
 
 class CutSettings(_Section):

@@ -125,7 +125,8 @@ def operation_cut(settings: Any, key: str) -> OperationCut | None:
     d = float(tool.diameter_mm)
     cut = ProgrammedCut(radial_depth_mm=d if op.mode == "slot" else float(op.ae_mm), axial_depth_mm=float(op.ap_mm),
                         mode=op.mode, feed_per_tooth_mm=op.fz_mm, feed_mm_min=op.vf_mm_min)
-    material = Material(m.ks, m.ks_exp, m.r1, m.r1_exp, m.r2, m.r2_exp)
+    material = Material(m.ks, m.ks_exp, m.r1, m.r1_exp, m.r2, m.r2_exp, float(getattr(m, "edge_t_n_mm", 0.0)),
+                        float(getattr(m, "edge_r_n_mm", 0.0)))
     return OperationCut(key, cut, d / 2.0, int(tool.flutes), material, op.engagement, op.spindle_rpm,
                         getattr(tool, "helix_deg", None))
 

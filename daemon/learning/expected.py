@@ -8,12 +8,15 @@ gives for its programmed cut at the revolution's measured spindle speed and appl
 
 (× the operator's widening, `ExpectedWidening`; the high side never above the fixed `[alarms]` limit).
 
-Only *steady* revolutions in cut are judged (docs/validation.md's steady): valid, cutting, the spindle not
-changing speed, a tool radius of path past the (re-)entry into the cut (the engagement still growing before
-it; the entry counted from the revolutions rising out of the air's noise into the cut, `_entry_credit`), the override and the measured feed per tooth each held within STEADY_FEED_PCT over the last
-STEADY_REVOLUTIONS revolutions. Others neither count nor break a run. An unknown override arms nothing
-(a note per process, `learning.expected_unarmed`, which the runner logs once a run; the process payload
-says `expected_band: "unarmed"`).
+Only *steady* revolutions in cut are judged (docs/validation.md's steady): valid, in cut (called cutting, or —
+a light cut under `[depth] min_torque_nm` — risen above the air's level by IN_CUT_OF_EXPECTED of the
+operation's own expected torque, `_in_cut`), the spindle not changing speed, a tool radius of path past the
+(re-)entry into the cut by the end of the revolution (the engagement still growing before it; the entry
+counted from the revolutions rising out of the air's noise into the cut, `_entry_credit`), the override and
+the measured feed per tooth each held within STEADY_FEED_PCT over the last STEADY_REVOLUTIONS revolutions.
+Others neither count nor break a run. An unknown override arms nothing (a note per process,
+`learning.expected_unarmed`, which the runner logs once a run; the process payload says
+`expected_band: "unarmed"`).
 
 - `expected_high`: `high_revolutions` steady revolutions in a row above the band; holds the feed.
 - `expected_low`: `low_revolutions` in a row below it; holds the feed for `engagement = "constant"`, else a
@@ -44,8 +47,11 @@ STEADY_FEED_PCT = 2.0         # "held": within this % of the largest of them
 LOW_STEP_OF_TOL = 0.5         # a drop into the low side that counts: at least half the tolerance in one revolution
 FALSE_ALARM_MARGIN_PCT = 5.0  # a false alarm widens the band so that what was seen fits with this to spare
 KEPT_WARNING_PROCESSES = 3    # processes in a row kept from teaching by the physics: warned once
-ENTRY_LOOKBACK = 4            # revolutions before the first cutting one that may be the cutter's first touch
+ENTRY_LOOKBACK = 16           # revolutions before the first one in cut that may be the cutter's first touch
 ENTRY_NOISE_SIGMAS = 3.0      # ... each above its own torque scatter (eq. 20) by this, and rising into the cut
+IN_CUT_OF_EXPECTED = 0.25     # a light cut is in cut once its torque rose this fraction of its expected one above air
+AIR_WINDOW = 8                # the air's torque level: the lowest of the last this many revolutions out of cut ...
+AIR_MIN_REVOLUTIONS = 3       # ... of at least this many in the process (before: only a cutting revolution is in cut)
 _QUANTITIES = ("torque_nm", "force_n")
 _UNITS = {"torque_nm": "N·m", "force_n": "N"}
 
@@ -125,6 +131,7 @@ class _Run:
     overrides: deque = field(default_factory=lambda: deque(maxlen=STEADY_REVOLUTIONS))
     feeds: deque = field(default_factory=lambda: deque(maxlen=STEADY_REVOLUTIONS))
     air: deque = field(default_factory=lambda: deque(maxlen=ENTRY_LOOKBACK))   # (torque, sigma, path) out of cut
+    air_torques: deque = field(default_factory=lambda: deque(maxlen=AIR_WINDOW))   # torque out of cut, N·m
     runs: dict[str, int] = field(default_factory=dict)           # level:quantity -> steady revolutions in a row
     prev: dict[str, tuple[float, bool]] = field(default_factory=dict)   # quantity -> (value, below) of the last steady
     low_armed: dict[str, bool] = field(default_factory=dict)
@@ -208,9 +215,12 @@ class ExpectedBand:
         if not est.get("valid", True):
             return out   # a damaged revolution neither counts nor breaks a run
         rpm, ovr = finite(est.get("spindle_rpm")), finite(est.get("feed_override_pct"))
-        if not est.get("cutting"):
+        if not self._in_cut(run, est, rpm, ovr):
             run.leave_cut()
             run.air.append(self._air_step(proc.key, est, rpm, ovr, op.flutes))
+            torque = finite(est.get("torque_nm"))
+            if torque is not None and not est.get("accelerating"):
+                run.air_torques.append(torque)
             return out
         if ovr is None:
             if not run.noted:
@@ -224,15 +234,16 @@ class ExpectedBand:
         if exp is None:
             run.leave_cut()
             return out
-        if run.path_mm == 0.0:   # the first revolution called cutting: the entry may have begun under the threshold
+        if run.path_mm == 0.0:   # the first revolution in cut: the entry may have begun under its threshold
             run.path_mm = self._entry_credit(run.air, finite(est.get("torque_nm")))
         run.air.clear()
-        path_before = run.path_mm
-        run.path_mm += exp.feed_per_tooth_mm * op.flutes   # mm of path this revolution
+        run.path_mm += exp.feed_per_tooth_mm * op.flutes   # mm of path at this revolution's end
         run.overrides.append(ovr)
         feed = finite(est.get("feed_per_tooth_mm"))
         run.feeds.append(feed)
-        if path_before < op.tool_radius_mm or est.get("accelerating") or not self._held(run):
+        # judged from the revolution in which the cutter's centre crosses the part's face (its engagement then
+        # within (p/R)²/2 of full): the first touch's revolution is partial and, under the noise, not credited
+        if run.path_mm < op.tool_radius_mm or est.get("accelerating") or not self._held(run):
             return out
         self.last_seen[proc.key] = (float(rpm), float(ovr))
         run.judged += 1
@@ -250,6 +261,38 @@ class ExpectedBand:
             run.prev[quantity] = (value, value < low)
         return out
 
+    def _in_cut(self, run: _Run, est: dict[str, Any], rpm: float | None, ovr: float | None) -> bool:
+        """Is this revolution in cut for the expected band? Called cutting (over `[depth] min_torque_nm`), or a
+        light cut under it: its torque risen above the air's level by at least IN_CUT_OF_EXPECTED of the
+        operation's expected torque and by ENTRY_NOISE_SIGMAS of its own scatter (eq. 20), the spindle not
+        accelerating. The air's level is the lowest torque of the last AIR_WINDOW revolutions out of cut (at
+        least AIR_MIN_REVOLUTIONS of them in this process), never below 0.
+
+        `min_torque_nm` is the depth estimator's threshold, set for every cut of the machine: a light finishing
+        cut, or a half-depth first part of one, stays under it and was never judged (a half-depth part passed
+        unseen). Its own expected torque says how much a cut of this operation takes. Air stays air: the level is
+        the air's own, so a friction calibrated a little off does not read as a cut; the lowest, not the mean,
+        so the cutter's first touches (out of cut, rising) do not lift it; never below 0, because the air after
+        a spindle run-up reads below 0 for some tens of revolutions while it settles (found live: −0.7 N·m
+        decaying to 0), and rising from there is not a cut. Nothing marks the part's face ahead (a program's air
+        time before the part is not known), so a cut taking under a quarter of its expected load, or whose load
+        rises slower than that over AIR_WINDOW revolutions, is taken for air: the fail-safe reading, which never
+        calls a correct part's approach missing stock (docs/learning.md, "What it does not see")."""
+        if est.get("cutting"):
+            return True
+        if est.get("accelerating"):
+            return False
+        torque, sigma = finite(est.get("torque_nm")), finite(est.get("torque_sigma_nm"))
+        if torque is None:
+            return False
+        exp = self.expected(run.proc.key, rpm, ovr)
+        if exp is None or not exp.torque_nm > 0.0:
+            return False
+        if len(run.air_torques) < AIR_MIN_REVOLUTIONS:
+            return False   # too little air seen in this process: nothing says where the air's level is
+        rise = torque - max(min(run.air_torques), 0.0)
+        return rise >= IN_CUT_OF_EXPECTED * exp.torque_nm and rise > ENTRY_NOISE_SIGMAS * (sigma or 0.0)
+
     def _air_step(self, key: str, est: dict[str, Any], rpm: float | None, ovr: float | None,
                   flutes: int) -> tuple[float, float, float] | None:
         """A revolution out of cut: (torque, its scatter, its path) where it may be the cutter's first touch."""
@@ -261,9 +304,9 @@ class ExpectedBand:
 
     @staticmethod
     def _entry_credit(air: deque, first_torque: float | None) -> float:
-        """The path already cut when the first revolution over `[depth] min_torque_nm` came: the revolutions just
-        before it whose torque rose out of the air's noise (above ENTRY_NOISE_SIGMAS of its own scatter) and
-        below the next one's, each into the cut. A shallow cut's first touch stays under the threshold; without
+        """The path already cut when the first revolution in cut came (`_in_cut`): the revolutions just (up to
+        ENTRY_LOOKBACK) before it whose torque rose out of the air's noise (above ENTRY_NOISE_SIGMAS of its own
+        scatter) and below the next one's, each into the cut. A shallow cut's first touch stays under the threshold; without
         this its steady revolutions were judged that many revolutions late. Flat air credits nothing (a
         revolution not below the next breaks the chain), and a revolution or two credited wrongly moves the
         first judged one by as much of a tool radius of path, where a slot's engagement is within

@@ -20,6 +20,7 @@ import math
 import numpy as np
 
 from millsense.daemon.physics import validity
+from millsense.daemon.physics.edge import edge_cf, has_edge
 from millsense.daemon.physics.milling import NP, SCALAR, Material, chip_xp, engagement_xp
 from millsense.daemon.physics.numbers import sqrt, values
 from millsense.daemon.physics.resultant import helix_lag_rad, local_exponents, mirror_r1, overlap_factor
@@ -107,9 +108,17 @@ def engaged_cf(mode: str, flutes: int, tool_radius_mm: float, helix_deg: float |
         r1_eta = np.where(chip_ok, r1, _fallback_r1(fallback_cf))
         lag = helix_lag_rad(_column(axial_depth_mm, n), helix_deg, tool_radius_mm)
         eta = np.where(known, overlap_factor(flutes, exit_ - entry, lag, mirror_r1(mode, r1_eta), p, q), np.nan)
-    if fallback_cf is None:
-        return eta * single
-    return np.where(known, eta * np.where(chip_ok, single, fallback_cf), fallback_cf)
+    out = eta * single if fallback_cf is None else np.where(known, eta * np.where(chip_ok, single, fallback_cf),
+                                                           fallback_cf)
+    if has_edge(material) and chip_ok.any():   # the material's edge forces taken out of its law (edge.py, E3)
+        out = np.array(out, dtype=float)
+        axial = _column(axial_depth_mm, n)
+        for i in zip(*np.nonzero(chip_ok)):
+            split = edge_cf(mode, flutes, tool_radius_mm, helix_deg, float(t_c[i]), float(radial[i]),
+                            float(axial[i]), material)
+            if split is not None:
+                out[i] = split
+    return out
 
 
 def _fallback_r1(fallback_cf: float | None) -> float:
@@ -142,4 +151,9 @@ def _engaged_cf_one(mode, flutes, tool_radius_mm, helix_deg, t_c, radial_mm, axi
         if fallback_cf is None:
             return math.nan
         return overlap_factor(flutes, exit_ - entry, lag, mirror_r1(mode, _fallback_r1(fallback_cf)), p, q) * fallback_cf
+    if has_edge(material):   # the material's edge forces taken out of its law (edge.py, E3)
+        split = edge_cf(mode, flutes, tool_radius_mm, helix_deg, t_c, ratio * tool_radius_mm,
+                        None if axial_mm is None else float(axial_mm), material)
+        if split is not None:
+            return split
     return overlap_factor(flutes, exit_ - entry, lag, mirror_r1(mode, r1), p, q) * math.sqrt(1.0 + r1 * r1)  # R2, 17

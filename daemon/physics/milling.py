@@ -54,6 +54,9 @@ class Material(NamedTuple):
     r1_exp: float
     r2: float
     r2_exp: float
+    # the edge (ploughing) force per mm of engaged edge, N/mm (edge.py): 0, the law taken as all chip
+    edge_t_n_mm: float = 0.0
+    edge_r_n_mm: float = 0.0
 
 
 # [D] Table 2: SB40 steel, 4-flute φ16 HSS end mill, 600 rpm.

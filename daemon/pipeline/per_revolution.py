@@ -249,7 +249,8 @@ class RevolutionPhysics:
         self.pole_pairs = int(pp) if pp else None
         self.tool, self.tools = tool_geometries(settings)
         m = settings.material
-        self.material = Material(float(m.ks), float(m.ks_exp), float(m.r1), float(m.r1_exp), float(m.r2), float(m.r2_exp))
+        self.material = Material(float(m.ks), float(m.ks_exp), float(m.r1), float(m.r1_exp), float(m.r2), float(m.r2_exp),
+                                 float(getattr(m, "edge_t_n_mm", 0.0)), float(getattr(m, "edge_r_n_mm", 0.0)))
         cut = settings.cut
         self.mode = str(cut.mode)
         self.feed_mm_min = None if cut.feed_mm_min is None else float(cut.feed_mm_min)

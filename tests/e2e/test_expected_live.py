@@ -86,7 +86,8 @@ def _run_part(tmp_path, name, operations, until):
 
 def _first_steady_rev(state, estimates: list[dict], operations: dict, alarm_rev: int) -> int:
     """The first revolution of the T11 cut that holds `alarm_rev` a tool radius of path past its entry into the
-    cut (the first the band judges).
+    cut (the band judges from the one before it at the earliest: the one in which the cutter's centre crosses the
+    face; three in a row trip, so the alarm comes on this one or up to two after it).
 
     From the daemon's history (every revolution it published; a subscriber may join after the first ones), at
     the applied override the estimates carry (the program runs at 100 %: checked)."""

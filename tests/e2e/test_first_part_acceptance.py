@@ -12,19 +12,17 @@ bench/first_part_live.py.
 from __future__ import annotations
 
 import math
-import tomllib
 
 import numpy as np
 import pytest
 
 from millsense.sim.first_part import FIRST_PART_PROGRAMS, operations_config
-from tests.e2e.first_part_run import force_by_operation, play, steady_revolution_of_alarm
-from tests.e2e.learning_run import CONFIG
+from tests.e2e.first_part_run import MIN_TORQUE_NM, force_by_operation, play, steady_revolution_of_alarm
 
 SLOT = "first-part-slot"
 OP = 10          # the issue's case: 1200 rpm, a 3 mm slot, the φ20 2-flute cutter
 KEY = "4101/1/10"
-MIN_TORQUE_NM = tomllib.loads(CONFIG.read_text())["depth"]["min_torque_nm"]   # the runs' "cutting" threshold
+LIGHTEST = 70    # the program's lightest slot (φ8 3-flute, 2500 rpm, 0.04 mm a tooth): at half depth 0.5 N·m
 
 
 def _judged_from(program: str, op: int) -> int:
@@ -35,38 +33,46 @@ def _judged_from(program: str, op: int) -> int:
 
 
 @pytest.mark.slow
-def test_a_cut_1_8_times_deeper_trips_expected_high_within_3_steady_revolutions(tmp_path):
+@pytest.mark.parametrize("op", [OP, LIGHTEST])
+def test_a_cut_1_8_times_deeper_trips_expected_high_within_3_steady_revolutions(tmp_path, op):
     """Axial depth 1.8 × the programmed one, the material 20 % softer than the config's (what hides it most)."""
-    run = play(tmp_path, SLOT, name="acc-high", until_alarm="expected_high",
-               sim_args=("--only-operation", str(OP), "--axial-scale", f"{OP}:1.8", "--material-offset-pct", "-20"))
+    run = play(tmp_path, SLOT, name=f"acc-high-{op}", until_alarm="expected_high",
+               sim_args=("--only-operation", str(op), "--axial-scale", f"{op}:1.8", "--material-offset-pct", "-20"))
     alarm = next(a for a in run.alarms if a["level"] == "expected_high")
     assert run.feed_held and alarm["interlock"] == "feed_hold", alarm
-    assert (alarm["program"], alarm["tool"], alarm["operation"]) == (4101, 1, OP), alarm
-    ap = operations_config(SLOT)[KEY]["ap_mm"]
+    key = next(k for k in operations_config(SLOT) if k.endswith(f"/{op}"))
+    assert (alarm["program"], alarm["tool"], alarm["operation"]) == tuple(int(x) for x in key.split("/")), alarm
+    ap = operations_config(SLOT)[key]["ap_mm"]
     assert f"ap {ap:g} mm" in alarm["reason"] and "> expected" in alarm["reason"], alarm
     # by the plant's truth: the first steady revolution of the cut and the two after it
     assert steady_revolution_of_alarm(run, alarm) <= 3, alarm
     # the daemon's rule: judged from a tool radius of path past the entry, the third judged revolution trips
-    assert alarm["process_rev"] <= _judged_from(SLOT, OP) + 2, alarm
+    assert alarm["process_rev"] <= _judged_from(SLOT, op) + 2, alarm
     assert [a for a in run.alarms if a["level"] == "expected_low"] == []
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("op", [OP, LIGHTEST])
 @pytest.mark.parametrize("scale", ["--axial-scale", "--radial-scale"])
-def test_a_half_depth_in_a_constant_slot_trips_expected_low(tmp_path, scale):
+def test_a_half_depth_in_a_constant_slot_trips_expected_low(tmp_path, scale, op):
     """Axial or radial depth 0.5 × the programmed one (half the slot already gone: a down-milling cut D/2 wide),
     the material 20 % harder than the config's (what hides it most): within 3 steady revolutions.
 
     A half-depth cut's first touch stays under `[depth] min_torque_nm`: counted from the first revolution called
     cutting, the band tripped on the plant's fourth steady revolution; the entry now counts from the revolutions
-    rising out of the air into the cut (learning/expected.py, tests/learning/test_expected_entry.py)."""
-    run = play(tmp_path, SLOT, name=f"acc-low{scale[2]}", until_alarm="expected_low",
-               sim_args=("--only-operation", str(OP), scale, f"{OP}:0.5", "--material-offset-pct", "20"))
+    rising out of the air into the cut (learning/expected.py, tests/learning/test_expected_entry.py). The
+    lightest slot at half depth takes 0.5 N·m, under the threshold all through: never called cutting, it was
+    never judged; the band now takes it in cut from its own expected torque (`_in_cut`)."""
+    run = play(tmp_path, SLOT, name=f"acc-low{scale[2]}-{op}", until_alarm="expected_low",
+               sim_args=("--only-operation", str(op), scale, f"{op}:0.5", "--material-offset-pct", "20"))
     alarm = next(a for a in run.alarms if a["level"] == "expected_low")
     assert run.feed_held and alarm["interlock"] == "feed_hold", alarm   # constant engagement: it holds
-    assert alarm["operation"] == OP and "< expected" in alarm["reason"], alarm
+    assert alarm["operation"] == op and "< expected" in alarm["reason"], alarm
     assert steady_revolution_of_alarm(run, alarm) <= 3, alarm
-    assert alarm["process_rev"] <= _judged_from(SLOT, OP) + 2, alarm
+    assert alarm["process_rev"] <= _judged_from(SLOT, op) + 2, alarm
+    if op == LIGHTEST and scale == "--axial-scale":   # the case's premise: under the estimator's threshold throughout
+        steady = [r["torque_nm"] for r in run.truth if "rev" in r and "event" not in r and r["steady"] and r["cutting"]]
+        assert steady and max(steady) < MIN_TORQUE_NM, max(steady, default=None)
 
 
 # Correct operations of every program, mode and flute count, each program with a batch at an end of the ±20 %
@@ -91,17 +97,21 @@ def test_correct_first_parts_raise_no_alarm(tmp_path, program, batch, ops):
     assert run.alarms == [], run.alarms
     assert {p["key"] for p in run.processes} == keys, run.processes
     assert {p["verdict"] for p in run.processes} == {"learning"}, run.processes
-    # every operation judged by the physics, but one whose whole cut stays under `[depth] min_torque_nm` :
-    # the daemon never calls it cutting, so nothing judges it (docs/learning.md, "What it does not see")
-    too_light = {p["key"] for p in run.truth_processes if max(
-        (r["torque_nm"] for r in run.truth if "rev" in r and "event" not in r and r["steady"]
-         and p["first_index"] <= r["index_end"] <= p["last_index"]), default=0.0) < MIN_TORQUE_NM}
-    assert {p["key"] for p in run.processes if p["expected_band"] != "armed"} == too_light, run.processes
-    assert all(p["expected_revolutions"] >= 10 for p in run.processes if p["key"] not in too_light), run.processes
+    # every operation judged by the physics, those whose whole cut stays under `[depth] min_torque_nm` too (the
+    # lightest at −20 %: the band's own "in cut", learning/expected.py `_in_cut`)
+    assert all(p["expected_band"] == "armed" and p["expected_revolutions"] >= 10 for p in run.processes), run.processes
     assert sum(e.get("lost_samples") or 0 for e in run.estimates) == 0
+    forces = force_by_operation(run)
     if program == SLOT:
         # the issue's force case, live: the daemon's published force within 2 % of the plant's mean resultant
-        # on every steady revolution (the 3- and 4-flute slots: docs/validation.md)
-        f = force_by_operation(run)[KEY]
+        # on every steady revolution
+        f = forces[KEY]
         assert f["n"] >= 10 and f["nulls"] == 0, f
         assert np.all(np.abs(f["force_ratio"] - 1.0) <= 0.02), f
+    # every constant operation's force within 2 % of the truth over its steady revolutions (the φ8 3-flute slots
+    # with the material's edge coefficients: docs/accuracy.md). Not the tools at 80 % of their life: wear grows
+    # the edge forces, which nothing on a first part tells the daemon (4105/2/20 about −2.1 %: docs/validation.md)
+    if program != "first-part-worn":
+        means = {k: float(v["force_ratio"].mean()) for k, v in forces.items()}
+        assert all(v["n"] >= 10 and v["nulls"] == 0 for v in forces.values()), forces
+        assert all(abs(m - 1.0) <= 0.02 for m in means.values()), means

@@ -20,8 +20,8 @@ separately from the physics, never from a measured error:
   of it (``_helix_share``). Hence ``η(lag)/η(0) ≤ C_f,true/C_f,model ≤ 1``.
 
 Slot scenarios with [P]'s 2-flute cutter and no `helix_deg` configured (so the daemon's η is 1,
-straight flutes); overlapping teeth and the helix: tests/estimator/test_force_vector.py. Three seeds;
-both gears; a diagonal path (the in-plane resultant does not depend on the feed direction).
+straight flutes); overlapping teeth and the helix: tests/estimator/test_force_vector.py. Three seeds of
+[D]'s plant, one of the local law's; both gears; a diagonal path (the in-plane resultant does not depend on the feed direction).
 """
 
 from __future__ import annotations
@@ -34,7 +34,10 @@ from millsense.sim.cut_effects import NONE
 
 from . import simcase
 
-SEEDS = (11, 12, 13)
+SEEDS = (11, 12, 13)   # [D]'s own plant: the captures test_accuracy_sim.py makes too (shared once a run)
+# the plant with the local law is this file's alone (each capture 2-4 CPU s): one seed, every scenario; the
+# torque's own budget over seeds is test_accuracy_sim.py's
+MODEL_SEEDS = (11,)
 SLOTS = ("step", "step-1200", "diagonal-step")
 TORQUE_REL = 0.02     # docs/accuracy.md: steady torque within 2 % + 0.03 N·m
 TORQUE_ABS_NM = 0.03
@@ -53,6 +56,16 @@ def tmp(tmp_path_factory):
 
 
 def _steady_cut(tmp, scenario, seed, cf):
+    """The steady pairs of one case, estimated once a run: three tests judge the same `"model"` estimates
+    (tangential force, C_f, resultant), each by its own bound."""
+    return _STEADY.get((tmp, scenario, seed, cf)) or _STEADY.setdefault((tmp, scenario, seed, cf),
+                                                                         _estimate(tmp, scenario, seed, cf))
+
+
+_STEADY: dict = {}
+
+
+def _estimate(tmp, scenario, seed, cf):
     # C_f of the model against the plant with the law it models; a constant C_f against [D]'s own plant
     cap, truth_path = simcase.capture(tmp, scenario, seed=seed, effects=LOCAL_LAW if cf == "model" else None)
     est, _ = simcase.run(cap, simcase.settings_for(scenario, tmp, cf=cf))
@@ -72,7 +85,7 @@ def _torque_bound_nm(t):
     return TORQUE_REL * abs(t["torque_nm"]) + TORQUE_ABS_NM
 
 
-@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("seed", MODEL_SEEDS)
 @pytest.mark.parametrize("scenario", SLOTS)
 def test_tangential_force_matches_truth(tmp, scenario, seed):
     """F_T = T_c/R ([P] eq. 16) against the plant's mean tangential force."""
@@ -82,7 +95,7 @@ def test_tangential_force_matches_truth(tmp, scenario, seed):
         assert abs(e["force_tangential_n"] - t["force_tangential_n"]) <= bound_n, (e, t)
 
 
-@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("seed", MODEL_SEEDS)
 @pytest.mark.parametrize("scenario", SLOTS)
 def test_cf_model_matches_the_plants_force_ratio(tmp, scenario, seed):
     """The daemon's C_f (force_n / force_tangential_n) against the plant's |F|/F_T,
@@ -111,7 +124,7 @@ def _helix_share(tool, scenario, t):
     return engaged_cf(*args, tool.helix_deg, *rest) / engaged_cf(*args, None, *rest)
 
 
-@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("seed", MODEL_SEEDS)
 @pytest.mark.parametrize("scenario", SLOTS)
 def test_resultant_force_matches_truth_with_cf_model(tmp, scenario, seed):
     """|F| published against the plant's: torque error times C_f/R plus C_f's helix bound."""

@@ -27,6 +27,9 @@ FZ_MM = 0.1
 RADIUS_MM = 4.0
 # revolutions in cut before the first steady one: a tool radius of path at fz·N per revolution
 ENTRY_REVS = int(np.ceil(RADIUS_MM / (FZ_MM * FLUTES)))
+# the first judged revolution: the one in which the cutter's centre crosses the part's face (its path ends a tool
+# radius past the first touch)
+FIRST_JUDGED = ENTRY_REVS - 1
 
 
 def settings(engagement: str = "constant", operations: dict | None = None, **learning):
@@ -121,8 +124,8 @@ def test_a_deeper_cut_trips_expected_high_within_three_steady_revolutions_and_la
     assert len(highs) == 1
     ev = highs[0]
     need = cell.cfg.learning.high_revolutions
-    # the first steady revolution is ENTRY_REVS into the cut; `need` of them in a row trip
-    assert first_event_rev(cell, "expected_high") == ENTRY_REVS + need - 1
+    # the first judged revolution is FIRST_JUDGED into the cut; `need` of them in a row trip
+    assert first_event_rev(cell, "expected_high") == FIRST_JUDGED + need - 1
     assert ev.trips and ev.quantity == "torque_nm"
     detail = dict(ev.detail)
     exp = cell.expected()
@@ -142,7 +145,7 @@ def test_a_deeper_cut_trips_expected_high_within_three_steady_revolutions_and_la
 def test_the_entry_is_not_judged_even_far_above_the_band():
     """Within a tool radius of the entry nothing is judged: an overshoot there raises nothing."""
     cell = Cell()
-    cut = [3.0] * (ENTRY_REVS) + [1.0] * 40
+    cut = [3.0] * FIRST_JUDGED + [1.0] * 40
     cell.process(cut)
     assert cell.events() == []
 
@@ -163,7 +166,7 @@ def test_constant_engagement_low_holds_the_feed_varying_only_warns():
         lows = cell.events("expected_low")
         assert len(lows) == 1, engagement
         assert lows[0].trips is holds
-        at = ENTRY_REVS + cell.cfg.learning.low_revolutions - 1 + (0 if holds else 60 - ENTRY_REVS)
+        at = FIRST_JUDGED + cell.cfg.learning.low_revolutions - 1 + (0 if holds else 60 - FIRST_JUDGED)
         assert first_event_rev(cell, "expected_low") == at
         assert "< expected" in dict(lows[0].detail)["reason"]
         cleared = [e for e in cell.events("clear")]
@@ -288,7 +291,7 @@ def test_each_process_says_whether_its_expected_band_was_armed():
     cell = Cell()
     cell.process(cell.cut(1.0))
     cell.process(cell.cut(1.0), override=None)
-    cell.process(cell.cut(1.0, ENTRY_REVS))   # never a tool radius past its entry
+    cell.process(cell.cut(1.0)[:FIRST_JUDGED])   # never a tool radius past its entry
     states = [(p["expected_band"], p["expected_revolutions"] > 0) for p in cell.processes()]
     assert states == [("armed", True), ("unarmed", False), ("not_steady", False)]
 
