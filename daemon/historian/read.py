@@ -6,8 +6,6 @@ The connection is read-only (`default_transaction_read_only`): the Grafana role 
 
 from __future__ import annotations
 
-import csv
-import json
 import math
 from collections.abc import Iterator
 from datetime import UTC, datetime
@@ -17,6 +15,7 @@ import psycopg
 from psycopg import sql
 
 from millsense.daemon.historian.schema import column_names
+from millsense.daemon.history.export import write_rows
 
 # --what → table (the SQLite export's names, and the tables only the plant's database has)
 TABLE_OF = {"revolutions": "revolutions", "processes": "processes", "alarms": "alarms", "limits": "limit_changes",
@@ -71,26 +70,5 @@ def _value(v: Any) -> Any:
 
 
 def write(out: TextIO, what: str, items: Iterator[dict[str, Any]], fmt: str) -> int:
-    n = 0
-    if fmt == "jsonl":
-        for item in items:
-            out.write(json.dumps(item, separators=(",", ":"), allow_nan=False) + "\n")
-            n += 1
-        return n
-    fields = fields_of(what)
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(fields)
-    for item in items:
-        writer.writerow([_cell(item.get(f)) for f in fields])
-        n += 1
-    return n
-
-
-def _cell(value: Any) -> str:
-    if value is None:
-        return ""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (dict, list)):
-        return json.dumps(value, separators=(",", ":"))
-    return str(value)
+    """The rows as `millsense history` writes the machine's own (history/export.py); the count."""
+    return write_rows(out, fields_of(what), items, fmt)

@@ -112,13 +112,17 @@ def fields_of(what: str) -> tuple[str, ...]:
 
 def write(out: TextIO, what: str, items: Iterator[dict[str, Any]], fmt: str) -> int:
     """Write the rows; the count."""
+    return write_rows(out, fields_of(what), items, fmt)
+
+
+def write_rows(out: TextIO, fields: list[str], items: Iterator[dict[str, Any]], fmt: str) -> int:
+    """JSON lines, or CSV with `fields` as its header (the plant's history reads out the same way); the count."""
     n = 0
     if fmt == "jsonl":
         for item in items:
             out.write(json.dumps(item, separators=(",", ":"), allow_nan=False) + "\n")
             n += 1
         return n
-    fields = fields_of(what)
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(fields)
     for item in items:
