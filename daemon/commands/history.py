@@ -20,8 +20,10 @@ import argparse
 import math
 import os
 import sys
+from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
+from typing import TextIO
 
 PROG = "millsense history"
 EXIT_FAILURE = 1
@@ -123,23 +125,31 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_FAILURE
     try:
         items = export.rows(conn, args.what, t_from=t_from, t_to=t_to, **numbers)
-        if args.out is None:
-            n = export.write(sys.stdout, args.what, items, args.format)
-            sys.stdout.flush()
-        else:
-            try:
-                with open(args.out, "w", encoding="utf-8", newline="") as out:
-                    n = export.write(out, args.what, items, args.format)
-            except OSError as exc:
-                print(f"{PROG}: error: cannot write {args.out}: {exc.strerror or exc}", file=sys.stderr)
-                return EXIT_FAILURE
-            print(f"{PROG}: wrote {n} {args.what} rows to {args.out}", file=sys.stderr)
+        if _emit(args, lambda out: export.write(out, args.what, items, args.format)):
+            return EXIT_FAILURE
     except export.sqlite3.Error as exc:
         print(f"{PROG}: error: {path}: {exc}", file=sys.stderr)
         return EXIT_FAILURE
     finally:
         conn.close()
     return 0
+
+
+def _emit(args: argparse.Namespace, write: Callable[[TextIO], int]) -> bool:
+    """The rows to stdout, or to `--out` with a line on stderr saying how many; True if the file cannot be written
+    (said). `write(out)` writes them and gives the count: the machine's history or the plant's."""
+    if args.out is None:
+        write(sys.stdout)
+        sys.stdout.flush()
+        return False
+    try:
+        with open(args.out, "w", encoding="utf-8", newline="") as out:
+            n = write(out)
+    except OSError as exc:
+        print(f"{PROG}: error: cannot write {args.out}: {exc.strerror or exc}", file=sys.stderr)
+        return True
+    print(f"{PROG}: wrote {n} {args.what} rows to {args.out}", file=sys.stderr)
+    return False
 
 
 def find_database(config: Path) -> tuple[list[str], Path]:
@@ -204,17 +214,8 @@ def _run_dsn(args: argparse.Namespace, t_from: float | None, t_to: float | None,
     try:
         with read.connect(args.dsn, args.passfile) as conn:
             items = read.rows(conn, args.what, machines=machines, t_from=t_from, t_to=t_to, **numbers)
-            if args.out is None:
-                n = read.write(sys.stdout, args.what, items, args.format)
-                sys.stdout.flush()
-            else:
-                try:
-                    with open(args.out, "w", encoding="utf-8", newline="") as out:
-                        n = read.write(out, args.what, items, args.format)
-                except OSError as exc:
-                    print(f"{PROG}: error: cannot write {args.out}: {exc.strerror or exc}", file=sys.stderr)
-                    return EXIT_FAILURE
-                print(f"{PROG}: wrote {n} {args.what} rows to {args.out}", file=sys.stderr)
+            if _emit(args, lambda out: read.write(out, args.what, items, args.format)):
+                return EXIT_FAILURE
     except psycopg.Error as exc:
         message = " ".join(str(exc).split()) or type(exc).__name__
         print(f"{PROG}: error: the plant's database: {message}", file=sys.stderr)
