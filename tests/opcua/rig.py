@@ -7,6 +7,7 @@ client speaks Basic256Sha256 Sign & Encrypt with throw-away certificates (tests/
 from __future__ import annotations
 
 import asyncio
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -139,3 +140,22 @@ async def alarm_types(client: Client) -> list[Any]:
     discrete = await client.nodes.root.get_child([*_ALARM_CONDITION, "0:DiscreteAlarmType", "0:OffNormalAlarmType",
                                                   f"{ms}:MillsenseOffNormalAlarmType"])
     return [limit, discrete]
+
+
+def in_process_options(tmp_path: Path, pki: Any, *, operators: bool = False) -> tuple[int, Any]:
+    """(port, Options) of an in-process server (`server.build_server`): `pki`'s identity and trust list on a free
+    port; `operators`: the client's certificate is an operator's too (Acknowledge, Confirm)."""
+    from millsense.daemon.opcua.security import TrustList, load_server_identity
+    from millsense.daemon.opcua.server import Options
+    from tests.conftest import free_tcp_port
+
+    extra: dict[str, Any] = {}
+    if operators:
+        folder = tmp_path / "operators"
+        folder.mkdir(exist_ok=True)
+        shutil.copyfile(pki.client_cert, folder / "client.der")
+        extra["operators"] = TrustList(folder)
+    port = free_tcp_port()
+    return port, Options(endpoint=f"opc.tcp://127.0.0.1:{port}",
+                         identity=load_server_identity(pki.server_cert, pki.server_key),
+                         trust=TrustList(pki.trust_dir), **extra)

@@ -16,10 +16,8 @@ pytest.importorskip("asyncua", reason="the opcua extra (asyncua) is not installe
 import structlog  # noqa: E402
 from asyncua import ua  # noqa: E402
 
-from millsense.daemon.opcua.security import TrustList, load_server_identity  # noqa: E402
-from millsense.daemon.opcua.server import Feeder, Options, build_server  # noqa: E402
-from tests.conftest import free_tcp_port  # noqa: E402
-from tests.opcua.rig import MS_NS, SLOW_S, connect, make_pki, wait_async  # noqa: E402
+from millsense.daemon.opcua.server import Feeder, build_server  # noqa: E402
+from tests.opcua.rig import MS_NS, SLOW_S, connect, in_process_options, make_pki, wait_async  # noqa: E402
 
 ACKNOWLEDGE = ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge)
 CONFIRM = ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Confirm)
@@ -30,12 +28,7 @@ OVERLOAD = {"t": 1.7e9, "seq": 1, "run_id": "r1", "level": "overload", "quantity
 def test_only_an_operator_acknowledges_and_confirms_and_nothing_else_changes(tmp_path):
     pki = make_pki(tmp_path / "pki")
     shutil.copyfile(pki.stranger_cert, pki.trust_dir / "stranger.der")  # trusted, but no operator
-    operators = tmp_path / "operators"
-    operators.mkdir()
-    shutil.copyfile(pki.client_cert, operators / "client.der")
-    port = free_tcp_port()
-    options = Options(endpoint=f"opc.tcp://127.0.0.1:{port}", identity=load_server_identity(pki.server_cert,
-                      pki.server_key), trust=TrustList(pki.trust_dir), operators=TrustList(operators))
+    port, options = in_process_options(tmp_path, pki, operators=True)
 
     async def scenario():
         server, ns, root = await build_server(options)

@@ -14,10 +14,8 @@ import pytest
 pytest.importorskip("asyncua", reason="the opcua extra (asyncua) is not installed")
 from asyncua import ua  # noqa: E402
 
-from millsense.daemon.opcua.security import TrustList, load_server_identity  # noqa: E402
-from millsense.daemon.opcua.server import Feeder, Options, build_server  # noqa: E402
-from tests.conftest import free_tcp_port  # noqa: E402
-from tests.opcua.rig import MS_NS, SLOW_S, alarm_types, connect, make_pki, wait_async  # noqa: E402
+from millsense.daemon.opcua.server import Feeder, build_server  # noqa: E402
+from tests.opcua.rig import MS_NS, SLOW_S, alarm_types, connect, in_process_options, make_pki, wait_async  # noqa: E402
 
 BASE = {"t": 1.7e9, "run_id": "r1", "rev": 9}
 ALARMS = [
@@ -42,9 +40,7 @@ async def _supertypes(node):
 
 def test_limit_alarms_are_exclusive_level_alarms_with_their_limit_and_discrete_ones_off_normal(tmp_path):
     pki = make_pki(tmp_path / "pki")
-    port = free_tcp_port()
-    options = Options(endpoint=f"opc.tcp://127.0.0.1:{port}", identity=load_server_identity(pki.server_cert,
-                      pki.server_key), trust=TrustList(pki.trust_dir))
+    port, options = in_process_options(tmp_path, pki)
 
     async def scenario():
         server, ns, root = await build_server(options)

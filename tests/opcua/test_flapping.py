@@ -9,7 +9,6 @@ is real: the server, the events, the client.
 from __future__ import annotations
 
 import asyncio
-import shutil
 
 import pytest
 
@@ -18,10 +17,8 @@ import structlog  # noqa: E402
 from asyncua import ua  # noqa: E402
 
 from millsense.daemon.opcua.flapping import BURST, EVENTS_PER_S, EventLimiter  # noqa: E402
-from millsense.daemon.opcua.security import TrustList, load_server_identity  # noqa: E402
-from millsense.daemon.opcua.server import Feeder, Options, build_server  # noqa: E402
-from tests.conftest import free_tcp_port  # noqa: E402
-from tests.opcua.rig import MS_NS, SLOW_S, connect, make_pki, wait_async  # noqa: E402
+from millsense.daemon.opcua.server import Feeder, build_server  # noqa: E402
+from tests.opcua.rig import MS_NS, SLOW_S, connect, in_process_options, make_pki, wait_async  # noqa: E402
 
 FLOOD = 40  # transitions of one condition, at one instant of the limiter's clock
 OVERLOAD = {"t": 1.7e9, "run_id": "r1", "level": "overload", "quantity": "torque_nm", "value": 31.7, "limit": 30.0,
@@ -36,9 +33,7 @@ def _flood(i):
 
 def test_a_flapping_condition_fires_a_few_events_counts_the_rest_and_ends_in_its_newest_state(tmp_path):
     pki = make_pki(tmp_path / "pki")
-    port = free_tcp_port()
-    options = Options(endpoint=f"opc.tcp://127.0.0.1:{port}", identity=load_server_identity(pki.server_cert,
-                      pki.server_key), trust=TrustList(pki.trust_dir))
+    port, options = in_process_options(tmp_path, pki)
     now = [1000.0]
 
     async def scenario():
@@ -119,12 +114,7 @@ def test_an_alarm_that_came_back_while_held_back_is_unacknowledged_again(tmp_pat
     """Acknowledged, then cleared and raised again within one held-back interval: the event fired for the newest
     state (active, as the last one fired) must say unacknowledged: it is a new occurrence nobody has seen."""
     pki = make_pki(tmp_path / "pki")
-    operators = tmp_path / "operators"
-    operators.mkdir()
-    shutil.copyfile(pki.client_cert, operators / "client.der")
-    port = free_tcp_port()
-    options = Options(endpoint=f"opc.tcp://127.0.0.1:{port}", identity=load_server_identity(pki.server_cert,
-                      pki.server_key), trust=TrustList(pki.trust_dir), operators=TrustList(operators))
+    port, options = in_process_options(tmp_path, pki, operators=True)
     now = [1000.0]
 
     async def scenario():

@@ -9,17 +9,14 @@ payloads, asyncua's client subscribed to the Server object and calling Condition
 from __future__ import annotations
 
 import asyncio
-import shutil
 
 import pytest
 
 pytest.importorskip("asyncua", reason="the opcua extra (asyncua) is not installed")
 from asyncua import ua  # noqa: E402
 
-from millsense.daemon.opcua.security import TrustList, load_server_identity  # noqa: E402
-from millsense.daemon.opcua.server import Feeder, Options, build_server  # noqa: E402
-from tests.conftest import free_tcp_port  # noqa: E402
-from tests.opcua.rig import MS_NS, SLOW_S, connect, make_pki, wait_async  # noqa: E402
+from millsense.daemon.opcua.server import Feeder, build_server  # noqa: E402
+from tests.opcua.rig import MS_NS, SLOW_S, connect, in_process_options, make_pki, wait_async  # noqa: E402
 
 ACKNOWLEDGE = ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge)
 OVERLOAD = {"t": 1.7e9, "seq": 1, "run_id": "r1", "level": "overload", "quantity": "torque_nm", "value": 31.7,
@@ -29,12 +26,7 @@ CLEAR = {**OVERLOAD, "seq": 2, "t": 1.7e9 + 0.2, "level": "clear", "value": 10.0
 
 def test_a_condition_is_retained_while_active_or_unacknowledged(tmp_path):
     pki = make_pki(tmp_path / "pki")
-    operators = tmp_path / "operators"
-    operators.mkdir()
-    shutil.copyfile(pki.client_cert, operators / "client.der")
-    port = free_tcp_port()
-    options = Options(endpoint=f"opc.tcp://127.0.0.1:{port}", identity=load_server_identity(pki.server_cert,
-                      pki.server_key), trust=TrustList(pki.trust_dir), operators=TrustList(operators))
+    port, options = in_process_options(tmp_path, pki, operators=True)
 
     async def scenario():
         server, ns, root = await build_server(options)
