@@ -136,12 +136,17 @@ def steady_revolution_of_alarm(run: Run, alarm: dict) -> int:
     revolution must be steady cutting in the truth."""
     assert run.speed == 1.0, "time pairing needs the real-time stream"
     tb = Timebase.from_status_log(run.status_log)
-    pairs = {e["rev"]: r for e, r, _ in match_estimates(run.estimates, run.truth, tb)}
-    at = pairs[alarm["rev"]]
+    matched = match_estimates(run.estimates, run.truth, tb)
+    assert matched, "no estimate paired with the truth"
+    # one revolution offset for the whole run (truth.py): the alarm's revolution is found through it, not through its
+    # own estimate, which a subscriber on a loaded box may not have received (estimates go out DROP under congestion)
+    offset = {int(e["rev"]) - int(r["rev"]) for e, r, _ in matched}
+    assert len(offset) == 1, offset
+    revs = {int(r["rev"]): r for r in truth_revs(run.truth)}
+    at = revs[int(alarm["rev"]) - offset.pop()]
     assert at["steady"] and at["cutting"], at
     # the cut holding it: the truth's cutting revolutions in a row up to it (a held part's process never ends, so
     # the truth has no process line for it)
-    revs = {int(r["rev"]): r for r in truth_revs(run.truth)}
     k, count = int(at["rev"]), 0
     while k in revs and revs[k]["cutting"]:
         count += bool(revs[k]["steady"])
