@@ -25,7 +25,6 @@ from millsense.daemon.opcua.machine_nodes import MachineNodes, Namespaces
 from millsense.daemon.opcua.machine_tool import MachineToolInstance
 from millsense.daemon.opcua.nodesets import NodesetError, import_nodesets
 from millsense.daemon.opcua.settings import Identification
-from millsense.daemon.opcua.where_clause import install as install_where_clause
 from millsense.daemon.opcua.security import (
     OpcuaSetupError,
     ServerIdentity,
@@ -34,6 +33,7 @@ from millsense.daemon.opcua.security import (
     client_validator,
     identity_tokens,
 )
+from millsense.daemon.opcua.where_clause import install as install_where_clause
 
 log = structlog.get_logger("millsense.opcua")
 
