@@ -13,6 +13,8 @@ The modules, in the order a sample travels:
   active and inactive, and what its event says).
 - `nodesets.py`: the OPC Foundation's NodeSet2 files (DI ... MachineTool) imported at start (issue 42).
 - `machine_tool.py`: with them, one machine as an OPC 40501 MachineToolType under Objects/Machines.
+- `where_clause.py`: an event filter's where clause evaluated as Part 4 says (OfType with subtypes, whole
+  browse paths), over asyncua 2.1.0's evaluator: a client that watches only active conditions gets them.
 - `settings.py`: the `[opcua]` section of `--config` (config/opcua_section.py) and the machine's identification.
 - `security.py`: the server certificate, the trust list of client certificates, who may open a session.
 - `server.py`: the asyncua Server and the loop that drains the inbox into the address space.

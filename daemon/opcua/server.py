@@ -33,6 +33,7 @@ from millsense.daemon.opcua.security import (
     client_validator,
     identity_tokens,
 )
+from millsense.daemon.opcua.where_clause import install as install_where_clause
 
 log = structlog.get_logger("millsense.opcua")
 
@@ -77,6 +78,9 @@ def parse_endpoint(text: str) -> tuple[str, int]:
 
 
 async def build_server(options: Options) -> tuple[Server, Namespaces, Any]:
+    # a where clause as Part 4 reads it (OfType with subtypes, ActiveState/Id): a client that watches only active
+    # conditions gets them (where_clause.py; on another asyncua version it patches nothing and says so)
+    install_where_clause()
     server = Server(user_manager=SessionUsers(options.trust, options.operators))
     # ConditionRefresh (and Refresh2): a client that connects while a condition is active (a held feed)
     # asks for the retained conditions. asyncua binds the methods only when told; the value is the

@@ -13,7 +13,9 @@ tests/opcua/node_client/client.js) in one Node process. It
 - reads live torque values whose source timestamps are those of estimates the daemon published on Zenoh;
 - receives the overload as a condition event, and the held feed's; once the overload's condition has cleared it
   calls ConditionRefresh: the stopped, held machine shows an active condition (FeedHeld) to a client that keeps
-  only the active ones;
+  only the active ones, and to one that watches only active conditions (a second event item whose where clause is
+  `OfType(AlarmConditionType) AND ActiveState/Id = true`: issue 42's last acceptance line), which never gets an
+  inactive one;
 - acknowledges the overload's condition with an operator's certificate and reads AckedState true, then confirms
   it and reads ConfirmedState true.
 """
@@ -122,6 +124,15 @@ def test_node_opcua_finds_the_machine_by_type_reads_live_values_and_acknowledges
             # The cleared overload nobody acknowledged yet is replayed too, inactive and retained (Part 9).
             (unacked,) = [c for c in refreshed["conditions"] if c["condition"] == "torque_nm"]
             assert unacked["active"] is False and unacked["acked"] is False and unacked["retain"] is True, unacked
+            # The client that watches only active conditions (its where clause, evaluated by the server): FeedHeld
+            # from the refresh, the overload and the held feed live, never an inactive condition (the overload's
+            # clear came before the refresh; the acknowledgements after it are of an inactive condition).
+            (active_refreshed,) = client.steps("active_refreshed")
+            assert [(c["condition"], c["active"]) for c in active_refreshed["conditions"]] == [("FeedHeld", True)], \
+                active_refreshed
+            watched = client.steps("active_event")
+            assert {"torque_nm", "FeedHeld"} <= {e["condition"] for e in watched}, said
+            assert all(e["active"] is True for e in watched), said
 
             # Part 9's types: the overload's condition a limit alarm (its limit the HighLimit), the held feed discrete.
             (types,) = client.steps("types")

@@ -9,7 +9,8 @@
 //   3. browses Objects/Machines for the object whose TypeDefinition is MachineToolType (ns MachineTool, i=13),
 //      reads its Identification, and subscribes to millsense's torque_nm one reference away;
 //   4. waits for the overload's condition event and the held feed's, calls ConditionRefresh and reports the
-//      conditions it replays; acknowledges the overload's condition (its last EventId, read from the
+//      conditions it replays (to the item that takes every event, and to a second item of the same subscription
+//      that watches only active conditions: where clause `OfType(AlarmConditionType) AND ActiveState/Id = true`); acknowledges the overload's condition (its last EventId, read from the
 //      condition's node) and reads its AckedState, then confirms it and reads its ConfirmedState.
 // Nothing in it is written for millsense's server only: standard services, standard NodeIds, browse names.
 "use strict";
@@ -19,7 +20,8 @@ const path = require("path");
 const {
     OPCUAClient, MessageSecurityMode, SecurityPolicy, UserTokenType, AttributeIds, TimestampsToReturn, DataType,
     ClientMonitoredItem, constructEventFilter, makeBrowsePath, resolveNodeId, BrowseDirection, NodeClassMask,
-    callConditionRefresh, acknowledgeCondition, confirmCondition
+    callConditionRefresh, acknowledgeCondition, confirmCondition, makeContentFilter, and, ofType, s: operand, l: literal,
+    ContentFilterElement, FilterOperator
 } = require("node-opcua-client");
 const { OPCUACertificateManager } = require("node-opcua-certificate-manager");
 const { readCertificate, readPrivateKey, keyOperationsFromPrivateKey } = require("node-opcua-crypto");
@@ -34,6 +36,12 @@ const EVENT_FIELDS = ["EventId", "EventType", "ConditionName", "ActiveState.Id",
     "Severity", "Message", "SourceName", "Time", "ConditionId"];
 const REFRESH_START = "ns=0;i=2787"; // RefreshStartEventType (a NodeId as node-opcua writes it)
 const REFRESH_END = "ns=0;i=2788";   // RefreshEndEventType
+// What an alarm list of the active conditions only puts on the wire (Part 4 7.7): AlarmConditionType or a subtype,
+// and its ActiveState/Id true.
+const ACTIVE_ONLY = makeContentFilter(and(ofType("i=2915"), new ContentFilterElement({
+    filterOperator: FilterOperator.Equals,
+    filterOperands: [operand(AttributeIds.Value, "ActiveState.Id"), literal(DataType.Boolean, true)],
+})));
 
 function say(step, fields) {
     process.stdout.write(JSON.stringify({ step, ...fields }) + "\n");
@@ -192,7 +200,23 @@ async function main() {
             events.push(e);
             say("event", e);
         });
-        await until("the event subscription", async () => eventItem.monitoredItemId !== undefined);
+        // The client that watches only active conditions: its own item, its own refresh window.
+        let activeRefreshing = null;
+        let activeRefreshed = null;
+        const activeItem = ClientMonitoredItem.create(subscription,
+            { nodeId: resolveNodeId("Server"), attributeId: AttributeIds.EventNotifier },
+            { samplingInterval: 0, queueSize: 1000, discardOldest: false,
+              filter: constructEventFilter(EVENT_FIELDS, ACTIVE_ONLY) },
+            TimestampsToReturn.Both);
+        activeItem.on("changed", (fields) => {
+            const e = eventOf(fields);
+            if (e.event_type === REFRESH_START) { activeRefreshing = []; return; }
+            if (e.event_type === REFRESH_END) { activeRefreshed = activeRefreshing; activeRefreshing = null; return; }
+            if (activeRefreshing !== null) { activeRefreshing.push(e); return; }
+            say("active_event", e);
+        });
+        await until("the event subscription", async () =>
+            eventItem.monitoredItemId !== undefined && activeItem.monitoredItemId !== undefined);
         say("subscribed", { subscription_id: subscription.subscriptionId });
 
         // 3. The machine by its type: browse Objects/Machines, check each child's TypeDefinition.
@@ -244,6 +268,10 @@ async function main() {
         say("refresh_called", { status: refreshStatus.name });
         const replayed = await until("ConditionRefresh's RefreshEnd", async () => refreshed);
         say("refreshed", { conditions: replayed });
+        // The same refresh, as the item that watches only active conditions got it (RefreshStart and RefreshEnd
+        // ignore its filter: Part 9 5.5.7).
+        say("active_refreshed", { conditions: await until("the active-only item's RefreshEnd", async () =>
+            activeRefreshed) });
 
         // Each condition's type, by its TypeDefinition and the supertypes up to Part 9's (standard, ns 0) ones; the
         // overload's HighLimit.
