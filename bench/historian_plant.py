@@ -29,6 +29,11 @@ Figures, each beside its budget or floor:
 - **outage** (`--pg-outage-s`): a fresh stack, `pg_ctl stop -m fast` a third into `--outage-run-s`, started again
   `--pg-outage-s` later: every row afterwards once (counts as in steady, and no key twice).
 
+Beside each run's figures, the CPU (in cores, while the publishers run) of the historian (and of each of its
+threads: `main` is the loop that makes rows and writes them, `python` Zenoh's callbacks parsing the JSON), the
+router, this PostgreSQL and the publishers: the profile that says who is short of what; and the historian's RSS
+each minute.
+
 `os.nice(19)` first: every process it starts (PostgreSQL, the router, the historian, the publishers) inherits it.
 
 Run: python bench/historian_plant.py --machines 500 --rev-hz 10 --seconds 600 --saturate 1,2,3,4 --pg-outage-s 60
@@ -41,6 +46,7 @@ import importlib.util
 import json
 import math
 import os
+import resource
 import shutil
 import signal
 import statistics
@@ -198,11 +204,19 @@ class Stack:
                 return
             self.rss.append((time.time(), kb / 1024))
 
+    def cpu(self) -> dict[str, float]:
+        """CPU seconds so far: the historian, the router, this server's PostgreSQL (its processes alive now)."""
+        out = {"historian": cpu_s(self.historian.pid), "router": cpu_s(self.router.pid),
+               "postgres": sum(cpu_s(p) for p in postgres_pids(self.server))}
+        out.update({f"  historian thread {k}": v for k, v in threads_cpu_s(self.historian.pid).items()})
+        return out
+
     def publish(self, payload_file: Path, rate_hz: float, seconds: float, publishers: int,
                 during=None) -> dict:
         """Every machine at `rate_hz` for `seconds`; `during(start_at)` runs meanwhile. The publishers' reports."""
         start_at = time.time() + 3.0
         procs, reports = [], []
+        children0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         bounds = [round(i * self.machines / publishers) for i in range(publishers + 1)]
         for i in range(publishers):
             report = self.work / f"publisher-{i}-{rate_hz:g}.json"
@@ -212,11 +226,17 @@ class Stack:
                                            "--last", str(bounds[i + 1]), "--rate-hz", str(rate_hz),
                                            "--seconds", str(seconds), "--start-at", str(start_at),
                                            "--report", str(report)]))
+        time.sleep(max(0.0, start_at - time.time()))
+        cpu0, at0 = self.cpu(), time.time()   # from the publishers' start (an outage's `during` is in it)
         if during is not None:
             during(start_at)
         for p in procs:
             if p.wait(seconds + 600) != 0:
                 raise SystemExit(f"a publisher failed ({p.returncode})")
+        cpu1, wall = self.cpu(), time.time() - at0
+        children1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        share = {k: (cpu1[k] - cpu0.get(k, 0.0)) / wall for k in cpu1}
+        share["publishers"] = (children1.ru_utime + children1.ru_stime - children0.ru_utime - children0.ru_stime) / wall
         sent: dict[str, dict[str, int]] = {}
         late = elapsed = 0.0
         for r in reports:
@@ -224,7 +244,7 @@ class Stack:
             sent.update(data["sent"])
             late, elapsed = max(late, data["late_max_s"]), max(elapsed, data["elapsed_s"])
         return {"sent": sent, "late_max_s": late, "elapsed_s": elapsed, "start_at": start_at,
-                "end_at": start_at + seconds}
+                "end_at": start_at + seconds, "cpu": share}
 
     def stop(self) -> dict:
         self._stop.set()
@@ -243,6 +263,46 @@ class Stack:
 
         with psycopg.connect(self.server.dsn(self.db).replace("user=historian", "user=postgres")) as conn:
             return conn.execute(statement, params).fetchall()
+
+
+def cpu_s(pid: int) -> float:
+    """utime + stime of a process so far (/proc/<pid>/stat), seconds; 0 when it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def threads_cpu_s(pid: int) -> dict[str, float]:
+    """CPU seconds so far of a process's threads, summed by thread name (/proc/<pid>/task/*/stat)."""
+    out: dict[str, float] = {}
+    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:
+            continue
+        name = text[text.index("(") + 1:text.rindex(")")]
+        fields = text.rsplit(")", 1)[1].split()
+        name = "main (the loop: rows, writes)" if stat.parent.name == str(pid) else name.rstrip("0123456789-")
+        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return out
+
+
+def postgres_pids(server) -> list[int]:
+    """The postmaster and its children (this server's only: other PostgreSQL servers may run on the box)."""
+    try:
+        master = int((server.data / "postmaster.pid").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return []
+    out = [master]
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == master:
+                out.append(int(stat.parent.name))
+        except (OSError, ValueError, IndexError):
+            pass
+    return out
 
 
 def _wait_port(port: int, timeout_s: float = 60) -> None:
@@ -352,6 +412,10 @@ def committed_rows_per_s(stack: Stack, t_from: float, t_to: float) -> float:
     return n / (t_to - t_from)
 
 
+def cores(share: dict[str, float]) -> str:
+    return ", ".join(f"{k.strip()} {v:.2f}" for k, v in share.items() if v >= 0.01)
+
+
 def rss_figures(rss: list[tuple[float, float]], t0: float, t1: float) -> tuple[float, float, float]:
     """Max, the second minute's median, the last minute's median (MB) of the publishing window."""
     window = [(t, mb) for t, mb in rss if t0 <= t < t1]
@@ -382,6 +446,13 @@ def steady(server, work: Path, payload_file: Path, args) -> None:
     print_latency(lat)
     print(f"  historian RSS: max {rss_max:.1f} MB (budget ≤ {RSS_BUDGET_MB:g}); median second minute {rss_2:.1f} MB, "
           f"last minute {rss_last:.1f} MB (flat: {rss_last - rss_2:+.1f} MB)")
+    print(f"  CPU (cores, while publishing): {cores(run['cpu'])}; load {os.getloadavg()[0]:.2f}")
+    minutes = {}
+    for t, mb in stack.rss:
+        if run["start_at"] <= t < run["end_at"]:
+            minutes.setdefault(int((t - run["start_at"]) // 60), []).append(mb)
+    print("  historian RSS, each minute's median (MB): " +
+          " ".join(f"{statistics.median(v):.1f}" for _, v in sorted(minutes.items())))
     print(f"  historian at stop: db {stopped.get('db')}, written {stopped.get('written')}, overflow "
           f"{stopped.get('overflow')}, spooled {stopped.get('spooled_rows')}, rejected {stopped.get('rejected')}")
 
@@ -409,14 +480,18 @@ def saturation(server, work: Path, payload_file: Path, args) -> None:
                   f"(publishers' worst lateness {run['late_max_s']:.2f} s), {rate:8,.0f} rows/s committed, "
                   f"p99 {p99:.2f} s, {'kept up' if kept_up else 'BEHIND'}"
                   f"{'' if drained is not None else ' (not all in 30 s after)'}")
+            print(f"      CPU (cores): {cores(run['cpu'])}; load {os.getloadavg()[0]:.2f}")
             if kept_up:
                 best = max(best, rate)
             else:
+                late = wait_all_in(stack, so_far, 300)
+                lost = losses(so_far, in_db(stack))
+                print(f"      behind: {'nothing lost, all in %.0f s after the publishers stopped' % (30 + late) if late is not None else 'after 330 s still missing %s' % lost}")
                 break
     finally:
         stack.stop()
     floor = copy_floor(server, args.machines, int(args.rev_hz))
-    print(f"  sustained {best:,.0f} rows/s through Zenoh and the historian; the COPY floor of the same rows "
+    print(f"  sustained {best:,.0f} rows/s through Zenoh and the historian{' (no step kept up)' if not best else ''}; the COPY floor of the same rows "
           f"(psycopg COPY, no Zenoh, no staging) {floor:,.0f} rows/s ({best / floor:.2f} × the floor); "
           f"budget: ≥ 3 × {args.machines * args.rev_hz:,.0f} rev/s")
 
