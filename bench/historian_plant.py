@@ -389,6 +389,10 @@ def latencies(stack: Stack, t_from: float, t_to: float) -> dict[str, list[float]
     return out
 
 
+def _after(drained: float | None, limit_s: float) -> str:
+    return f"{drained:.1f} s after the publishers stopped" if drained is not None else f"NOT within {limit_s:g} s"
+
+
 def pct(values: list[float], q: float) -> float:
     return values[min(len(values) - 1, int(q * len(values)))] if values else float("nan")
 
@@ -441,7 +445,7 @@ def steady(server, work: Path, payload_file: Path, args) -> None:
         stopped = stack.stop()
     print(f"  published {sent['estimate']:,} estimates, {sent['alarm']:,} alarms, {sent['process']:,} summaries in "
           f"{run['elapsed_s']:.0f} s (the publishers' worst lateness {run['late_max_s']:.2f} s)")
-    print(f"  lost: {lost}   (budget: 0 each); all in {'%.1f s after the publishers stopped' % drained if drained is not None else 'NOT within 60 s'}")
+    print(f"  lost: {lost}   (budget: 0 each); all in {_after(drained, 60)}")
     print("  publication → committed row:")
     print_latency(lat)
     print(f"  historian RSS: max {rss_max:.1f} MB (budget ≤ {RSS_BUDGET_MB:g}); median second minute {rss_2:.1f} MB, "
@@ -486,12 +490,14 @@ def saturation(server, work: Path, payload_file: Path, args) -> None:
             else:
                 late = wait_all_in(stack, so_far, 300)
                 lost = losses(so_far, in_db(stack))
-                print(f"      behind: {'nothing lost, all in %.0f s after the publishers stopped' % (30 + late) if late is not None else 'after 330 s still missing %s' % lost}")
+                print("      behind: " + (f"nothing lost, all in {_after(30 + late, 330)}" if late is not None
+                                          else f"after 330 s still missing {lost}"))
                 break
     finally:
         stack.stop()
     floor = copy_floor(server, args.machines, int(args.rev_hz))
-    print(f"  sustained {best:,.0f} rows/s through Zenoh and the historian{' (no step kept up)' if not best else ''}; the COPY floor of the same rows "
+    none = " (no step kept up)" if not best else ""
+    print(f"  sustained {best:,.0f} rows/s through Zenoh and the historian{none}; the COPY floor of the same rows "
           f"(psycopg COPY, no Zenoh, no staging) {floor:,.0f} rows/s ({best / floor:.2f} × the floor); "
           f"budget: ≥ 3 × {args.machines * args.rev_hz:,.0f} rev/s")
 
@@ -526,7 +532,7 @@ def outage(server, work: Path, payload_file: Path, args) -> None:
     finally:
         stopped = stack.stop()
     print(f"  down {times['start'] - times['stop']:.0f} s; published {sent}; lost {lost} (budget 0), rows twice "
-          f"{dup} (budget 0); all in {'%.1f s after the publishers stopped' % drained if drained is not None else 'NOT within 300 s'}")
+          f"{dup} (budget 0); all in {_after(drained, 300)}")
     print(f"  historian at stop: spooled {stopped.get('spooled_rows')}, spool dropped {stopped.get('spool_dropped')}, "
           f"duplicates skipped {stopped.get('duplicates')}")
 

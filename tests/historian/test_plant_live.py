@@ -7,7 +7,8 @@ daemons start, is what they published) is in PostgreSQL once, with its values; e
 second, its revolution counts those the test saw; `millsense history --dsn … --machine all` exports the three
 machines; and each machine's per-second aggregates in `load_1s` are those its daemon's own SQLite history gives
 (`millsense history --config … --what revolutions` after the daemon stopped): the same seconds, the same counts,
-min/mean/max within float rounding. The children's CPU time is printed (its budget, 15 CPU s, is docs/historian.md's, not a test's)."""
+min/mean/max within float rounding. The children's CPU time is printed (its budget, 15 CPU s, is
+docs/historian.md's, not a test's)."""
 
 from __future__ import annotations
 
@@ -44,7 +45,8 @@ def sqlite_load(config, state_dir) -> dict[int, tuple]:
     """The daemon's revolutions (its SQLite history, through `millsense history`), aggregated per second of `t` as
     the historian's `load_1s` is: counts, and min/mean/max of torque, force and input power over the valid ones."""
     p = subprocess.run(CMD + ["history", "--config", str(config), "--what", "revolutions", "--format", "jsonl"],
-                       capture_output=True, text=True, timeout=60, env={**os.environ, "STATE_DIRECTORY": str(state_dir)})
+                       capture_output=True, text=True, timeout=60,
+                       env={**os.environ, "STATE_DIRECTORY": str(state_dir)})
     assert p.returncode == 0, p.stderr
     seconds: dict[int, list[dict]] = {}
     for line in p.stdout.splitlines():
@@ -62,8 +64,8 @@ def sqlite_load(config, state_dir) -> dict[int, tuple]:
 
 
 def _agree(a, b) -> bool:
-    return all(x == y if x is None or y is None or isinstance(x, int) else math.isclose(x, y, rel_tol=1e-12, abs_tol=1e-12)
-               for x, y in zip(a, b, strict=True))
+    return all(x == y if x is None or y is None or isinstance(x, int)
+               else math.isclose(x, y, rel_tol=1e-12, abs_tol=1e-12) for x, y in zip(a, b, strict=True))
 
 
 def assert_load_matches_sqlite(server, db, machine, config, state_dir) -> None:
