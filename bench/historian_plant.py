@@ -495,18 +495,20 @@ def saturation(server, work: Path, payload_file: Path, args) -> None:
                 break
     finally:
         stack.stop()
-    floor = copy_floor(server, args.machines, int(args.rev_hz))
+    floor = copy_floor(server, work, args.machines, int(args.rev_hz))
     none = " (no step kept up)" if not best else ""
     print(f"  sustained {best:,.0f} rows/s through Zenoh and the historian{none}; the COPY floor of the same rows "
           f"(psycopg COPY, no Zenoh, no staging) {floor:,.0f} rows/s ({best / floor:.2f} × the floor); "
           f"budget: ≥ 3 × {args.machines * args.rev_hz:,.0f} rev/s")
 
 
-def copy_floor(server, machines: int, revs: int, seconds: int = 4) -> float:
+def copy_floor(server, work: Path, machines: int, revs: int, seconds: int = 4) -> float:
     spec = importlib.util.spec_from_file_location("bench_historian_writer", ROOT / "bench" / "historian.py")
     writer_bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(writer_bench)
-    passfile = server.passfile(Path(tempfile.mkdtemp(prefix="millsense-floor-")))
+    folder = work / "floor"
+    folder.mkdir(exist_ok=True)
+    passfile = server.passfile(folder)
     data = writer_bench.batches(machines, revs, seconds, time.time() - seconds - 5)
     return writer_bench.measure(server, passfile, writer_bench.write_copy, data)
 
