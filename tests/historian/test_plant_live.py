@@ -5,12 +5,16 @@ the router too, and the test's PostgreSQL. Nothing meets but through the router.
 Every alarm and process summary each daemon published (the test's own client of the router, subscribed before the
 daemons start, is what they published) is in PostgreSQL once, with its values; each machine's load is there per
 second, its revolution counts those the test saw; `millsense history --dsn … --machine all` exports the three
-machines. The children's CPU time is printed (its budget, 15 CPU s, is docs/historian.md's, not a test's)."""
+machines; and each machine's per-second aggregates in `load_1s` are those its daemon's own SQLite history gives
+(`millsense history --config … --what revolutions` after the daemon stopped): the same seconds, the same counts,
+min/mean/max within float rounding. The children's CPU time is printed (its budget, 15 CPU s, is
+docs/historian.md's, not a test's)."""
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import resource
 import signal
 import subprocess
@@ -31,6 +35,48 @@ MACHINES = ("plant-a", "plant-b", "plant-c")
 def _router_started(procs) -> bool:
     return any(e.get("event") == "router.started" for e in read_jsonl(procs.tmp / "router.out")) or \
         any(e.get("event") == "router.started" for e in read_jsonl(procs.tmp / "router.err"))
+
+
+LOAD_COLUMNS = ("revolutions", "valid", "invalid", "torque_min_nm", "torque_mean_nm", "torque_max_nm", "force_min_n",
+                "force_mean_n", "force_max_n", "power_min_w", "power_mean_w", "power_max_w")
+
+
+def sqlite_load(config, state_dir) -> dict[int, tuple]:
+    """The daemon's revolutions (its SQLite history, through `millsense history`), aggregated per second of `t` as
+    the historian's `load_1s` is: counts, and min/mean/max of torque, force and input power over the valid ones."""
+    p = subprocess.run(CMD + ["history", "--config", str(config), "--what", "revolutions", "--format", "jsonl"],
+                       capture_output=True, text=True, timeout=60,
+                       env={**os.environ, "STATE_DIRECTORY": str(state_dir)})
+    assert p.returncode == 0, p.stderr
+    seconds: dict[int, list[dict]] = {}
+    for line in p.stdout.splitlines():
+        r = json.loads(line)
+        seconds.setdefault(math.floor(r["t"]), []).append(r)
+    out = {}
+    for s, revs in seconds.items():
+        valid = [r for r in revs if r["valid"]]
+        row: list = [len(revs), len(valid), len(revs) - len(valid)]
+        for field in ("torque_nm", "force_n", "p_in_w"):
+            v = [r[field] for r in valid if r[field] is not None]
+            row += [min(v), math.fsum(v) / len(v), max(v)] if v else [None, None, None]
+        out[s] = tuple(row)
+    return out
+
+
+def _agree(a, b) -> bool:
+    return all(x == y if x is None or y is None or isinstance(x, int)
+               else math.isclose(x, y, rel_tol=1e-12, abs_tol=1e-12) for x, y in zip(a, b, strict=True))
+
+
+def assert_load_matches_sqlite(server, db, machine, config, state_dir) -> None:
+    mine = sqlite_load(config, state_dir)
+    cols = ", ".join(LOAD_COLUMNS)
+    plant = {s: tuple(r) for s, *r in rows(server, db, f"SELECT extract(epoch FROM time)::bigint, {cols} FROM load_1s "
+                                                         "WHERE machine = %s ORDER BY 1", (machine,))}
+    assert len(mine) >= 3, (machine, mine)
+    assert sorted(plant) == sorted(mine), (machine, sorted(set(plant) ^ set(mine)))
+    wrong = {s: (plant[s], mine[s]) for s in mine if not _agree(plant[s], mine[s])}
+    assert not wrong, (machine, wrong)
 
 
 def test_three_daemons_through_the_router_into_one_database(pg_db, tmp_path):
@@ -100,6 +146,10 @@ def test_three_daemons_through_the_router_into_one_database(pg_db, tmp_path):
         inner = sorted(seen)[1:-1]
         assert len(inner) >= 3, (m, seen)
         assert {s: load.get(s) for s in inner} == {s: seen[s] for s in inner}, m
+
+    # the per-second aggregates agree with each daemon's own SQLite history
+    for m in MACHINES:
+        assert_load_matches_sqlite(server, db, m, tmp_path / f"{m}.toml", tmp_path / m)
 
     # the plant's export across machines
     base = CMD + ["history", "--dsn", server.dsn(db), "--passfile", str(passfile), "--machine", "all",
