@@ -157,3 +157,39 @@ def live_daemon(tmp_path, machine: str, sim_args: list[str], *, interlock: str =
             yield procs, daemon, sub, sim_log
         finally:
             sub.close()
+
+
+@contextmanager
+def modbus_proxy_daemon(tmp_path, machine: str, *, interlock: str = INTERLOCK_OPEN, alarms: str = "",
+                        before_daemon=None) -> Iterator[tuple[Any, Any, Subscriber, Any, Any]]:
+    """The emulator's Modbus TCP server (`millsense sim --scenario step --modbus-tcp …`, its status log on), a
+    Modbus proxy in this process in front of it (tests/faults/netfault.py: faults by function code), and the real
+    daemon reading through the proxy (unit 1, `poll_ms = 20`, Zenoh on loopback). `before_daemon(proxy)` may
+    arm faults before the daemon's first request. Yields (procs, the daemon's process, a subscriber, the
+    emulator's status log path, the proxy)."""
+    from tests.conftest import free_tcp_port
+    from tests.e2e.helpers import Procs, tcp, write_config
+    from tests.faults.netfault import ModbusProxy
+
+    mb_port, z_port = free_tcp_port(), free_tcp_port()
+    sim_log = tmp_path / "sim.jsonl"
+    with Procs(tmp_path) as procs:
+        procs.start("sim", ["sim", "--scenario", "step", "--loop", "--modbus-tcp", f"127.0.0.1:{mb_port}", "--realtime",
+                            "--status-log", str(sim_log)])
+        wait_for(lambda: "serving" in procs.text("sim"), 60.0, "emulator serving")
+        proxy = ModbusProxy(mb_port)
+        sub = None
+        try:
+            cfg = write_config(tmp_path / "d.toml", machine=machine,
+                               daq=f'transport = "modbus-tcp"\nhost = "127.0.0.1"\ntcp_port = {proxy.port}\nunit = 1\n'
+                                   "poll_ms = 20",
+                               zenoh_listen=[tcp(z_port)], alarms=alarms, interlock=interlock)
+            if before_daemon is not None:
+                before_daemon(proxy)
+            daemon = procs.start("daemon", ["run", "--config", str(cfg)])
+            sub = Subscriber([tcp(z_port)], machine)
+            yield procs, daemon, sub, sim_log, proxy
+        finally:
+            if sub is not None:
+                sub.close()
+            proxy.close()

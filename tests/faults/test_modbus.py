@@ -22,11 +22,11 @@ import numpy as np
 import pytest
 
 from millsense.drivers import create_driver
-from tests.conftest import free_tcp_port
 from tests.drivers.emulator_proc import RAMP_CHANNELS, Emulator, ramp
 from tests.drivers.test_contract import Collector
-from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
-from tests.faults.helpers import assert_clean_exit, assert_no_damaged_estimate_looks_valid, log_events, outputs, status, wait_status
+from tests.e2e.helpers import read_jsonl, wait_for
+from tests.faults.helpers import (assert_clean_exit, assert_no_damaged_estimate_looks_valid, log_events, modbus_proxy_daemon,
+                                  outputs, status, wait_status)
 from tests.faults.netfault import ModbusProxy
 
 FC_READ_COILS, FC_READ_INPUT, FC_WRITE_REGISTER, FC_WRITE_COILS = 1, 4, 6, 15
@@ -173,100 +173,84 @@ def test_a_device_slower_than_its_samples_hands_over_what_it_reads_and_counts_wh
 @pytest.mark.slow
 def test_daemon_over_modbus_refused_writes_and_read_faults(tmp_path):
     """A refused feed-hold write is written again; refused heartbeats are reported; read faults lose nothing."""
-    mb_port, z_port = free_tcp_port(), free_tcp_port()
     machine = "mb-01"
-    sim_log = tmp_path / "sim.jsonl"
-    with Procs(tmp_path) as procs:
-        procs.start("sim", ["sim", "--scenario", "step", "--loop", "--modbus-tcp", f"127.0.0.1:{mb_port}", "--realtime",
-                            "--status-log", str(sim_log)])
-        wait_for(lambda: "serving" in procs.text("sim"), SLOW_S, "emulator serving")
-        proxy = ModbusProxy(mb_port)
-        cfg = write_config(
-            tmp_path / "d.toml",
-            machine=machine,
-            daq=f'transport = "modbus-tcp"\nhost = "127.0.0.1"\ntcp_port = {proxy.port}\nunit = 1\npoll_ms = 20',
-            zenoh_listen=[tcp(z_port)],
-            alarms="torque_limit_nm = 1.2\nrevolutions = 2\nbreakage_drop_pct = 0",  # trips on the first cut
-            # a watchdog a loaded box cannot trip by delaying a heartbeat, nor a reconnect: one that acts
-            # here means the heartbeats stopped (whether one goes out while a read waits is checked below)
-            interlock=f'enabled = true\nheartbeat_ms = 50\nwatchdog_ms = {DEVICE_WATCHDOG_MS}\nreset = "open"',
-        )
-        proxy.fail(FC_WRITE_COILS, 1)  # the DAQ refuses the first outputs write: the trip
-        daemon = procs.start("daemon", ["run", "--config", str(cfg)])
-        sub = Subscriber([tcp(z_port)], machine)
-        try:
-            # the first cut trips: on a loaded box that can be before this subscriber is connected, so
-            # the daemon's own log of the alarm (the same record) stands in for a publication missed
-            def overload():
-                published = next((a for a in sub.get("alarm") if a["level"] == "overload"), None)
-                logged = next((e for e in log_events(procs.text("daemon", "out")) if e.get("alarm_level") == "overload"), None)
-                return published or logged or daemon.poll() is not None
+    with modbus_proxy_daemon(
+        tmp_path, machine,
+        alarms="torque_limit_nm = 1.2\nrevolutions = 2\nbreakage_drop_pct = 0",  # trips on the first cut
+        # a watchdog a loaded box cannot trip by delaying a heartbeat, nor a reconnect: one that acts
+        # here means the heartbeats stopped (whether one goes out while a read waits is checked below)
+        interlock=f'enabled = true\nheartbeat_ms = 50\nwatchdog_ms = {DEVICE_WATCHDOG_MS}\nreset = "open"',
+        before_daemon=lambda proxy: proxy.fail(FC_WRITE_COILS, 1),  # the DAQ refuses the first outputs write: the trip
+    ) as (procs, daemon, sub, sim_log, proxy):
+        # the first cut trips: on a loaded box that can be before this subscriber is connected, so
+        # the daemon's own log of the alarm (the same record) stands in for a publication missed
+        def overload():
+            published = next((a for a in sub.get("alarm") if a["level"] == "overload"), None)
+            logged = next((e for e in log_events(procs.text("daemon", "out")) if e.get("alarm_level") == "overload"), None)
+            return published or logged or daemon.poll() is not None
 
-            alarm = wait_for(overload, START_S, "the overload")
-            assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
-            # the refused write did not count as a hold; the next heartbeat period wrote it again
-            wait_for(lambda: outputs(read_jsonl(sim_log), feed_hold=True, cause="command"), SLOW_S, "feed hold on the DAQ")
-            assert proxy.injected_count("exception", FC_WRITE_COILS) == 1
-            assert alarm["interlock"] is None, "the alarm claimed a feed hold the DAQ had refused"
-            st = wait_status(sub, machine, lambda s: s["interlock_detail"]["device_feed_hold"], SLOW_S, "hold confirmed")
-            assert st["interlock"] == "feed_hold" and st["interlock_detail"]["hold_unconfirmed"] is False
-            assert st["daq"]["commands_refused"] == 1
+        alarm = wait_for(overload, START_S, "the overload")
+        assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
+        # the refused write did not count as a hold; the next heartbeat period wrote it again
+        wait_for(lambda: outputs(read_jsonl(sim_log), feed_hold=True, cause="command"), SLOW_S, "feed hold on the DAQ")
+        assert proxy.injected_count("exception", FC_WRITE_COILS) == 1
+        assert alarm["interlock"] is None, "the alarm claimed a feed hold the DAQ had refused"
+        st = wait_status(sub, machine, lambda s: s["interlock_detail"]["device_feed_hold"], SLOW_S, "hold confirmed")
+        assert st["interlock"] == "feed_hold" and st["interlock_detail"]["hold_unconfirmed"] is False
+        assert st["daq"]["commands_refused"] == 1
 
-            # -- exceptions to reads: retried, the link stays up, the heartbeats go on
-            def read_fault(inject, retries: int) -> None:
-                before = status(sub, machine)["daq"]
-                inject()
-                st = wait_status(sub, machine, lambda s: s["daq"].get("modbus_retries", 0) >= before.get("modbus_retries", 0) + retries,
-                                 SLOW_S, "the read retried")
-                assert st["daq"]["link_changes"] == before["link_changes"] and st["daq_link"] == "up", st
-                assert st["state"] == "running", st
+        # -- exceptions to reads: retried, the link stays up, the heartbeats go on
+        def read_fault(inject, retries: int) -> None:
+            before = status(sub, machine)["daq"]
+            inject()
+            st = wait_status(sub, machine, lambda s: s["daq"].get("modbus_retries", 0) >= before.get("modbus_retries", 0) + retries,
+                             SLOW_S, "the read retried")
+            assert st["daq"]["link_changes"] == before["link_changes"] and st["daq_link"] == "up", st
+            assert st["state"] == "running", st
 
-            read_fault(lambda: proxy.fail(FC_READ_INPUT, 1), 1)
-            read_fault(lambda: proxy.fail(FC_READ_COILS, 2), 2)
-            # -- three in a row: the link drops and comes back, the ring covers the gap
-            changes = status(sub, machine)["daq"]["link_changes"]
-            proxy.fail(FC_READ_INPUT, 3)
-            wait_status(sub, machine, lambda s: s["daq"]["link_changes"] >= changes + 2 and s["daq_link"] == "up"
-                        and s["state"] == "running", SLOW_S, "reconnected after three failed tries")
-            time.sleep(1.0)
-            after = status(sub, machine)
-            assert after["lost_samples"] == 0 and after["daq"]["lost_samples"] == 0, after
-            _nothing_lost_between_driver_and_pipeline(after)
-            assert not outputs(read_jsonl(sim_log), cause="watchdog"), "an exception reply must not starve the watchdog"
+        read_fault(lambda: proxy.fail(FC_READ_INPUT, 1), 1)
+        read_fault(lambda: proxy.fail(FC_READ_COILS, 2), 2)
+        # -- three in a row: the link drops and comes back, the ring covers the gap
+        changes = status(sub, machine)["daq"]["link_changes"]
+        proxy.fail(FC_READ_INPUT, 3)
+        wait_status(sub, machine, lambda s: s["daq"]["link_changes"] >= changes + 2 and s["daq_link"] == "up"
+                    and s["state"] == "running", SLOW_S, "reconnected after three failed tries")
+        time.sleep(1.0)
+        after = status(sub, machine)
+        assert after["lost_samples"] == 0 and after["daq"]["lost_samples"] == 0, after
+        _nothing_lost_between_driver_and_pipeline(after)
+        assert not outputs(read_jsonl(sim_log), cause="watchdog"), "an exception reply must not starve the watchdog"
 
-            # -- heartbeats refused by the DAQ: status says so, and the DAQ's watchdog holds the feed
-            proxy.fail(FC_WRITE_REGISTER, 10**6)
-            refused = wait_status(sub, machine, lambda s: s["heartbeating"] is False, SLOW_S, "heartbeats reported failing")
-            wait_for(lambda: outputs(read_jsonl(sim_log), cause="watchdog"), SLOW_S, "the DAQ's watchdog acts")
-            # (The Modbus map has no watchdog flag: with the hold already commanded, a trip looks the same
-            # as the commanded hold, so status can only say the feed is held, which it is.)
-            assert status(sub, machine)["interlock_detail"]["device_feed_hold"] is True
-            proxy.fail(FC_WRITE_REGISTER, 0)
-            wait_status(sub, machine, lambda s: s["heartbeating"] is True, SLOW_S, "heartbeats resumed")
+        # -- heartbeats refused by the DAQ: status says so, and the DAQ's watchdog holds the feed
+        proxy.fail(FC_WRITE_REGISTER, 10**6)
+        refused = wait_status(sub, machine, lambda s: s["heartbeating"] is False, SLOW_S, "heartbeats reported failing")
+        wait_for(lambda: outputs(read_jsonl(sim_log), cause="watchdog"), SLOW_S, "the DAQ's watchdog acts")
+        # (The Modbus map has no watchdog flag: with the hold already commanded, a trip looks the same
+        # as the commanded hold, so status can only say the feed is held, which it is.)
+        assert status(sub, machine)["interlock_detail"]["device_feed_hold"] is True
+        proxy.fail(FC_WRITE_REGISTER, 0)
+        wait_status(sub, machine, lambda s: s["heartbeating"] is True, SLOW_S, "heartbeats resumed")
 
-            # -- a read that times out (200 ms, then tried again): nothing is lost, the link stays up, and
-            # the heartbeats do not wait behind it: one goes out while the read waits for its answer (how
-            # soon is the box's; that the I/O lock is free while a request waits is the product's)
-            read_fault(lambda: proxy.swallow(FC_READ_INPUT, 1), 1)
-            time.sleep(1.0)
-            after = status(sub, machine)
-            # the timed-out read lost nothing; a box so loaded that the reader fell a ring behind loses
-            # samples, but as overruns, named and counted
-            overrun = after["daq"].get("overruns", 0) + after["daq"].get("overwritten_during_read", 0)
-            assert after["lost_samples"] == 0 or overrun > 0, after
-            _nothing_lost_between_driver_and_pipeline(after)
-            (t_swallowed,) = [t for t, _, kind in proxy.injected if kind == "swallowed"]
-            t_retry = next(t for t, fc in list(proxy.arrivals) if fc == FC_READ_INPUT and t > t_swallowed)
-            beats_while = [t for t, fc in list(proxy.arrivals) if fc == FC_WRITE_REGISTER and t_swallowed < t < t_retry]
-            assert beats_while, "no heartbeat went out while a read waited for its answer: the I/O lock was held"
-            assert proxy.injected_count("swallowed") == 1 and proxy.injected_count("exception", FC_READ_INPUT) == 1 + 3
-            estimates = sub.get("estimate")
-            assert daemon.poll() is None
-            daemon.send_signal(signal.SIGTERM)
-            assert daemon.wait(10) == 0
-        finally:
-            sub.close()
-            proxy.close()
+        # -- a read that times out (200 ms, then tried again): nothing is lost, the link stays up, and
+        # the heartbeats do not wait behind it: one goes out while the read waits for its answer (how
+        # soon is the box's; that the I/O lock is free while a request waits is the product's)
+        read_fault(lambda: proxy.swallow(FC_READ_INPUT, 1), 1)
+        time.sleep(1.0)
+        after = status(sub, machine)
+        # the timed-out read lost nothing; a box so loaded that the reader fell a ring behind loses
+        # samples, but as overruns, named and counted
+        overrun = after["daq"].get("overruns", 0) + after["daq"].get("overwritten_during_read", 0)
+        assert after["lost_samples"] == 0 or overrun > 0, after
+        _nothing_lost_between_driver_and_pipeline(after)
+        (t_swallowed,) = [t for t, _, kind in proxy.injected if kind == "swallowed"]
+        t_retry = next(t for t, fc in list(proxy.arrivals) if fc == FC_READ_INPUT and t > t_swallowed)
+        beats_while = [t for t, fc in list(proxy.arrivals) if fc == FC_WRITE_REGISTER and t_swallowed < t < t_retry]
+        assert beats_while, "no heartbeat went out while a read waited for its answer: the I/O lock was held"
+        assert proxy.injected_count("swallowed") == 1 and proxy.injected_count("exception", FC_READ_INPUT) == 1 + 3
+        estimates = sub.get("estimate")
+        assert daemon.poll() is None
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(10) == 0
     assert refused["state"] == "running"  # a refused heartbeat is the DAQ's call, not a pipeline fault
     assert_no_damaged_estimate_looks_valid(estimates)
     events = log_events(procs.text("daemon", "out"))

@@ -11,10 +11,8 @@ from __future__ import annotations
 
 import pytest
 
-from tests.conftest import free_tcp_port
-from tests.e2e.helpers import Procs, Subscriber, read_jsonl, tcp, wait_for, write_config
-from tests.faults.helpers import INTERLOCK_OPEN, outputs, wait_status
-from tests.faults.netfault import ModbusProxy
+from tests.e2e.helpers import read_jsonl, wait_for
+from tests.faults.helpers import modbus_proxy_daemon, outputs, wait_status
 
 pytestmark = pytest.mark.slow
 
@@ -23,32 +21,17 @@ SLOW_S = 60.0  # detects a failure; no budget (CI is a loaded 2-core box)
 
 
 def test_a_gateway_too_slow_for_the_samples_is_blind_and_holds_the_feed(tmp_path):
-    mb_port, z_port = free_tcp_port(), free_tcp_port()
     machine = "mb-slow-01"
-    sim_log = tmp_path / "sim.jsonl"
-    with Procs(tmp_path) as procs:
-        procs.start("sim", ["sim", "--scenario", "step", "--loop", "--modbus-tcp", f"127.0.0.1:{mb_port}", "--realtime",
-                            "--status-log", str(sim_log)])
-        wait_for(lambda: "serving" in procs.text("sim"), SLOW_S, "emulator serving")
-        proxy = ModbusProxy(mb_port)
-        cfg = write_config(tmp_path / "d.toml", machine=machine,
-                           daq=f'transport = "modbus-tcp"\nhost = "127.0.0.1"\ntcp_port = {proxy.port}\npoll_ms = 20',
-                           zenoh_listen=[tcp(z_port)], interlock=INTERLOCK_OPEN)
-        daemon = procs.start("daemon", ["run", "--config", str(cfg)])
-        sub = Subscriber([tcp(z_port)], machine)
-        try:
-            st = wait_status(sub, machine, lambda s: s["samples_received"] > 2000, SLOW_S, "the stream flowing")
-            assert st["state"] == "running" and not st.get("faults"), st
-            proxy.late(FC_READ_INPUT, 10**9, 0.04)   # every ring read from now on
-            st = wait_status(sub, machine, lambda s: "signals" in s.get("faults", {}) or daemon.poll() is not None,
-                             SLOW_S, "fault signals")
-            assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
-            reason = st["faults"]["signals"]
-            assert "with the link up" in reason and "overrun" in reason, reason
-            assert st["daq_link"] == "up", st
-            wait_for(lambda: outputs(read_jsonl(sim_log), feed_hold=True, cause="command"), SLOW_S,
-                     "the daemon holds the feed (on_blind = hold)")
-            wait_status(sub, machine, lambda s: s["interlock"] == "feed_hold", SLOW_S, "status: feed held")
-        finally:
-            sub.close()
-            proxy.close()
+    with modbus_proxy_daemon(tmp_path, machine) as (procs, daemon, sub, sim_log, proxy):
+        st = wait_status(sub, machine, lambda s: s["samples_received"] > 2000, SLOW_S, "the stream flowing")
+        assert st["state"] == "running" and not st.get("faults"), st
+        proxy.late(FC_READ_INPUT, 10**9, 0.04)   # every ring read from now on
+        st = wait_status(sub, machine, lambda s: "signals" in s.get("faults", {}) or daemon.poll() is not None,
+                         SLOW_S, "fault signals")
+        assert daemon.poll() is None, procs.text("daemon", "out")[-3000:]
+        reason = st["faults"]["signals"]
+        assert "with the link up" in reason and "overrun" in reason, reason
+        assert st["daq_link"] == "up", st
+        wait_for(lambda: outputs(read_jsonl(sim_log), feed_hold=True, cause="command"), SLOW_S,
+                 "the daemon holds the feed (on_blind = hold)")
+        wait_status(sub, machine, lambda s: s["interlock"] == "feed_hold", SLOW_S, "status: feed held")

@@ -14,8 +14,7 @@ import pytest
 pytest.importorskip("asyncua", reason="the opcua extra (asyncua) is not installed")
 from asyncua import ua  # noqa: E402
 
-from millsense.daemon.opcua.server import Feeder, build_server  # noqa: E402
-from tests.opcua.rig import MS_NS, SLOW_S, alarm_types, connect, in_process_options, make_pki, wait_async  # noqa: E402
+from tests.opcua.rig import alarm_types, opcua_rig, value  # noqa: E402
 
 BASE = {"t": 1.7e9, "run_id": "r1", "rev": 9}
 ALARMS = [
@@ -39,54 +38,32 @@ async def _supertypes(node):
 
 
 def test_limit_alarms_are_exclusive_level_alarms_with_their_limit_and_discrete_ones_off_normal(tmp_path):
-    pki = make_pki(tmp_path / "pki")
-    port, options = in_process_options(tmp_path, pki)
-
     async def scenario():
-        server, ns, root = await build_server(options)
-        await server.start()
-        client = None
-        try:
-            client = await connect(port, pki.client_cert, pki.client_key)
-            ms = await client.get_namespace_index(MS_NS)
-            limit_type, discrete_type = await alarm_types(client)
+        async with opcua_rig(tmp_path) as rig:
+            limit_type, discrete_type = await alarm_types(rig.client)
             assert ua.NodeId(ua.ObjectIds.ExclusiveLevelAlarmType) in await _supertypes(limit_type)
             assert ua.NodeId(ua.ObjectIds.OffNormalAlarmType) in await _supertypes(discrete_type)
-            events = []
-
-            class Handler:
-                def event_notification(self, event):
-                    events.append(event)
-
-            subscription = await client.create_subscription(20, Handler())
-            await subscription.subscribe_events(ua.ObjectIds.Server, [limit_type, discrete_type])
-            machine = await Feeder(server, ns, root).machine("m1")
+            await rig.subscribe([limit_type, discrete_type])
+            machine = await rig.machine()
             for alarm in ALARMS:
                 await machine.apply("alarm", alarm)
 
-            async def named(name):
-                return next((e for e in events if e.ConditionName == name), None)
             expected = {"torque_nm": limit_type, "force_n": limit_type, "daq": discrete_type, "FeedHeld": discrete_type}
             for name, etype in expected.items():
-                event = await wait_async(lambda n=name: named(n), SLOW_S, f"{name}'s event")
+                event = (await rig.named(name))[0]
                 assert event.EventType == etype.nodeid, (name, event.EventType)
-                condition = client.get_node(ua.NodeId(f"m1/Notification/Messages/{name}", ms))
-                assert await condition.read_type_definition() == etype.nodeid, name
+                assert await rig.condition(name).read_type_definition() == etype.nodeid, name
             # The limit, on its side: an overload's is a high limit, an envelope_low's a low one.
-            torque = client.get_node(ua.NodeId("m1/Notification/Messages/torque_nm", ms))
-            assert await (await torque.get_child(["0:HighLimit"])).read_value() == 30.0
-            assert math.isnan(await (await torque.get_child(["0:LowLimit"])).read_value())
-            force = client.get_node(ua.NodeId("m1/Notification/Messages/force_n", ms))
-            assert await (await force.get_child(["0:LowLimit"])).read_value() == 120.0
-            assert (await named("torque_nm")).HighLimit == 30.0 and (await named("force_n")).LowLimit == 120.0
+            torque = rig.condition("torque_nm")
+            assert await value(torque, "0:HighLimit") == 30.0
+            assert math.isnan(await value(torque, "0:LowLimit"))
+            assert await value(rig.condition("force_n"), "0:LowLimit") == 120.0
+            assert (await rig.named("torque_nm"))[0].HighLimit == 30.0
+            assert (await rig.named("force_n"))[0].LowLimit == 120.0
             # A discrete condition has no limits; it is active or not.
-            daq = client.get_node(ua.NodeId("m1/Notification/Messages/daq", ms))
-            assert await (await daq.get_child(["0:ActiveState", "0:Id"])).read_value() is True
+            daq = rig.condition("daq")
+            assert await value(daq, "0:ActiveState", "0:Id") is True
             with pytest.raises(ua.UaStatusCodeError):
                 await daq.get_child(["0:HighLimit"])
-        finally:
-            if client is not None:
-                await client.disconnect()
-            await server.stop()
 
     asyncio.run(scenario())

@@ -24,13 +24,12 @@ from asyncua import ua  # noqa: E402
 from asyncua.common.events import get_filter_from_event_type  # noqa: E402
 
 from millsense.daemon.opcua import where_clause  # noqa: E402
-from millsense.daemon.opcua.server import Feeder, build_server  # noqa: E402
-from tests.opcua.rig import SLOW_S, connect, in_process_options, make_pki, wait_async  # noqa: E402
+from tests.opcua.rig import REFRESH_END, opcua_rig  # noqa: E402
 
 OVERLOAD = {"t": 1.7e9, "seq": 1, "run_id": "r1", "level": "overload", "quantity": "torque_nm", "value": 31.7,
             "limit": 30.0, "interlock": "feed_hold", "rev": 9}
 CLEAR = {**OVERLOAD, "seq": 2, "t": 1.7e9 + 0.2, "level": "clear", "value": 0.0}
-REFRESH_START, REFRESH_END = ua.NodeId(ua.ObjectIds.RefreshStartEventType), ua.NodeId(ua.ObjectIds.RefreshEndEventType)
+REFRESH_START = ua.NodeId(ua.ObjectIds.RefreshStartEventType)
 
 
 def _held_status(t):
@@ -56,41 +55,24 @@ def active_only() -> ua.ContentFilter:
 
 
 def test_a_client_that_watches_only_active_conditions_gets_the_held_feed_live_and_from_condition_refresh(tmp_path):
-    pki = make_pki(tmp_path / "pki")
-    port, options = in_process_options(tmp_path, pki)
-
     async def scenario():
-        server, ns, root = await build_server(options)
-        await server.start()
-        client = None
-        try:
-            client = await connect(port, pki.client_cert, pki.client_key)
-            events = []
-
-            class Handler:
-                def event_notification(self, event):
-                    events.append(event)
-
-            evfilter = await get_filter_from_event_type([client.get_node(ua.ObjectIds.AlarmConditionType)],
+        async with opcua_rig(tmp_path) as rig:
+            evfilter = await get_filter_from_event_type([rig.client.get_node(ua.ObjectIds.AlarmConditionType)],
                                                         where_clause_generation=False)
             evfilter.WhereClause = active_only()
-            subscription = await client.create_subscription(20, Handler())
-            await subscription.subscribe_events(ua.ObjectIds.Server, evfilter=evfilter)
-            machine = await Feeder(server, ns, root).machine("m1")
+            await rig.subscribe(evfilter=evfilter)
+            machine = await rig.machine()
 
             # Live: the overload and the held feed it caused, both active; the overload's clear is not sent.
             await machine.apply("alarm", OVERLOAD)
             await machine.apply("alarm", CLEAR)
             for t in (1.7e9 + 1.5, 1.7e9 + 2.5):
                 await machine.apply("status", _held_status(t))
-            await wait_async(lambda: _named(events, "torque_nm", "FeedHeld"), SLOW_S, "both active conditions")
+            await rig.until(lambda events: sorted({getattr(e, "ConditionName", None) for e in events}) == [
+                "FeedHeld", "torque_nm"], "both active conditions")
             # the clear's event was fired after both: had it passed the filter, it would be here by RefreshEnd
-            mark = len(events)
-            await client.get_node(ua.ObjectIds.ConditionType).call_method(
-                ua.NodeId(ua.ObjectIds.ConditionType_ConditionRefresh),
-                ua.Variant(subscription.subscription_id, ua.VariantType.UInt32))
-            await wait_async(lambda: _after(events, mark, REFRESH_END), SLOW_S, "RefreshEnd, whatever the filter")
-            live, refresh = events[:mark], events[mark:]
+            live = list(rig.events)
+            refresh = await rig.refresh()   # RefreshEnd, whatever the filter
             assert sorted(e.ConditionName for e in live) == ["FeedHeld", "torque_nm"], live
             assert all(getattr(e, "ActiveState/Id") is True for e in live), live
 
@@ -99,21 +81,9 @@ def test_a_client_that_watches_only_active_conditions_gets_the_held_feed_live_an
             assert [e.EventType for e in refresh][0] == REFRESH_START and refresh[-1].EventType == REFRESH_END
             (held,) = refresh[1:-1]
             assert held.ConditionName == "FeedHeld" and getattr(held, "ActiveState/Id") is True, held
-            assert held.EventType == ns.discrete_type.nodeid and held.Severity >= 900, held
-        finally:
-            if client is not None:
-                await client.disconnect()
-            await server.stop()
+            assert held.EventType == rig.ns.discrete_type.nodeid and held.Severity >= 900, held
 
     asyncio.run(scenario())
-
-
-async def _named(events, *names):
-    return sorted(names) == sorted({getattr(e, "ConditionName", None) for e in events})
-
-
-async def _after(events, mark, etype):
-    return any(e.EventType == etype for e in events[mark:])
 
 
 def _aspace_with(*chain: ua.NodeId) -> Any:
