@@ -1,0 +1,179 @@
+"""A material calibrated from one test cut: the feed-drive depth and the force, before and after.
+
+`millsense calibrate --material --fit-r1` (a real subprocess) fits the material from one test cut on fig6's
+φ16 4-flute tool and DAQ: down milling at a_e 2 mm, a_p 6 mm, the feed per tooth stepping 0.1 / 0.2 / 0.3 mm,
+with the feed-drive current (`[feed_force]`), so the fit takes K_s from the torque ([D] eq. 7) and r₁ from the
+feed-drive force over the tangential force ([D] eq. 12). It is judged on another cut of the same material and
+engagement, fig6 (a_e 2 mm, a_p 6 / 11 / 16 mm, f_z 0.208 mm: none of the test cut's), through the real
+estimator with `depth.method = "feed-drive"` and `cf = "model"`, over its steady revolutions (simcase.settled).
+The configuration before the test cut is what an operator has: the ISO table's steel (group P,
+physics/materials.py), its r₁ [D] Table 2's as every group's.
+
+- [D]'s own plant (the law it models), the configuration's r₁ at the top of the published range (0.60 at a
+  0.1 mm chip, physics.md §5a): before, the radial depth 39–40 % off and the force 13 %; after, the radial and
+  axial depth and the force each within 3 % on every steady revolution (the issue's bound; the estimator's own
+  spread on this cut is 2.3 %, accuracy.md). The fit recovers the plant's k, p, r1, q within 0.6 %.
+- The effects plant (sim/cut_effects.py, every effect on: Kienzle's law at the instantaneous chip, edge
+  forces, 5 µm runout, tool deflection): before, the radial depth 25–29 % low, the axial 22–24 % low; after,
+  the radial and axial depth within 3 % over each steady stretch (a_p 6, 11, 16 mm; the mean: a
+  revolution's own spread is the estimator's, above). The radial depth is judged against the depth the tool
+  engages, the program's less its mean bend away from the wall (mean F_y over the tool's stiffness,
+  cut_effects.tool_stiffness_n_mm: 0.04–0.11 mm), which is what the forces measure. Not asserted, because
+  it does not hold: the resultant force with the fitted r₁ (2.8–3.9 % low here, against 1.4–1.6 % high
+  with the table's r₁) — one r₁ cannot carry both the feed force's and the resultant's weighting of a force
+  that is not [D]'s sin φ shape; and other engagements (fig5, fig7, up to 4.7 %). Both: docs/accuracy.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+
+import pytest
+
+from . import configs, simcase
+from .test_calibrate_cli import _run
+
+RPM = 600.0
+FEEDS_PER_TOOTH_MM = (0.1, 0.2, 0.3)
+LEVEL_MM = 30.0                    # of travel at each feed
+TEST_AE_MM, TEST_AP_MM = 2.0, 6.0
+BOUND = 0.03                       # the issue's: depth and force within 3 % after one test cut
+CHECKED = "fig6"                   # a_e 2 mm, a_p 6/11/16 mm, f_z 0.208 mm: another cut at the test cut's engagement
+
+
+def _effects():
+    from millsense.sim.cut_effects import CutEffects
+
+    return CutEffects()            # every effect on, the defaults the docs state
+
+
+def _test_cut(effects):
+    """fig6's tool, material and DAQ, one engagement, the feed stepping through FEEDS_PER_TOOTH_MM."""
+    from millsense.sim.scenarios import SCENARIOS
+
+    base = SCENARIOS[CHECKED]
+    rate = [fz * base.tool.flutes * RPM for fz in FEEDS_PER_TOOTH_MM]
+    segments = ((-math.inf, rate[0]), *((LEVEL_MM * (i + 1), rate[i + 1]) for i in range(len(rate) - 1)))
+    end = LEVEL_MM * len(rate)
+    duration_s = sum(LEVEL_MM / (r / 60.0) for r in rate) + 3.0      # the approach and the entry
+    return dataclasses.replace(base, name="calibrate-depth-test-cut", spindle_schedule=((0.0, RPM),),
+                               radial_profile=((0.0, TEST_AE_MM), (end, TEST_AE_MM)),
+                               axial_profile=((0.0, TEST_AP_MM), (end, TEST_AP_MM)), feed_segments=segments,
+                               duration_s=round(duration_s, 1), effects=effects)
+
+
+def _test_cut_capture(effects):
+    from millsense.sim import write_capture
+    from tests import captures
+
+    scenario = _test_cut(effects)
+
+    def build(d):
+        write_capture(scenario, str(d / "capture.bin"), str(d / "truth.jsonl"), seed=3)
+
+    d = captures.shared(f"calibrate-depth {scenario!r}", build)
+    return d / "capture.bin"
+
+
+def _table_material(r1_at_0_1_mm=None):
+    """ISO group P's law; `r1_at_0_1_mm`: its r₁ scaled to that value at a 0.1 mm chip, the exponent kept."""
+    from millsense.daemon.physics.materials import ISO_GROUPS
+
+    m = ISO_GROUPS["P"].material
+    r1 = m.r1 if r1_at_0_1_mm is None else r1_at_0_1_mm / 0.1 ** m.r1_exp
+    return (m.ks, m.ks_exp, r1, m.r1_exp, m.r2, m.r2_exp)
+
+
+def _calibrate(tmp_path, millsense_cmd, capture, configured):
+    """The fitted [material] as a tuple, through the CLI with the test cut's own zeroed feed-current sensor."""
+    from millsense.daemon.config.load import load_config
+    from millsense.sim.scenarios import SCENARIOS
+
+    sc = SCENARIOS[CHECKED]
+
+    def text(offset):
+        return configs.toml_text(tool=(sc.tool.diameter_mm, sc.tool.flutes), mode="down", feed_mm_min=None,
+                                 material=configured, filter_cutoff_hz=sc.filter_cutoff_hz,
+                                 extra_channels=simcase.D_CHANNELS.format(ix_offset=offset),
+                                 feed_force=simcase.FEED_FORCE)
+
+    cfg = tmp_path / "test-cut.toml"
+    cfg.write_text(text(0.0))
+    offset = simcase.zero_feed_current(capture, CHECKED, tmp_path, settings=load_config(cfg))
+    cfg.write_text(text(offset))
+    out = tmp_path / "material.toml"
+    code, stdout, err = _run([*millsense_cmd, "calibrate", str(capture), "--material", "--ae-mm", str(TEST_AE_MM),
+                              "--ap-mm", str(TEST_AP_MM), "--mode", "down", "--fit-r1", "--config", str(cfg),
+                              "--out", str(out)], 180)
+    assert code == 0, stdout + err
+    assert "3 feed levels" in stdout and "written (--fit-r1)" in stdout, stdout
+    m = tomllib.loads(out.read_text())["material"]
+    return tuple(m[k] for k in ("ks", "ks_exp", "r1", "r1_exp", "r2", "r2_exp"))
+
+
+def _errors(tmp_path, material, effects):
+    """Per steady revolution of fig6: the stretch (a_p), and (radial vs engaged, axial, resultant force) − 1."""
+    from millsense.sim.cut_effects import NONE, tool_stiffness_n_mm
+    from millsense.sim.scenarios import SCENARIOS
+
+    sc = SCENARIOS[CHECKED]
+    cap, truth_path = simcase.capture(tmp_path, CHECKED, effects=effects)
+    offset = simcase.zero_feed_current(cap, CHECKED, tmp_path)
+    settings = simcase.settings_for(CHECKED, tmp_path, method="feed-drive", cf="model", material=material,
+                                    ix_offset_counts=offset)
+    estimates, _ = simcase.run(cap, settings)
+    truth = simcase.read_truth(truth_path)
+    steady = simcase.settled(truth, CHECKED)
+    stiffness_n_mm = tool_stiffness_n_mm(sc.tool, effects) if (effects or NONE).deflection else math.inf
+    out = []
+    for e, t in simcase.match(estimates, truth):
+        if t["rev"] not in steady:
+            continue
+        assert e["depth_status"] == "ok", (e["depth_status"], t)
+        # down milling: F_y < 0 pushes the tool off the wall (cut_effects.effect_forces), engaging less
+        engaged_mm = t["radial_depth_mm"] + t["force_y_n"] / stiffness_n_mm
+        out.append((t["axial_depth_mm"], (e["radial_depth_mm"] / engaged_mm - 1.0,
+                                          e["axial_depth_mm"] / t["axial_depth_mm"] - 1.0,
+                                          e["force_n"] / t["force_n"] - 1.0)))
+    assert len(out) > 100, len(out)          # the three axial depths, about 37 steady revolutions each
+    return out
+
+
+def _worst(errors):
+    """Per quantity, the largest |error| of any revolution."""
+    return [max(abs(e[i]) for _, e in errors) for i in range(3)]
+
+
+def _worst_stretch(errors):
+    """Per quantity, the largest |mean error| of a steady stretch (one a_p)."""
+    stretches = {}
+    for ap, e in errors:
+        stretches.setdefault(ap, []).append(e)
+    return [max(abs(sum(e[i] for e in v) / len(v)) for v in stretches.values()) for i in range(3)]
+
+
+@pytest.mark.slow
+def test_d_plant_one_test_cut_brings_the_depth_within_3_percent(tmp_path, millsense_cmd):
+    configured = _table_material(r1_at_0_1_mm=0.60)
+    before = _worst(_errors(tmp_path, configured, None))
+    assert before[0] > BOUND, before                  # the configured r₁ puts the radial depth off
+    fitted = _calibrate(tmp_path, millsense_cmd, _test_cut_capture(None), configured)
+    assert fitted[4:] == configured[4:]               # r2: the configuration's, no channel here sees it
+    after = _worst(_errors(tmp_path, fitted, None))
+    assert after[0] <= BOUND, ("radial", after, before)
+    assert after[1] <= BOUND, ("axial", after, before)
+    assert after[2] <= BOUND, ("force", after, before)   # r₁ is the plant's again, so C_f is: 13 % off before
+
+
+@pytest.mark.slow
+def test_effects_plant_one_test_cut_brings_the_depth_within_3_percent(tmp_path, millsense_cmd):
+    effects = _effects()
+    configured = _table_material()
+    before = _worst_stretch(_errors(tmp_path, configured, effects))
+    assert before[0] > 0.2 and before[1] > 0.15, before    # the table's law: the depths 20-30 % off
+    fitted = _calibrate(tmp_path, millsense_cmd, _test_cut_capture(effects), configured)
+    after = _worst_stretch(_errors(tmp_path, fitted, effects))
+    assert after[0] <= BOUND, ("radial", after, before)
+    assert after[1] <= BOUND, ("axial", after, before)
