@@ -38,6 +38,12 @@ STEADY_SPAN = 3          # revolutions either side that must agree with a steady
 STEADY_FEED_REL = 0.005  # their feed per tooth within 0.5 % (a feed change moves it by its whole step)
 STEADY_TORQUE_REL = 0.02  # their torque within 2 % (entry, exit and a feed change move it by far more a revolution)
 LEVEL_REL = 0.02         # feeds per tooth within 2 % are one level
+# The edge term is not fitted, at any number of feeds (physics.md §5b): the mean force against the chip is a line
+# whose intercept is the edge term only where the chip term is linear (Altintas ch. 2); with Kienzle's size
+# effect in the chip term a line's intercept on the simulated test cuts is 56-75 N/mm for a true 20, and a
+# chip power law plus an edge constant through three levels moves K_te over 6-31 N/mm for 0.2 % of torque.
+EDGE_NOTE = ("  edge term (edge_t_n_mm, edge_r_n_mm): not fitted: the feed levels' torque cannot split the law into a "
+             "chip and an edge term to better than tens of N/mm (physics.md 5b); the configuration's are kept")
 RECORD = ("a capture of one test cut at constant a_e and a_p on the configured tool, each feed held for "
           "10 or more revolutions in full engagement (several feeds, 1:2 or wider, to fit the exponent too)")
 
@@ -230,6 +236,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         print("  r1, r1_exp: the configuration's (no feed-drive force: the torque does not see r1; a [feed_force] "
               "entry for the feed-current channel lets the test cut fit them)")
+    print(EDGE_NOTE)
     if found:
         _refuse(found)
         return 1
@@ -252,6 +259,16 @@ def _say_cf_change(radial, configured, levels, written: bool) -> None:
     print(f"  at t_a {chip:.4f} mm r1 {new:.4g} against the configuration's {old:.4g}: C_f's factor "
           f"sqrt(1 + r1^2) {change:+.2f} %; " + ("written (--fit-r1)" if written else
                                                   "not written: the configuration's r1 kept (--fit-r1 writes it)"))
+
+
+def _edge_lines(configured) -> list[str]:
+    """The configuration's edge coefficients, kept: the fitted law is the whole average law whatever its split
+    (physics.md §5b), and the torque cannot tell the split (module doc, EDGE_NOTE)."""
+    edge_t, edge_r = float(getattr(configured, "edge_t_n_mm", 0.0)), float(getattr(configured, "edge_r_n_mm", 0.0))
+    if edge_t <= 0.0 and edge_r <= 0.0:
+        return []
+    return ["# edge_t_n_mm, edge_r_n_mm: the configuration's (not fitted: physics.md 5b)",
+            f"edge_t_n_mm = {edge_t:.6g}", f"edge_r_n_mm = {edge_r:.6g}"]
 
 
 def _refuse(refusals) -> None:
@@ -281,6 +298,7 @@ def _write(path: Path, fit, configured, args, mode, radius, flutes, levels, borr
         f"r1_exp = {float(configured.r1_exp if radial is None else radial.r1_exp):.6g}",
         f"r2 = {float(configured.r2):.6g}",
         f"r2_exp = {float(configured.r2_exp):.6g}",
+        *_edge_lines(configured),
         "",
     ]
     text = "\n".join(lines)
