@@ -34,7 +34,8 @@ its own mean), summed over the teeth in cut with the helix's lag and averaged ov
 
 With K_te = K_re = 0 this is resultant.py's η·√(1 + r₁²). An edge term larger than the law's mean at this
 chip (T_c ≤ 0 or R_c ≤ 0: the law's exponent says the force of a thin chip is smaller than the edge alone)
-is outside what the split can say: None (the caller keeps the chip-only C_f).
+is outside what the split can say: None (the caller keeps the chip-only C_f); so is a split whose chip keeps
+almost none of the radial force (R_c → 0: q_c of E4 runs to tens and the quadrature to nan).
 
 Cost: one quadrature (2–10 ms); ``edge_cf`` caches it per cut on a grid (feed per tooth to 0.2 %, radial
 depth to 0.5 % of R, axial depth to 1 %): a constant cut pays it once, then a dictionary look-up (5 µs);
@@ -104,11 +105,15 @@ def split_cf(flutes: int, entry_rad: float, exit_rad: float, lag_rad: float, fee
         return None
     p, q = local_exponents(parts.size_exp, parts.r1_exp)
     e, x, g = (np.array([[v]], dtype=float) for v in (entry_rad, exit_rad, lag_rad))
-    a_c, b_c, weight, mean_c, _ = _period_sums(int(flutes), e, x, g, nodes, p, q)
-    a_e, _, _, mean_e, _ = _period_sums(int(flutes), e, x, g, nodes, -1.0, 0.0)   # sin⁰ φ: the edge, even
-    chip = (a_c + 1j * (parts.chip_r / parts.chip_t) * b_c) * (parts.chip_t / mean_c[0])        # (E2)
-    edge = (parts.edge_t + 1j * parts.edge_r) * a_e / mean_e[0]
-    return float((np.abs(chip + edge) * weight).sum()) / (parts.chip_t + parts.edge_t)           # (E3)
+    with np.errstate(invalid="ignore", over="ignore"):   # a degenerate split's nan is caught below
+        a_c, b_c, weight, mean_c, _ = _period_sums(int(flutes), e, x, g, nodes, p, q)
+        a_e, _, _, mean_e, _ = _period_sums(int(flutes), e, x, g, nodes, -1.0, 0.0)   # sin⁰ φ: the edge, even
+        chip = (a_c + 1j * (parts.chip_r / parts.chip_t) * b_c) * (parts.chip_t / mean_c[0])    # (E2)
+        edge = (parts.edge_t + 1j * parts.edge_r) * a_e / mean_e[0]
+        cf = float((np.abs(chip + edge) * weight).sum()) / (parts.chip_t + parts.edge_t)         # (E3)
+    # where the edge takes nearly all the law's radial force, R_c → 0 sends (E4)'s q_c to 45-70 and the sums
+    # of sin^q_c φ to nan: the split says nothing there either (None: the caller's chip-only C_f)
+    return cf if math.isfinite(cf) else None
 
 
 def edge_cf(mode: str, flutes: int, tool_radius_mm: float, helix_deg: float | None, feed_per_tooth_mm: float,

@@ -107,3 +107,18 @@ def test_without_edge_coefficients_nothing_changes_and_an_edge_beyond_the_law_is
     # one revolution (floats) and a column (arrays) read the same
     col = engaged_cf("slot", 3, 4.0, 30.0, np.array([0.04, 0.05]), 8.0, 2.0, EDGED, 1.075)
     assert col[0] == pytest.approx(engaged_cf(*args, EDGED, 1.075), rel=1e-12)
+
+
+def test_a_split_whose_chip_keeps_almost_no_radial_force_falls_back_not_nan():
+    """Where the edge's radial term takes nearly all the law's radial force (R_c → 0), (E4)'s q_c runs to
+    45–70 and the quadrature of sin^q_c φ gave nan, which `cf = "auto"` published as a null force. The split
+    says nothing there: None, and the caller's chip-only C_f (a material fitted from a feed-drive test cut,
+    r₁ 0.157·t_a^−0.284, with the round steel pair 25 / 35 N/mm; down milling, 4 flutes, φ16)."""
+    fitted = Material(591.019, -0.452169, 0.157176, -0.283623, 0.1244, 0.1702, 25.0, 35.0)
+    for fz, ae_mm in ((0.208, 0.24), (0.104, 0.96)):
+        parts = edge.split(*edge.engagement_xp(edge.NP, np.asarray(ae_mm / 8.0), "down"), fz, fitted)
+        assert parts is not None and parts.r1_exp > 40.0          # the degenerate split this is about
+        assert edge.edge_cf("down", 4, 8.0, None, fz, ae_mm, 2.0, fitted) is None
+        cf = engaged_cf("down", 4, 8.0, None, fz, ae_mm, 2.0, fitted, 1.075)
+        assert math.isfinite(cf) and cf == engaged_cf("down", 4, 8.0, None, fz, ae_mm, 2.0,
+                                                      fitted._replace(edge_t_n_mm=0.0, edge_r_n_mm=0.0), 1.075)
