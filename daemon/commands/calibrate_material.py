@@ -219,16 +219,20 @@ def run(args: argparse.Namespace) -> int:
             radial = fit_radial_ratio([lv[1] for lv in levels], [lv[5] for lv in levels],
                                       borrowed_exp=float(settings.material.r1_exp) if len(levels) == 1 else None)
         except ValueError as exc:
-            found.append(Refusal("material", str(exc).split(": ", 1)[1], RECORD + ", with --mode and --ae-mm "
-                                 "those of the cut, and the feed-force channel zeroed in air"))
+            radial_found = [Refusal("material", str(exc).split(": ", 1)[1], RECORD + ", with --mode and --ae-mm "
+                                    "those of the cut, and the feed-force channel zeroed in air")]
         else:
-            found += judge_radial(radial, RECORD)
+            radial_found = judge_radial(radial, RECORD)
             print(f"  r1 = {radial.r1:.5g}·t_a^{radial.r1_exp:.4f} from the feed-drive force ([D] eq. 12)"
                   + (" with the configuration's exponent (one feed level)" if radial.exp_borrowed else
                      f"; worst level {100 * max(abs(x) for x in radial.residuals_rel):.2f} % off the line"))
             _say_cf_change(radial, settings.material, levels, args.fit_r1)
-            if not args.fit_r1:
-                radial = None
+        if args.fit_r1:
+            found += radial_found
+        else:   # not asked for: a feed force that fits no radial law does not stop the K_s fit, it is said
+            for r in radial_found:
+                print(f"  r1 not fitted: {r.problem}")
+            radial = None
     elif args.fit_r1:
         found.append(Refusal("material", "--fit-r1 without the feed-drive force on every feed level (a [feed_force] "
                                          "entry for the DAQ's feed-current channel)", RECORD + ", with the "

@@ -86,15 +86,16 @@ def _table_material(r1_at_0_1_mm=None):
     return (m.ks, m.ks_exp, r1, m.r1_exp, m.r2, m.r2_exp)
 
 
-def _calibrate(tmp_path, millsense_cmd, capture, configured):
-    """The fitted [material] as a tuple, through the CLI with the test cut's own zeroed feed-current sensor."""
+def _calibrate(tmp_path, millsense_cmd, capture, configured, *, mode="down", fit_r1=True, expect=None):
+    """The fitted [material] as a tuple, through the CLI with the test cut's own zeroed feed-current sensor;
+    with `expect` (an exit code): (stdout, stderr, whether the file was written) instead."""
     from millsense.daemon.config.load import load_config
     from millsense.sim.scenarios import SCENARIOS
 
     sc = SCENARIOS[CHECKED]
 
     def text(offset):
-        return configs.toml_text(tool=(sc.tool.diameter_mm, sc.tool.flutes), mode="down", feed_mm_min=None,
+        return configs.toml_text(tool=(sc.tool.diameter_mm, sc.tool.flutes), mode=mode, feed_mm_min=None,
                                  material=configured, filter_cutoff_hz=sc.filter_cutoff_hz,
                                  extra_channels=simcase.D_CHANNELS.format(ix_offset=offset),
                                  feed_force=simcase.FEED_FORCE)
@@ -105,8 +106,11 @@ def _calibrate(tmp_path, millsense_cmd, capture, configured):
     cfg.write_text(text(offset))
     out = tmp_path / "material.toml"
     code, stdout, err = _run([*millsense_cmd, "calibrate", str(capture), "--material", "--ae-mm", str(TEST_AE_MM),
-                              "--ap-mm", str(TEST_AP_MM), "--mode", "down", "--fit-r1", "--config", str(cfg),
-                              "--out", str(out)], 180)
+                              "--ap-mm", str(TEST_AP_MM), "--mode", mode, *(["--fit-r1"] if fit_r1 else []),
+                              "--config", str(cfg), "--out", str(out)], 180)
+    if expect is not None:
+        assert code == expect, stdout + err
+        return stdout, err, out.exists()
     assert code == 0, stdout + err
     assert "3 feed levels" in stdout and "written (--fit-r1)" in stdout, stdout
     m = tomllib.loads(out.read_text())["material"]
@@ -177,3 +181,15 @@ def test_effects_plant_one_test_cut_brings_the_depth_within_3_percent(tmp_path, 
     after = _worst_stretch(_errors(tmp_path, fitted, effects))
     assert after[0] <= BOUND, ("radial", after, before)
     assert after[1] <= BOUND, ("axial", after, before)
+
+
+def test_a_feed_force_no_radial_law_fits_refuses_fit_r1_and_only_it(tmp_path, millsense_cmd):
+    """The down test cut declared `--mode up`: eq. 12 at up milling's engagement gives no positive r₁ from
+    its feed-drive force. `--fit-r1` is refused, nothing written; without it the K_s fit goes on and says why r₁
+    was not fitted (the feed force is not what the fit was asked for)."""
+    capture = _test_cut_capture(None)
+    stdout, err, written = _calibrate(tmp_path, millsense_cmd, capture, _table_material(), mode="up", expect=1)
+    assert "refused: material: r1 = " in err and "not positive" in err and not written, stdout + err
+    stdout, err, written = _calibrate(tmp_path, millsense_cmd, capture, _table_material(), mode="up",
+                                      fit_r1=False, expect=0)
+    assert written and "r1 not fitted: r1 = " in stdout, stdout + err
