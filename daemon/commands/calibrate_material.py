@@ -18,8 +18,8 @@ the same way (one level: r1 with the configuration's exponent). The output gives
 move √(1 + r₁²), C_f's factor, at the test cut; `--fit-r1` writes it, else r1 and r1_exp stay the
 configuration's. Why not always: r₁ fitted from the feed force is the one the feed-drive depth (eq. 12) needs,
 but on a cut whose forces are not [D]'s sin φ shape it is not the one the resultant needs (physics.md §5a,
-accuracy.md: 26 % off the radial depth mended, 2–4 % of force lost). r2 is always the configuration's (no
-channel here sees the axial force).
+accuracy.md: the radial depth 26 % off mended, the force 3–5 % low after, 1–6 % high before). r2 is always the
+configuration's (no channel here sees the axial force).
 
 Refused, exit 1, nothing written, with the reason and the capture that would do: no steady cut, a level
 with too few revolutions, a torque near the noise and friction floor, an exponent no material has, a feed-drive
