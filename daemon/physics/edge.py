@@ -141,3 +141,51 @@ def _cached(mode, flutes, radius_mm, helix_deg, step, cell_r, cell_a, material) 
     axial = None if cell_a is None else math.exp(cell_a * AXIAL_STEP)
     lag = float(helix_lag_rad(axial, helix_deg, radius_mm))
     return split_cf(flutes, float(entry), float(exit_), lag, math.exp(step * FEED_STEP), material)
+
+
+# ----------------------------------------------------------------------------- [D] eq. 12 with the split law
+# The feed-drive depth solves f_xt = F_x/F_t for the radial immersion ([D] eq. 12). [D]'s f_xt = (a + r₁b)/c holds
+# one r₁ at the mean chip over the whole arc, forces ∝ sin φ. With edge coefficients the material says more: the
+# chip term at the instantaneous chip with (E4)'s exponents, the edge even over the arc (E1). Per tooth and mm of
+# depth, with T̂ = K_s(t_a)·t_a and R̂ = r₁(t_a)·T̂ the law's mean forces per radian of arc ((E1) over s/2π), the
+# chip's T̂_c = T̂ − K_te, R̂_c = R̂ − K_re, and I_m = ∫ sin^m φ dφ over the engagement [θ₁, θ₂] of span s:
+#
+#     2π·F_x = T̂_c·s·J/I_(1+p_c) + K_te·(sin θ₂ − sin θ₁) + R̂_c·s·I_(2+p_c+q_c)/I_(1+p_c+q_c) + K_re·(cos θ₁ − cos θ₂)
+#     2π·F_t = T̂·s,     f_xt = F_x/F_t,     J = ∫ sin^(1+p_c) φ·cos φ dφ = [sin^(2+p_c) φ/(2+p_c)]          (E5)
+#
+# (with K_te = K_re = 0 and the law's exponents 0 it is (a + r₁b)/c). Where the edge exceeds the law's mean (T̂_c or
+# R̂_c ≤ 0: a thin chip, edge_cf's None) the chip term is taken as 0 and the edge as the law's whole mean, which
+# meets the split continuously where T̂_c, R̂_c reach 0 (the depth's branches need a continuous curve). On the
+# simulator's effects plant (E5) reads the radial depth from the plant's true forces within 2 % where [D]'s eq. 12
+# reads it 16-26 % low (bench/split_depth.py, docs/accuracy.md). The axial depth's F_t is the law's either way.
+FXT_NODES = 64   # Gauss-Legendre points over the arc: (E5) to 1e-4 against a dense sum (tests/physics/test_edge.py)
+_FXT_X, _FXT_W = np.polynomial.legendre.leggauss(FXT_NODES)
+
+
+def split_fxt(radial_ratio, feed_per_tooth_mm: float, material: Material, mode: str) -> np.ndarray:
+    """f_xt of (E5) at each radial immersion R_r (array in, array out); nan where there is no chip."""
+    r = np.atleast_1d(np.asarray(radial_ratio, dtype=float))
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        entry, exit_ = engagement_xp(NP, r, mode)
+        entry, exit_ = np.broadcast_to(entry, r.shape), np.broadcast_to(exit_, r.shape)
+        span = exit_ - entry
+        t_a = chip_xp(NP, feed_per_tooth_mm, entry, exit_)                                   # [D] eq. 8
+        t_hat = material.ks * t_a ** material.ks_exp * t_a                                     # [D] eq. 9, E1
+        r_hat = material.r1 * t_a ** material.r1_exp * t_hat
+        chip_t, chip_r = np.maximum(t_hat - material.edge_t_n_mm, 0.0), np.maximum(r_hat - material.edge_r_n_mm, 0.0)
+        edge_t, edge_r = t_hat - chip_t, r_hat - chip_r
+        one_p = np.where(chip_t > 0.0, (1.0 + material.ks_exp) * t_hat / chip_t, 1.0)              # (E4)
+        one_pq = np.where(chip_r > 0.0, (1.0 + material.ks_exp + material.r1_exp) * r_hat / chip_r, 1.0)
+        phi = (entry + exit_)[:, None] / 2.0 + span[:, None] / 2.0 * _FXT_X[None, :]
+        weight = span[:, None] / 2.0 * _FXT_W[None, :]
+        sin = np.maximum(np.sin(phi), 0.0)
+        i_t = (weight * sin ** one_p[:, None]).sum(axis=1)
+        i_r = (weight * sin ** one_pq[:, None]).sum(axis=1)
+        i_rs = (weight * sin ** (one_pq[:, None] + 1.0)).sum(axis=1)
+        s1, s2 = np.maximum(np.sin(entry), 0.0), np.maximum(np.sin(exit_), 0.0)
+        j = (s2 ** (one_p + 1.0) - s1 ** (one_p + 1.0)) / (one_p + 1.0)
+        chip_x = np.where(chip_t > 0.0, chip_t * span * j / i_t, 0.0) + \
+            np.where(chip_r > 0.0, chip_r * span * i_rs / i_r, 0.0)
+        edge_x = edge_t * (np.sin(exit_) - np.sin(entry)) + edge_r * (np.cos(entry) - np.cos(exit_))
+        out = (chip_x + edge_x) / (t_hat * span)                                               # (E5)
+    return np.where(np.isfinite(out) & (t_a > 0.0), out, np.nan)
