@@ -16,7 +16,9 @@ entry for the DAQ's feed-current channel), each level's median force over its ta
 chip, [D] eq. (12) solved for r₁ (`calibration.radial_ratio_from_feed_force`), and the levels fit r1 and r1_exp
 the same way (one level: r1 with the configuration's exponent). The output gives the fit and how far it would
 move √(1 + r₁²), C_f's factor, at the test cut; `--fit-r1` writes it, else r1 and r1_exp stay the
-configuration's. Why not always: r₁ fitted from the feed force is the one the feed-drive depth (eq. 12) needs,
+configuration's (a usage error with edge coefficients in [material]: the feed-drive depth then takes the split
+law, physics.md §5b E5, not [D]'s eq. 12). Why not always: r₁ fitted from the feed force is the one the feed-drive
+depth (eq. 12) needs,
 but on a cut whose forces are not [D]'s sin φ shape it is not the one the resultant needs (physics.md §5a,
 accuracy.md: the radial depth 26 % off mended, the force 3–5 % low after, 1–6 % high before). r2 is always the
 configuration's (no channel here sees the axial force).
@@ -76,6 +78,10 @@ def _usage_problem(args, settings) -> str | None:
         return f"--ae-mm {args.ae_mm:g} with a slot: a slot's radial depth is the tool's diameter {diameter:g} mm"
     if not args.ap_mm > 0.0:
         return f"--ap-mm {args.ap_mm:g}: the axial depth must be above 0"
+    if args.fit_r1 and (settings.material.edge_t_n_mm > 0.0 or settings.material.edge_r_n_mm > 0.0):
+        return ("--fit-r1 with edge coefficients in [material]: with them the feed-drive depth takes the law split "
+                "into chip and edge (physics.md 5b, E5), which r1 fitted by [D] eq. 12 is not for; calibrate "
+                "without --fit-r1, or take edge_t_n_mm and edge_r_n_mm out")
     return None
 
 

@@ -213,6 +213,12 @@ def test_with_edge_coefficients_one_test_cut_brings_depth_and_force_within_3_per
     fitted = _calibrate(tmp_path, millsense_cmd, _test_cut_capture(effects), _table_material(), fit_r1=False,
                         edge=STEEL_EDGE_N_MM)
     assert fitted[2:] == _table_material()[2:]        # r₁, r₂: the configuration's
+    # --fit-r1 is for [D]'s eq. 12: with edge coefficients it is a usage error, nothing written
+    apart = tmp_path / "fit-r1"
+    apart.mkdir()
+    stdout, err, written = _calibrate(apart, millsense_cmd, _test_cut_capture(effects), _table_material(),
+                                      edge=STEEL_EDGE_N_MM, expect=2)
+    assert "--fit-r1 with edge coefficients" in err and "Traceback" not in err and not written, stdout + err
     for cut in ("fig6", "fig7", "fig5"):
         before = _worst_stretch(_errors(tmp_path, fitted, effects, cut, helix=True))
         assert before[0] > 0.15, (cut, before)
