@@ -30,7 +30,7 @@ from functools import lru_cache
 from typing import Callable, NamedTuple
 
 import numpy as np
-from millsense.daemon.physics.edge import has_edge, split_fxt
+from millsense.daemon.physics.edge import feed_cell, has_edge, split_fxt
 from millsense.daemon.physics.milling import (
     NP,
     SCALAR,
@@ -237,7 +237,10 @@ def radial_ratio_from_fxt(fxt, feed_per_tooth_mm, material: Material, mode: str)
     """R_r from f_xt = F_ax/F_at ([D] eq. 12), exact; strictly increasing in down milling."""
     if check_mode(mode) == "slot":
         return MAX_RADIAL_RATIO, OK
-    return _solve("fxt", float(fxt), float(feed_per_tooth_mm), material, mode)
+    t_c = float(feed_per_tooth_mm)
+    if has_edge(material):   # (E5)'s curve is a quadrature: built on edge.py's feed grid, once per steady cut
+        t_c = feed_cell(t_c)
+    return _solve("fxt", float(fxt), t_c, material, mode)
 
 
 # --- depths -------------------------------------------------------------------------------

@@ -162,6 +162,15 @@ FXT_NODES = 64   # Gauss-Legendre points over the arc: (E5) to 1e-4 against a de
 _FXT_X, _FXT_W = np.polynomial.legendre.leggauss(FXT_NODES)
 
 
+def feed_cell(feed_per_tooth_mm: float) -> float:
+    """The feed per tooth on the caches' grid (FEED_STEP, 0.2 %): what the depth's (E5) curve is built at, so
+    that a steady cut, its measured feed wandering a little, builds the curve once (f_xt moves by under 0.03 %
+    over a cell). Not finite or not positive: as given."""
+    if not (math.isfinite(feed_per_tooth_mm) and feed_per_tooth_mm > 0.0):
+        return feed_per_tooth_mm
+    return math.exp(round(math.log(feed_per_tooth_mm) / FEED_STEP) * FEED_STEP)
+
+
 def split_fxt(radial_ratio, feed_per_tooth_mm: float, material: Material, mode: str) -> np.ndarray:
     """f_xt of (E5) at each radial immersion R_r (array in, array out); nan where there is no chip."""
     r = np.atleast_1d(np.asarray(radial_ratio, dtype=float))
