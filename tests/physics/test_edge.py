@@ -164,9 +164,14 @@ def test_split_fxt_is_e5_and_the_depth_inverts_it(mode):
     assert edge.split_fxt(0.4, 0.1, flat, mode)[0] == pytest.approx(float(force_ratio_fxt(0.4, 0.1, flat, mode)),
                                                                   rel=1e-9)
     if mode == "down":                              # up milling's f_xt rises and falls: two roots, by design
+        cell = edge.feed_cell(0.104)                # the solver builds (E5) on edge.py's feed grid
+        assert cell != 0.104 and cell == pytest.approx(0.104, rel=edge.FEED_STEP)
         for r_r in (0.1, 0.25, 0.5, 0.9):
-            target = float(edge.split_fxt(r_r, 0.104, sb40_edge, mode)[0])
+            target = float(edge.split_fxt(r_r, cell, sb40_edge, mode)[0])
             solved, status = radial_ratio_from_fxt(target, 0.104, sb40_edge, mode)
             assert status == OK and solved == pytest.approx(r_r, abs=1e-9)
+            # at the exact feed the grid moves the root by well under 0.1 %
+            exact = float(edge.split_fxt(r_r, 0.104, sb40_edge, mode)[0])
+            assert radial_ratio_from_fxt(exact, 0.104, sb40_edge, mode)[0] == pytest.approx(r_r, rel=1e-3)
             plain = sb40_edge._replace(edge_t_n_mm=0.0, edge_r_n_mm=0.0)   # [D]'s eq. 12 reads it otherwise
             assert abs(radial_ratio_from_fxt(target, 0.104, plain, mode)[0] - r_r) > 0.05 * r_r
