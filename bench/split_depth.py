@@ -11,7 +11,8 @@ and the same without the tool's deflection (which changes the engaged depth itse
 plant's nominal law ([D] SB40), with no edge term (the law at the instantaneous chip only) and with edge
 pairs 15/22.5, 20/30 (the plant's) and 25/35 N/mm (STEEL_EDGE_N_MM).
 
-Nothing here is used by the daemon; it is the measurement behind docs/accuracy.md's "what would hold both".
+The daemon's feed-drive depth takes (E5) from edge.split_fxt where the material has edge coefficients
+(physics.md §5b); this is the offline check of it against the plant's true forces (docs/accuracy.md).
 Run: .venv/bin/python bench/split_depth.py   (about a minute; the captures are the tests' shared ones)
 """
 
