@@ -37,6 +37,8 @@ chip (T_c ≤ 0 or R_c ≤ 0: the law's exponent says the force of a thin chip i
 is outside what the split can say: None (the caller keeps the chip-only C_f); so is a split whose chip keeps
 almost none of the radial force (R_c → 0: q_c of E4 runs to tens and the quadrature to nan).
 
+The same split gives the feed-drive depth its eq. 12 curve, f_xt = F_x/F_t ((E5), ``split_fxt``, below).
+
 Cost: one quadrature (2–10 ms); ``edge_cf`` caches it per cut on a grid (feed per tooth to 0.2 %, radial
 depth to 0.5 % of R, axial depth to 1 %): a constant cut pays it once, then a dictionary look-up (5 µs);
 depths estimated revolution by revolution fill a few cells of the grid each.
