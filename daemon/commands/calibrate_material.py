@@ -266,9 +266,12 @@ def _say_cf_change(radial, configured, levels, written: bool) -> None:
     old = float(configured.r1) * chip ** float(configured.r1_exp)
     new = radial.r1 * chip ** radial.r1_exp
     change = 100.0 * (((1.0 + new * new) / (1.0 + old * old)) ** 0.5 - 1.0)
+    edged = float(configured.edge_t_n_mm) > 0.0 or float(configured.edge_r_n_mm) > 0.0
+    kept = ("not written: the configuration has edge coefficients, so its feed-drive depth takes the split law "
+            "(physics.md 5b, E5) with r1 as configured" if edged else
+            "not written: the configuration's r1 kept (--fit-r1 writes it)")
     print(f"  at t_a {chip:.4f} mm r1 {new:.4g} against the configuration's {old:.4g}: C_f's factor "
-          f"sqrt(1 + r1^2) {change:+.2f} %; " + ("written (--fit-r1)" if written else
-                                                  "not written: the configuration's r1 kept (--fit-r1 writes it)"))
+          f"sqrt(1 + r1^2) {change:+.2f} %; " + ("written (--fit-r1)" if written else kept))
 
 
 def _edge_lines(configured) -> list[str]:
