@@ -291,6 +291,80 @@ def fit_material(chips_mm, ks_n_mm2, borrowed_exp: float | None = None) -> Mater
     return MaterialFit(k, p, int(t.size), t, ks, residuals, t.size == 1)
 
 
+# ----------------------------------------------------------------------------- r₁ from the feed-drive force
+# [D] eq. (12): f_xt = F_ax/F_at = (a + r₁·b)/c at the test cut's engagement (a, b, c of eq. 4), so the feed-drive
+# force over the spindle's tangential force gives r₁ at the cut's chip: r₁ = (f_xt·c − a)/b (b > 0 over any
+# arc). The torque cannot see r₁; the feed-direction force can, and it is what the `feed-drive` depth method
+# inverts, so a law fitted here is the law that method needs. Levels as for K_s: several chips fit r1 and r1_exp
+# (log r₁ = log r1 + q·log t_a), one chip fits r1 with the configuration's exponent.
+# r₁ grows as the chip thins (the edge's rubbing weighs more: [D] Table 2's q = −0.2667); a slope outside
+# this range says the levels hold something besides the material's radial law (a sign or scale of the
+# feed-force channel, a wrong engagement). The upper end allows 0.1 above a law with no size effect.
+RADIAL_EXP_RANGE = (-0.8, 0.1)
+
+
+def radial_ratio_from_feed_force(feed_force_n, torque_nm, radial_ratio, tool_radius_mm: float, mode: str):
+    """r₁ of [D] eq. (9) at a cut from its mean feed-drive force and cutting torque: eq. (12) solved for r₁.
+
+    ``r₁ = (f_xt·c − a)/b`` with ``f_xt = F_feed/F_at``, ``F_at = T_c/R`` ([P] eq. 16); a, b, c of eq. (4).
+    """
+    from millsense.daemon.physics.milling import NP, _integrals_xp, engagement_angles_rad
+
+    entry, exit_ = engagement_angles_rad(radial_ratio, mode)
+    a, b, c = _integrals_xp(NP, entry, exit_)
+    tangential_n = np.asarray(torque_nm, dtype=float) / (tool_radius_mm * 1e-3)              # [P] eq. 16
+    f_xt = np.asarray(feed_force_n, dtype=float) / tangential_n                             # [D] eq. 12
+    return (f_xt * c - a) / b
+
+
+class RadialFit(NamedTuple):
+    r1: float                  # k₁ of [D] eq. 9, r₁ at t_a = 1 mm
+    r1_exp: float              # q
+    levels: int
+    chips_mm: np.ndarray
+    r1_measured: np.ndarray    # r₁ at each level
+    residuals_rel: np.ndarray  # measured / fitted − 1, per level
+    exp_borrowed: bool         # True: one level, q given
+
+
+def _power_law(t: np.ndarray, y: np.ndarray, borrowed_exp: float | None) -> tuple[float, float]:
+    """(scale, exponent) of y = scale·t^exponent: least squares in logs, or the exponent given (one point)."""
+    if t.size == 1:
+        return float(y[0] / t[0] ** borrowed_exp), float(borrowed_exp)
+    design = np.column_stack([np.ones_like(t), np.log(t)])
+    (log_k, p), *_ = np.linalg.lstsq(design, np.log(y), rcond=None)
+    return float(np.exp(log_k)), float(p)
+
+
+def fit_radial_ratio(chips_mm, r1_measured, borrowed_exp: float | None = None) -> RadialFit:
+    """r1, q of r₁ = r1·t_a^q ([D] eq. 9) from r₁ measured at chips t_a (one per feed level).
+
+    Raises ValueError unless every r₁ is positive (a feed-drive force of the wrong sign for the milling mode
+    gives a negative one: no radial law can), or for one level without ``borrowed_exp``.
+    """
+    t = np.asarray(chips_mm, dtype=float).ravel()
+    r1 = np.asarray(r1_measured, dtype=float).ravel()
+    if t.size == 0 or t.size != r1.size or not np.all(t > 0):
+        raise ValueError("fit_radial_ratio: needs positive chips, one r1 per feed level")
+    if not np.all(r1 > 0):
+        raise ValueError("fit_radial_ratio: r1 = " + ", ".join(f"{x:.3g}" for x in r1) + " at the feed levels: "
+                         "not positive, so the feed-drive force does not fit this engagement and milling mode")
+    if t.size == 1 and borrowed_exp is None:
+        raise ValueError("fit_radial_ratio: one feed level fixes r1 at one chip only; give the exponent")
+    k, q = _power_law(t, r1, borrowed_exp)
+    return RadialFit(k, q, int(t.size), t, r1, r1 / (k * t**q) - 1.0, t.size == 1)
+
+
+def judge_radial(fit: RadialFit, record: str) -> list[Refusal]:
+    """A slope outside RADIAL_EXP_RANGE says the levels hold something besides the material's radial law."""
+    lo, hi = RADIAL_EXP_RANGE
+    if fit.exp_borrowed or lo <= fit.r1_exp <= hi:
+        return []
+    return [Refusal("material", f"r1 = {fit.r1:.4g}·t_a^{fit.r1_exp:.3f} from the feed-drive force: an exponent "
+                                f"outside {lo}…{hi}: the feed levels do not follow one radial law (check the "
+                                f"feed-force channel's newton_per_amp and friction_n, and the milling mode)", record)]
+
+
 def judge_material(fit: MaterialFit, record: str) -> list[Refusal]:
     """A slope outside every published law's range says the levels hold something besides the material."""
     lo, hi = MATERIAL_EXP_RANGE

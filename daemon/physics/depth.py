@@ -30,6 +30,7 @@ from functools import lru_cache
 from typing import Callable, NamedTuple
 
 import numpy as np
+from millsense.daemon.physics.edge import feed_cell, has_edge, split_fxt
 from millsense.daemon.physics.milling import (
     NP,
     SCALAR,
@@ -159,6 +160,8 @@ def _curve(kind: str, t_c: float, material: Material, mode: str, radius_mm: floa
     """g(xp, R_r) for one curve: 'fx' (eq. 10), 'fxt' (eq. 12), or 'ft' (F_at at R_a = 1, eq. 7)."""
     if kind == "fx":
         return lambda xp, r: _ratios_xp(xp, r, t_c, material, mode)[0]
+    if kind == "fxt" and has_edge(material):   # the law split into chip and edge (edge.py E5), issue 41
+        return lambda xp, r: split_fxt(r, t_c, material, mode) if xp is NP else float(split_fxt(r, t_c, material, mode)[0])
     if kind == "fxt":
         return lambda xp, r: _ratios_xp(xp, r, t_c, material, mode)[1]
     return lambda xp, r: _tangential_per_axial_ratio_xp(xp, r, t_c, radius_mm, flutes, material, mode)
@@ -234,7 +237,10 @@ def radial_ratio_from_fxt(fxt, feed_per_tooth_mm, material: Material, mode: str)
     """R_r from f_xt = F_ax/F_at ([D] eq. 12), exact; strictly increasing in down milling."""
     if check_mode(mode) == "slot":
         return MAX_RADIAL_RATIO, OK
-    return _solve("fxt", float(fxt), float(feed_per_tooth_mm), material, mode)
+    t_c = float(feed_per_tooth_mm)
+    if has_edge(material):   # (E5)'s curve is a quadrature: built on edge.py's feed grid, once per steady cut
+        t_c = feed_cell(t_c)
+    return _solve("fxt", float(fxt), t_c, material, mode)
 
 
 # --- depths -------------------------------------------------------------------------------

@@ -25,11 +25,12 @@ H (hardened steel, chilled cast iron): the table gives k_c1.1 (4500–4700 N/mm�
 no law is given for it here.
 
 Edge (ploughing) coefficients (edge.py): no tool-maker's table gives them either, so no group carries them.
-Mechanistic calibrations of steels and titanium alloys by the average-force method give some tens of N per
-mm of engaged edge, the radial above the tangential (Budak, Altintas & Armarego, J. Manuf. Sci. Eng. 118,
-1996; Altintas, *Manufacturing Automation* ch. 2). ``STEEL_EDGE_N_MM`` is a round pair of that order for a
-`[material]` of steel where nothing measured is at hand (docs/physics.md §5b: what it changes, and how far
-off the force is with none, with it, and with a pair 25 % either way).
+``STEEL_EDGE_N_MM`` is a round pair for a `[material]` of steel where nothing measured is at hand, some tens
+of N per mm of engaged edge, the radial above the tangential: UNVERIFIED, no published steel table of
+K_te / K_re has been checked for it (Budak, Altintas & Armarego, J. Manuf. Sci. Eng. 118, 1996, once named
+here, calibrate Ti6Al4V, not a steel; Altintas, *Manufacturing Automation* ch. 2, gives the model, E1's K_te·s).
+docs/physics.md §5b: what it changes, and how far off the force is with none, with it, and with a pair 25 %
+either way, which bounds what a wrong pair costs.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from millsense.daemon.physics.milling import SB40_TABLE2, Material
 SOURCE = ("ISCAR, Material groups based on ISO 513 and VDI 3323 (ISO Materials and Grades user guide), "
           "boring systems catalogue 2022, p. 111")
 REFERENCE_CHIP_MM = 0.1   # the chip at which a group's spread is stated (a usual mean chip in end milling)
-STEEL_EDGE_N_MM = (25.0, 35.0)   # (K_te, K_re): the order of published edge coefficients of steels (module doc)
+STEEL_EDGE_N_MM = (25.0, 35.0)   # (K_te, K_re), N/mm: a round pair, no verified source (module doc)
 
 
 class TableRow(NamedTuple):

@@ -69,6 +69,7 @@ def toml_text(
     min_torque_nm: float = 0.5,
     feed_force: str = "",
     gears: str = GEARS,
+    edge_n_mm: tuple[float, float] | None = None,   # [material] edge_t_n_mm, edge_r_n_mm (physics.md §5b)
 ) -> str:
     channels = SIM_CHANNELS + (ENCODER if encoder else "") + extra_channels
     for name in drop:
@@ -110,6 +111,7 @@ r1 = {r1}
 r1_exp = {r1_exp}
 r2 = {r2}
 r2_exp = {r2_exp}
+{"" if edge_n_mm is None else f"edge_t_n_mm = {edge_n_mm[0]}{chr(10)}edge_r_n_mm = {edge_n_mm[1]}"}
 
 [cut]
 {chr(10).join(cut)}

@@ -179,7 +179,7 @@ def settled(truth: list[dict], scenario: str, span: int = 3, step_rel: float = 0
     return out
 
 
-def zero_feed_current(capture_path: Path, scenario: str, tmp: Path) -> float:
+def zero_feed_current(capture_path: Path, scenario: str, tmp: Path, settings=None) -> float:
     """The feed-current sensor's offset in counts, as a technician would zero it.
 
     The simulated sensors have a fixed offset per seed (a hall sensor's zero
@@ -188,8 +188,9 @@ def zero_feed_current(capture_path: Path, scenario: str, tmp: Path) -> float:
     would be on the machine: the mean feed-force reading over air revolutions
     (spindle turning, feed moving, tool not yet in the part), where the true
     force is the feed drive's own friction, already in `friction_n`.
+    `settings`: a configuration with the feed-force channel, for a cut that is not in SCENARIOS.
     """
-    settings = settings_for(scenario, tmp, method="off")
+    settings = settings or settings_for(scenario, tmp, method="off")
     est, _ = run(capture_path, settings)
     head = []
     for e in est:                                  # before the tool reaches the part

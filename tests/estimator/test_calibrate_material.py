@@ -193,3 +193,29 @@ def test_a_cut_without_a_feed_per_tooth_is_refused_saying_so(tmp_path, millsense
     code, stdout, err = _calibrate(millsense_cmd, cap, _config(tmp_path, feed_mm_min=None, channels=""), out, "2")
     _refused(code, stdout, err, out)
     assert "but no feed per tooth" in err
+
+
+def test_fit_r1_without_the_feed_drive_force_is_refused(tmp_path, millsense_cmd):
+    """`--fit-r1` needs the feed-drive force ([feed_force]): the feed-rate channel alone gives no r₁."""
+    cap, _ = _capture(_test_cut("feeds-1800"))
+    out = tmp_path / "material.toml"
+    code, stdout, err = _calibrate(millsense_cmd, cap, _config(tmp_path), out, "2", "--fit-r1")
+    _refused(code, stdout, err, out)
+    assert "--fit-r1 without the feed-drive force" in err
+    # without --fit-r1 the same capture fits K_s and says why r1 is the configuration's
+    code, stdout, err = _calibrate(millsense_cmd, cap, _config(tmp_path), out, "2")
+    assert code == 0 and "r1, r1_exp: the configuration's (no feed-drive force" in stdout, stdout + err
+
+
+def test_the_configured_edge_coefficients_are_kept_not_fitted(tmp_path, millsense_cmd):
+    """The fitted law is the whole average law whatever its split; the torque cannot split it (physics.md §5b),
+    so the configuration's edge_t_n_mm / edge_r_n_mm are written back as they were, and the output says so."""
+    cap, _ = _capture(_test_cut("feeds-1800"))
+    cfg = _config(tmp_path)
+    cfg.write_text(cfg.read_text().replace("\n[cut]", "edge_t_n_mm = 25.0\nedge_r_n_mm = 35.0\n\n[cut]", 1))
+    out = tmp_path / "material.toml"
+    code, stdout, err = _calibrate(millsense_cmd, cap, cfg, out, "2")
+    assert code == 0, stdout + err
+    assert "edge term (edge_t_n_mm, edge_r_n_mm): not fitted" in stdout
+    written = tomllib.loads(out.read_text())["material"]
+    assert (written["edge_t_n_mm"], written["edge_r_n_mm"]) == (25.0, 35.0)

@@ -182,3 +182,35 @@ def test_fit_material_recovers_a_power_law_and_borrows_an_exponent_for_one_chip(
     rising = fit_material(chips, 500.0 * chips ** 0.3)     # K_s rising with the chip: no material does that
     refusals = judge_material(rising, "a test cut")
     assert len(refusals) == 1 and "exponent outside" in refusals[0].problem
+
+
+@pytest.mark.parametrize("mode, ae_mm", [("slot", 16.0), ("down", 2.0), ("down", 11.0), ("up", 5.0)])
+def test_radial_ratio_from_feed_force_inverts_eq_12(mode, ae_mm):
+    """[D] eq. 12 solved for r₁ gives back the law the forward model's mean forces (eq. 7) were made with."""
+    from millsense.daemon.physics.calibration import radial_ratio_from_feed_force
+    from millsense.daemon.physics.milling import (SB40_TABLE2, average_chip_thickness_mm, average_forces_n,
+                                                  engagement_angles_rad)
+
+    for fz in (0.05, 0.12, 0.3):
+        forces = average_forces_n(ae_mm / 8.0, 0.5, fz, 8.0, 4, SB40_TABLE2, mode)
+        torque_nm = float(forces.tangential_n) * 8.0e-3                                     # [P] eq. 16
+        r1 = radial_ratio_from_feed_force(float(forces.x_n), torque_nm, ae_mm / 8.0, 8.0, mode)
+        chip = average_chip_thickness_mm(fz, *engagement_angles_rad(ae_mm / 8.0, mode))
+        assert float(r1) == pytest.approx(SB40_TABLE2.r1 * float(chip) ** SB40_TABLE2.r1_exp, rel=1e-9)
+
+
+def test_fit_radial_ratio_recovers_a_power_law_and_refuses_what_no_radial_law_is():
+    from millsense.daemon.physics.calibration import fit_radial_ratio, judge_radial
+
+    chips = np.array([0.035, 0.07, 0.1])
+    fit = fit_radial_ratio(chips, 0.2201 * chips ** -0.2667)
+    assert (fit.r1, fit.r1_exp, fit.levels) == (pytest.approx(0.2201), pytest.approx(-0.2667), 3)
+    assert np.max(np.abs(fit.residuals_rel)) < 1e-12 and judge_radial(fit, "x") == []
+    one = fit_radial_ratio([0.07], [0.45], borrowed_exp=-0.2667)
+    assert one.exp_borrowed and one.r1 * 0.07 ** -0.2667 == pytest.approx(0.45)
+    with pytest.raises(ValueError, match="not positive"):      # a feed force of the wrong sign for the mode
+        fit_radial_ratio(chips, [0.3, -0.1, 0.2])
+    with pytest.raises(ValueError, match="give the exponent"):
+        fit_radial_ratio([0.07], [0.45])
+    (refusal,) = judge_radial(fit_radial_ratio(chips, 0.1 * chips ** 0.5), "a test cut")
+    assert "exponent outside" in refusal.problem and refusal.record == "a test cut"

@@ -107,3 +107,71 @@ def test_without_edge_coefficients_nothing_changes_and_an_edge_beyond_the_law_is
     # one revolution (floats) and a column (arrays) read the same
     col = engaged_cf("slot", 3, 4.0, 30.0, np.array([0.04, 0.05]), 8.0, 2.0, EDGED, 1.075)
     assert col[0] == pytest.approx(engaged_cf(*args, EDGED, 1.075), rel=1e-12)
+
+
+def test_a_split_whose_chip_keeps_almost_no_radial_force_falls_back_not_nan():
+    """Where the edge's radial term takes nearly all the law's radial force (R_c → 0), (E4)'s q_c runs to
+    45–70 and the quadrature of sin^q_c φ gave nan, which `cf = "auto"` published as a null force. The split
+    says nothing there: None, and the caller's chip-only C_f (a material fitted from a feed-drive test cut,
+    r₁ 0.157·t_a^−0.284, with the round steel pair 25 / 35 N/mm; down milling, 4 flutes, φ16)."""
+    fitted = Material(591.019, -0.452169, 0.157176, -0.283623, 0.1244, 0.1702, 25.0, 35.0)
+    for fz, ae_mm in ((0.208, 0.24), (0.104, 0.96)):
+        parts = edge.split(*edge.engagement_xp(edge.NP, np.asarray(ae_mm / 8.0), "down"), fz, fitted)
+        assert parts is not None and parts.r1_exp > 40.0          # the degenerate split this is about
+        assert edge.edge_cf("down", 4, 8.0, None, fz, ae_mm, 2.0, fitted) is None
+        cf = engaged_cf("down", 4, 8.0, None, fz, ae_mm, 2.0, fitted, 1.075)
+        assert math.isfinite(cf) and cf == engaged_cf("down", 4, 8.0, None, fz, ae_mm, 2.0,
+                                                      fitted._replace(edge_t_n_mm=0.0, edge_r_n_mm=0.0), 1.075)
+
+
+def _fxt_dense(r_r, fz, material, mode, points=200_000):
+    """(E5) by a dense midpoint sum over the arc, the split clipped as split_fxt does: the reference."""
+    from millsense.daemon.physics.milling import chip_xp, engagement_xp as engagement, NP as np_
+
+    entry, exit_ = (float(v) for v in engagement(np_, np.asarray(r_r), mode))
+    t_a = float(chip_xp(np_, fz, entry, exit_))
+    t_hat = material.ks * t_a ** material.ks_exp * t_a
+    r_hat = material.r1 * t_a ** material.r1_exp * t_hat
+    chip_t, chip_r = max(t_hat - material.edge_t_n_mm, 0.0), max(r_hat - material.edge_r_n_mm, 0.0)
+    phi = entry + (np.arange(points) + 0.5) * (exit_ - entry) / points
+    sin = np.sin(phi)
+    f_t = np.full_like(phi, t_hat - chip_t)
+    f_r = np.full_like(phi, r_hat - chip_r)
+    if chip_t > 0.0:
+        w = sin ** ((1.0 + material.ks_exp) * t_hat / chip_t)
+        f_t += chip_t * w / w.mean()
+    if chip_r > 0.0:
+        w = sin ** ((1.0 + material.ks_exp + material.r1_exp) * r_hat / chip_r)
+        f_r += chip_r * w / w.mean()
+    return float((f_t * np.cos(phi) + f_r * sin).mean() / f_t.mean())
+
+
+@pytest.mark.parametrize("mode", ["down", "up"])
+def test_split_fxt_is_e5_and_the_depth_inverts_it(mode):
+    """(E5) by Gauss-Legendre against a dense sum, over immersions from thin chips (the edge beyond the law:
+    the chip term clipped to 0) to full; [D]'s (a + r₁b)/c with no edge and constant coefficients; and the
+    feed-drive depth's solver, which takes (E5) for a material with edge coefficients, gives R_r back."""
+    from millsense.daemon.physics.depth import OK, radial_ratio_from_fxt
+    from millsense.daemon.physics.milling import force_ratio_fxt
+
+    sb40_edge = Material(646.08, -0.4362, 0.2201, -0.2667, 0.1244, 0.1702, 25.0, 35.0)
+    ratios = (0.02, 0.05, 0.1, 0.25, 0.5, 0.9, 1.3, 1.8)
+    for fz in (0.05, 0.104, 0.208):
+        got = edge.split_fxt(np.array(ratios), fz, sb40_edge, mode)
+        for r_r, value in zip(ratios, got):
+            assert value == pytest.approx(_fxt_dense(r_r, fz, sb40_edge, mode), abs=2e-4), (r_r, fz)
+    flat = Material(700.0, 0.0, 0.3, 0.0, 0.1, 0.0)
+    assert edge.split_fxt(0.4, 0.1, flat, mode)[0] == pytest.approx(float(force_ratio_fxt(0.4, 0.1, flat, mode)),
+                                                                  rel=1e-9)
+    if mode == "down":                              # up milling's f_xt rises and falls: two roots, by design
+        cell = edge.feed_cell(0.104)                # the solver builds (E5) on edge.py's feed grid
+        assert cell != 0.104 and cell == pytest.approx(0.104, rel=edge.FEED_STEP)
+        for r_r in (0.1, 0.25, 0.5, 0.9):
+            target = float(edge.split_fxt(r_r, cell, sb40_edge, mode)[0])
+            solved, status = radial_ratio_from_fxt(target, 0.104, sb40_edge, mode)
+            assert status == OK and solved == pytest.approx(r_r, abs=1e-9)
+            # at the exact feed the grid moves the root by well under 0.1 %
+            exact = float(edge.split_fxt(r_r, 0.104, sb40_edge, mode)[0])
+            assert radial_ratio_from_fxt(exact, 0.104, sb40_edge, mode)[0] == pytest.approx(r_r, rel=1e-3)
+            plain = sb40_edge._replace(edge_t_n_mm=0.0, edge_r_n_mm=0.0)   # [D]'s eq. 12 reads it otherwise
+            assert abs(radial_ratio_from_fxt(target, 0.104, plain, mode)[0] - r_r) > 0.05 * r_r
