@@ -29,6 +29,7 @@ import numpy as np
 from millsense.drivers.protocol import Descriptor
 from millsense.sim.cut_effects import material_batch
 from millsense.sim.cutting import CutGeometry, cutting_forces, tooth_chip_factors
+from millsense.sim.lti import BlockFilter, first_order
 from millsense.sim.motor import motor_waveforms
 from millsense.sim.scenarios import Scenario, get_scenario
 from millsense.sim.sensors import (
@@ -37,7 +38,6 @@ from millsense.sim.sensors import (
     descriptor_channels,
     encoder_counts,
     quantise,
-    scipy_signal,
     select_sensors,
 )
 from millsense.sim.truth import TruthRecorder
@@ -103,7 +103,8 @@ class Plant:
         self._cos_psi, self._sin_psi = math.cos(psi), math.sin(psi)
         fd = self.machine.feed
         self._feed_lag = math.exp(-TWO_PI * fd.current_bandwidth_hz / self._fs_int)
-        self._feed_zi = np.zeros(1)
+        a = self._feed_lag  # the servo's current loop: first order at its bandwidth, y = (1 − a)·x + a·y₋₁
+        self._feed_loop = BlockFilter(first_order(1.0 - a, -a), 1)
         self.truth = TruthRecorder(self.gear.name, SAMPLE_RATE_HZ)
         self._init_state()
         self._k = -PREROLL_SAMPLES
@@ -377,8 +378,7 @@ class Plant:
             fi = np.arange(INTERNAL_PER_SAMPLE) / INTERNAL_PER_SAMPLE
             vx = (v0[:, None] + (v1 - v0)[:, None] * fi).ravel() * cos_p
             amps = (fx_i + fd.friction_n * np.tanh(vx / 0.5)) / fd.newton_per_amp
-            a = self._feed_lag  # the servo's current loop: first order at its bandwidth
-            values["ix_feed"], self._feed_zi = scipy_signal().lfilter([1 - a], [1, -a], amps, zi=self._feed_zi)
+            values["ix_feed"] = self._feed_loop(amps[None, :])[0]
             values["fx_rate"] = vx * 60.0
             values["fx"], values["fy"], values["fz"] = fx_i, fy_i, fz_i
         x = np.stack([values[s.name] for s in self._analog])

@@ -16,18 +16,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from millsense.drivers.protocol import Channel, ChannelKind
+from millsense.sim.lti import BlockFilter, butterworth_lowpass
 
 ENCODER_COUNTS_PER_REV = 4096
 INT16_MIN, INT16_MAX = -32768, 32767
-
-
-def scipy_signal():
-    """`scipy.signal`, imported when the first filter is built, not with this module: the import costs about
-    0.8 CPU s, which a process that never filters (the emulator's ramp, `millsense sim --help`, an argument
-    refused) need not pay. Python imports a module once; later calls are a dictionary lookup."""
-    from scipy import signal
-
-    return signal
 
 
 @dataclass(frozen=True)
@@ -92,30 +84,29 @@ def descriptor_channels(sensors: tuple[SensorSpec, ...]) -> tuple[Channel, ...]:
 
 
 class AntiAliasFilter:
-    """2nd-order Butterworth low-pass per channel, state carried across blocks."""
+    """Butterworth low-pass per channel (2nd order unless asked), state carried across blocks: scipy's
+    ``butter`` + ``sosfilt`` computed with numpy alone (sim/lti.py; scipy.signal's import costs 0.8 CPU s a
+    process)."""
 
     def __init__(self, cutoff_hz: float, internal_rate_hz: float, channels: int, order: int = 2) -> None:
         self.cutoff_hz = float(cutoff_hz)
-        self.sos = None
-        self.zi = None
+        self._run = None
         if self.cutoff_hz > 0:
             if self.cutoff_hz >= internal_rate_hz / 2:
                 raise ValueError(f"filter cut-off {cutoff_hz} Hz must be below {internal_rate_hz / 2} Hz")
-            # scipy's digital butter = bilinear transform with the cut-off pre-warped
-            self.sos = scipy_signal().butter(order, self.cutoff_hz, btype="low", fs=internal_rate_hz, output="sos")
-            self.zi = np.zeros((self.sos.shape[0], channels, 2))
+            # the bilinear transform with the cut-off pre-warped (scipy's digital butter)
+            self._run = BlockFilter(butterworth_lowpass(order, self.cutoff_hz, internal_rate_hz), channels)
 
     def prime(self, x0: np.ndarray) -> None:
         """Start in steady state for a constant input x0 (C,)."""
-        if self.sos is not None:
-            self.zi = scipy_signal().sosfilt_zi(self.sos)[:, None, :] * np.asarray(x0, dtype=float)[None, :, None]
+        if self._run is not None:
+            self._run.prime(x0)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """x: (C, n) at the internal rate."""
-        if self.sos is None:
+        if self._run is None:
             return x
-        y, self.zi = scipy_signal().sosfilt(self.sos, x, axis=1, zi=self.zi)
-        return y
+        return self._run(x)
 
 
 def analog_gain(cutoff_hz: float, f_hz: np.ndarray, order: int = 2) -> np.ndarray:

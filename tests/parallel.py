@@ -8,12 +8,16 @@ The suite mostly waits on real processes, so pyproject runs it in several worker
 - **Order.** Tests marked `slow` are handed out first, so that the longest ones do not
   start last and leave one worker running alone at the end. `serial` tests come last.
 - **The serial phase.** A test marked `serial` asserts a latency or a period (crash →
-  hold, the watchdog, heartbeats, reset at standstill): it runs with no other test
-  running. All of them form one xdist group, so one worker runs them back to back;
-  that worker holds a lock the others need to start any test, from the first serial
-  test to the last (a readers–writer lock on files, with writers first: a waiting
-  serial test stops new tests from starting, then waits for those running to end).
-  The kernel drops a dead worker's lock, so a crash cannot wedge the others.
+  hold, the watchdog, heartbeats, reset at standstill): it runs with no test running
+  but a serial one. They form two xdist groups, two lanes (their modules dealt
+  alternately), handed out last, each to one worker that runs its tests back to back:
+  so at most two run at once, each well under a core, which loads the box less than
+  one beside three workers' tests. The controller's scheduler writes how many other
+  tests have not ended yet (`others_left`); a serial test starts once that is 0. A
+  worker holds its last test until it is handed the next (xdist runs a test once it
+  knows the one after it), so the count reaches 0 with no help from the lanes: a
+  lane's worker runs its own other tests first, the rest run theirs as they are
+  shut down. Nothing is locked, so a dead worker cannot wedge the others.
 - **CPU, not only time.** `--cpu-report N` prints the N tests that used most CPU
   (the worker process and the children it waited for): on a 2-core box the suite's
   time is bounded by CPU, and a test can be quick and still eat the others' share.
@@ -21,10 +25,10 @@ The suite mostly waits on real processes, so pyproject runs it in several worker
 
 from __future__ import annotations
 
-import fcntl
 import json
 import os
 import resource
+import sys
 import tempfile
 import time
 import uuid
@@ -32,9 +36,10 @@ from pathlib import Path
 
 import pytest
 
-SERIAL_GROUP = "serial"
-_holding_serial = False
-_locks: dict[str, int] = {}
+SERIAL_LANES = ("serial-1", "serial-2")
+OTHERS_LEFT = "others_left"
+WAIT_STEP_S = 0.05
+GIVE_UP_S = 1200.0
 
 
 def pytest_addoption(parser):
@@ -45,15 +50,23 @@ def pytest_addoption(parser):
                           "says where a run's cores sat idle (docs/testing.md)")
 
 
+def _serial_lanes(items) -> dict[str, str]:
+    """The serial modules, in the collection's order, dealt to the lanes in turn: a module's serial tests
+    stay on one worker (their module fixtures are made once)."""
+    modules = list(dict.fromkeys(item.module.__name__ for item in items if _is(item, "serial")))
+    return {name: SERIAL_LANES[i % len(SERIAL_LANES)] for i, name in enumerate(modules)}
+
+
 def _is(item, name: str) -> bool:
     return item is not None and item.get_closest_marker(name) is not None
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the xdist_group markers
 def pytest_collection_modifyitems(config, items):
+    lanes = _serial_lanes(items)
     for item in items:
         if _is(item, "serial"):
-            item.add_marker(pytest.mark.xdist_group(SERIAL_GROUP))
+            item.add_marker(pytest.mark.xdist_group(lanes[item.module.__name__]))
         elif _shares_a_module_fixture(item) and not _is(item, "xdist_group"):
             item.add_marker(pytest.mark.xdist_group(f"module:{item.module.__name__}"))
     _tell_the_controller_the_groups(items)
@@ -90,6 +103,31 @@ def pytest_xdist_make_scheduler(config, log):
                 path = _lock_path("groups.json", config.option.testrunuid)
                 self._groups = json.loads(path.read_text()) if path.exists() else {}
             return self._groups.get(nodeid, nodeid)
+
+        def schedule(self) -> None:
+            super().schedule()
+            self._tell_the_serial_tests()
+
+        def mark_test_complete(self, node, item_index: int, duration: float = 0) -> None:
+            super().mark_test_complete(node, item_index, duration)
+            self._tell_the_serial_tests()
+
+        def remove_node(self, node):
+            crashed = super().remove_node(node)
+            self._tell_the_serial_tests()
+            return crashed
+
+        def _tell_the_serial_tests(self) -> None:
+            """How many other tests have not ended (handed out or not): the serial lanes wait for 0."""
+            left = sum(not done for work in self.assigned_work.values() for scope, unit in work.items()
+                       if scope not in SERIAL_LANES for done in unit.values())
+            left += sum(len(unit) for scope, unit in self.workqueue.items() if scope not in SERIAL_LANES)
+            if left != getattr(self, "_told", None):
+                path = _lock_path(OTHERS_LEFT, config.option.testrunuid)
+                tmp = path.with_name(f"{OTHERS_LEFT}.tmp")
+                tmp.write_text(str(left))
+                os.replace(tmp, path)
+                self._told = left
 
     return GroupScheduling(config, log)
 
@@ -129,49 +167,35 @@ def _lock_path(name: str, run: str | None = None) -> Path:
     return d / name
 
 
-def _fd(name: str) -> int:
-    if name not in _locks:
-        _locks[name] = os.open(_lock_path(name), os.O_RDWR | os.O_CREAT, 0o600)
-    return _locks[name]
-
-
-def _enter(serial: bool) -> None:
-    global _holding_serial
-    if serial:
-        if not _holding_serial:
-            fcntl.flock(_fd("gate"), fcntl.LOCK_EX)   # no new test starts from here ...
-            fcntl.flock(_fd("run"), fcntl.LOCK_EX)    # ... and the running ones have ended
-            _holding_serial = True
-        return
-    fcntl.flock(_fd("gate"), fcntl.LOCK_EX)
-    fcntl.flock(_fd("run"), fcntl.LOCK_SH)
-    fcntl.flock(_fd("gate"), fcntl.LOCK_UN)
-
-
-def _leave(serial: bool, next_serial: bool) -> None:
-    global _holding_serial
-    if serial and next_serial:
-        return                                        # the serial phase goes on
-    fcntl.flock(_fd("run"), fcntl.LOCK_UN)
-    if _holding_serial:
-        fcntl.flock(_fd("gate"), fcntl.LOCK_UN)
-        _holding_serial = False
+def _wait_for_the_others() -> None:
+    """A serial test starts once every other test of the run has ended (the controller's count, above).
+    A hang guard, not a bound: a worker that crashed at the very end can leave a test queued with no worker
+    left to take it; after `GIVE_UP_S` the serial test runs anyway, says so, and the timeline's summary names
+    it among those that did not run alone."""
+    path = _lock_path(OTHERS_LEFT)
+    give_up = time.monotonic() + GIVE_UP_S
+    while time.monotonic() < give_up:
+        try:
+            if int(path.read_text() or "1") == 0:
+                return
+        except (FileNotFoundError, ValueError):   # not written yet, or caught between write and rename
+            pass
+        time.sleep(WAIT_STEP_S)
+    sys.stderr.write(f"tests/parallel.py: other tests still not ended after {GIVE_UP_S} s: the serial tests run\n")
 
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
     parallel = bool(os.environ.get("PYTEST_XDIST_WORKER"))
     serial = _is(item, "serial")
-    if parallel:
-        _enter(serial)
+    if parallel and serial:
+        _wait_for_the_others()
     item.stash[_CPU_START] = _cpu_s()
     started = time.time()
     try:
         yield
     finally:
-        ended = time.time()   # inside the lock, like the start: a serial test's span and another's never overlap
-        if parallel:
-            _leave(serial, _is(nextitem, "serial"))
+        ended = time.time()
         _timeline(item, started, ended, serial)
 
 
@@ -272,7 +296,9 @@ def summarise(path: str) -> str:
                        f"running on average")
     overlapped = sorted({s["test"] for s in serial for r in other if r["start"] < s["end"] and r["end"] > s["start"]})
     if serial:
-        out.append("every serial test ran alone" if not overlapped else
+        lanes = max(sum(1 for r in serial if r["start"] <= s["start"] < r["end"]) for s in serial)  # at a start
+        out.append(f"every serial test ran with no other test but serial ones ({lanes} at most at once)"
+                   if not overlapped else
                    f"SERIAL TESTS THAT DID NOT RUN ALONE ({len(overlapped)}): " + "; ".join(overlapped[:10]))
     if slow:
         out.append(f"the slow tests: {sum(r['end'] - r['start'] for r in slow):.0f} s of a worker's time, "

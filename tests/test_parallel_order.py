@@ -68,8 +68,27 @@ def test_the_timeline_names_a_serial_test_that_did_not_run_alone(tmp_path):
     path = tmp_path / "t.jsonl"
     path.write_text("".join(json.dumps(r) + "\n" for r in alone))
     said = summarise(str(path))
-    assert "every serial test ran alone" in said and "serial: 1 tests from 30 s to 40 s (10 s)" in said, said
+    assert "every serial test ran with no other test but serial ones (1 at most at once)" in said, said
+    assert "serial: 1 tests from 30 s to 40 s (10 s)" in said, said
     assert "of which slow: 1 tests" in said, said
-    path.write_text("".join(json.dumps(r) + "\n" for r in [*alone, row("c::beside", 35, 36, worker="gw2")]))
+    lanes = [*alone, row("d::timed", 32, 38, serial=True, worker="gw2")]   # the other lane's, beside it
+    path.write_text("".join(json.dumps(r) + "\n" for r in lanes))
     said = summarise(str(path))
-    assert "SERIAL TESTS THAT DID NOT RUN ALONE (1): b::timed" in said, said
+    assert "every serial test ran with no other test but serial ones (2 at most at once)" in said, said
+    path.write_text("".join(json.dumps(r) + "\n" for r in [*lanes, row("c::beside", 35, 36, worker="gw3")]))
+    said = summarise(str(path))
+    assert "SERIAL TESTS THAT DID NOT RUN ALONE (2): b::timed; d::timed" in said, said
+
+
+def test_the_serial_modules_are_dealt_to_two_lanes_in_turn_each_module_whole():
+    from types import SimpleNamespace
+
+    from tests.parallel import SERIAL_LANES, _serial_lanes
+
+    def item(module, serial):
+        marker = object() if serial else None
+        return SimpleNamespace(module=SimpleNamespace(__name__=module),
+                               get_closest_marker=lambda name, m=marker: m if name == "serial" else None)
+
+    items = [item("a", True), item("a", True), item("b", False), item("c", True), item("d", True), item("c", True)]
+    assert _serial_lanes(items) == {"a": SERIAL_LANES[0], "c": SERIAL_LANES[1], "d": SERIAL_LANES[0]}

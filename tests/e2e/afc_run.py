@@ -281,8 +281,7 @@ def torque_at_depth(scenario: str, depth_mm: float, feed_mm_min: float, tmp: Pat
 
     def build(d: Path) -> None:
         cap, truth = d / "prog.bin", d / "prog-truth.jsonl"
-        subprocess.run(CMD + ["sim", "--scenario", scenario, "--capture", str(cap), "--truth", str(truth), "--fast"],
-                       check=True, capture_output=True, timeout=300)
+        captures.sim("--scenario", scenario, "--capture", cap, "--truth", truth, "--fast")
         cfg = daemon_config(tmp / "replay.toml", machine="afc-ref", daq_port=1, z_port=free_tcp_port(),
                             feed_mm_min=feed_mm_min, afc=None)
         out = subprocess.run(CMD + ["replay", str(cap), "--config", str(cfg)], capture_output=True, text=True,

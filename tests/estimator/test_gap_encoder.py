@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -23,6 +22,7 @@ import pytest
 from millsense.drivers.decoder import StreamDecoder
 from millsense.drivers.protocol import Descriptor, Samples, encode_descriptor, encode_samples
 
+from tests import captures
 from tests.e2e.helpers import CMD
 
 DEMO = Path(__file__).resolve().parents[2] / "daemon" / "demo.toml"
@@ -33,8 +33,7 @@ GAP_FROM = 12_000  # sample index where the gap starts: inside the cut
 def capture(request, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("gap")
     cap = tmp / "c.cap"
-    subprocess.run(CMD + ["sim", "--scenario", request.param, "--capture", str(cap), "--duration-s", "20"],
-                   check=True, capture_output=True, timeout=300)
+    captures.sim("--scenario", request.param, "--capture", cap, "--duration-s", "20")
     return request.param, cap
 
 

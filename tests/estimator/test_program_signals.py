@@ -16,7 +16,6 @@ each mechanism on its own.
 
 from __future__ import annotations
 
-import subprocess
 
 import pytest
 
@@ -25,7 +24,6 @@ from millsense.daemon.commands.capture_reader import iter_capture_blocks
 from millsense.daemon.pipeline.run_core import PipelineCore
 from millsense.drivers.base import SampleBlock
 from tests import captures
-from tests.e2e.helpers import CMD
 from tests.e2e.learning_run import CONFIG
 
 
@@ -43,8 +41,7 @@ def frames(block: SampleBlock, n: int):
 @pytest.mark.parametrize("per_block", [0, 10, 20, 40, 60, 80])
 def test_tool_changes_of_a_part_program_raise_no_signal_fault(tmp_path, per_block):
     def build(d):
-        subprocess.run(CMD + ["sim", "--scenario", "part-program", "--parts", "3", "--capture", str(d / "capture.bin")],
-                       check=True, capture_output=True, timeout=300)
+        captures.sim("--scenario", "part-program", "--parts", "3", "--capture", d / "capture.bin")
 
     # one capture for the six block sizes (tests/captures.py)
     cap = captures.shared("millsense sim --scenario part-program --parts 3", build) / "capture.bin"
@@ -63,8 +60,8 @@ def test_tool_changes_of_a_part_program_raise_no_signal_fault(tmp_path, per_bloc
 def test_the_looping_emulator_raises_no_signal_fault_at_its_tool_changes(tmp_path):
     """140 s of six parts looped, the emulator's default seed: the spell above was at 135.9 s."""
     cap = tmp_path / "loop.bin"
-    subprocess.run(CMD + ["sim", "--scenario", "part-program", "--parts", "6", "--protocol", "2", "--loop",
-                          "--duration-s", "140", "--capture", str(cap)], check=True, capture_output=True, timeout=300)
+    captures.sim("--scenario", "part-program", "--parts", "6", "--protocol", "2", "--loop", "--duration-s", "140",
+                 "--capture", cap)
     core = PipelineCore(load_config(CONFIG))
     changes, invalid, revolutions = [], [], 0
     for desc, whole in iter_capture_blocks(cap):

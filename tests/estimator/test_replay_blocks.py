@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import io
 import json
-import subprocess
 from pathlib import Path
 
 import pytest
 
 from millsense.daemon.commands.replay import Replay
 from millsense.daemon.config.load import load_config
-from tests.e2e.helpers import CMD
+from tests import captures
 from tests.estimator.test_vectorised import assert_same_lines
 
 REPO = Path(__file__).resolve().parents[2]
@@ -47,8 +46,7 @@ def _lines(settings, data: bytes, chunk: int) -> list[dict]:
 def test_joined_blocks_give_what_small_ones_give(tmp_path: Path, case: str):
     args, config = CASES[case]
     cap = tmp_path / f"{case}.cap"
-    subprocess.run(CMD + ["sim", *args, "--capture", str(cap), "--fast", "--seed", "1"], check=True,
-                   capture_output=True, timeout=600)
+    captures.sim(*args, "--capture", cap, "--fast", "--seed", "1")
     data = cap.read_bytes()
     settings = load_config(config)
     whole = _lines(settings, data, len(data))

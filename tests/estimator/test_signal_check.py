@@ -10,8 +10,6 @@ safety checks. Time is counted in samples, never by the clock.
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +22,6 @@ from millsense.daemon.pipeline.run_core import PipelineCore
 from tests import captures
 from tests.estimator import configs
 
-SIM = [sys.executable, "-m", "millsense.daemon", "sim"]
 RATE = 1000
 CURRENTS = ("i_u", "i_v", "i_w")
 
@@ -34,9 +31,7 @@ def capture(tmp: Path, scenario: str, seconds: float, *flags: str, seed: int = 1
     args = ["--scenario", scenario, "--duration-s", str(seconds), "--seed", str(seed), *flags]
 
     def build(d: Path) -> None:
-        res = subprocess.run([*SIM, *args[:2], "--capture", str(d / "capture.bin"), *args[2:]],
-                             capture_output=True, text=True, timeout=300)
-        assert res.returncode == 0, res.stderr
+        captures.sim(*args[:2], "--capture", d / "capture.bin", *args[2:])
 
     shared = captures.shared("millsense sim " + " ".join(args), build)
     name = f"{scenario}-{seed}-{'_'.join(flags).replace('=', '-') or 'clean'}.bin"
