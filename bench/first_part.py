@@ -21,7 +21,7 @@ its torque/R, the tools' helix given as `[tools.N] helix_deg` gives it) against 
 
 Run: .venv/bin/python bench/first_part.py [--quick | --force]
   --quick: the effects all on, batch 0 only; --force: the force part alone (every program, batch 0, per
-  case: the material without edge coefficients, with the published order's and 25 % either way; and the
+  case: the material without edge coefficients, with the round steel pair's (unverified, physics.md §5b) and 25 % either way; and the
   plant without edge forces)
 """
 
@@ -131,7 +131,7 @@ def per_case(rows: list[dict]) -> None:
 
 def force_part() -> int:
     """The force estimate alone: per case and overall, the plant with every effect and the config's material
-    without edge coefficients (the ISO table's law alone), with the published order's (STEEL_EDGE_N_MM), with
+    without edge coefficients (the ISO table's law alone), with the round steel pair's (STEEL_EDGE_N_MM, unverified), with
     them 25 % lower and higher; then the plant without edge forces and the material without."""
     no_edge = replace(ALL_ON, edge_tangential_n_mm=0.0, edge_radial_n_mm=0.0)
     t0 = time.perf_counter()

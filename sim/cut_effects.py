@@ -51,10 +51,10 @@ class CutEffects:
     - ``min_chip_mm`` 0.005: Kienzle's law is fitted for chips of about 0.05-1 mm; below a few µm its
       h^(−m_c) would grow without bound while a real edge (radius 5-20 µm) only ploughs, which the edge
       term carries. The coefficient is held at its value at h_min below it.
-    - ``edge_tangential_n_mm`` K_te 20 N/mm, ``edge_radial_n_mm`` K_re 30 N/mm: mechanistic calibrations
-      of steels and titanium alloys by the average-force method give edge coefficients of some tens of
-      N/mm, K_re usually above K_te (Budak, Altintas & Armarego, J. Manuf. Sci. Eng. 118, 1996; Altintas
-      ch. 2); the values here are of that order, not one paper's figure.
+    - ``edge_tangential_n_mm`` K_te 20 N/mm, ``edge_radial_n_mm`` K_re 30 N/mm: the average-force method
+      (Altintas ch. 2; Budak, Altintas & Armarego, J. Manuf. Sci. Eng. 118, 1996, who calibrate Ti6Al4V)
+      gives edge coefficients of some tens of N/mm, K_re usually above K_te; for a steel no published table
+      was verified here (physics.md §5b): the values are of that order, not one paper's figure.
     - ``runout_um`` 5 µm on tooth 0: a good shrink-fit or hydraulic holder keeps total indicated runout
       within 3-10 µm (holder makers' catalogues; Kline & DeVor, Int. J. Mach. Tool Des. Res. 23, 1983).
     - ``overhang_ratio`` 3 (L/D) and the tool's modulus (``Tool.youngs_gpa``: solid carbide 600, HSS

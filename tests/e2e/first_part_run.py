@@ -37,7 +37,7 @@ MIN_TORQUE_NM = tomllib.loads(CONFIG.read_text())["depth"]["min_torque_nm"]   # 
 def daemon_config(path: Path, program: str, *, daq_port: int, z_port: int, machine: str, at_speed: bool) -> Path:
     """The daemon for a first-part program: config/part-program.toml's machine and sensors, the program's
     magazine as `[tools.N]` (C_f "auto", the default), its `[operations]` as programmed, nothing learned; the
-    material's edge coefficients of the published order for steel."""
+    material's edge coefficients of the round steel pair (unverified, physics.md §5b)."""
     prog = FIRST_PART_PROGRAMS[program]
     view = machine_config(prog)
     doc = tomllib.loads(CONFIG.read_text())
@@ -46,7 +46,7 @@ def daemon_config(path: Path, program: str, *, daq_port: int, z_port: int, machi
     if at_speed:
         doc["daq"]["check_sample_rate"] = False
     doc["tool"].pop("cf", None)   # "auto": the engaged teeth's C_f (docs/config.md)
-    # the steel's edge coefficients of the published order (physics/materials.py STEEL_EDGE_N_MM; not the plant's
+    # the steel's round edge pair (physics/materials.py STEEL_EDGE_N_MM, unverified; not the plant's
     # own 20 / 30 N/mm): the φ8 3-flute slots' force within 2 % (docs/accuracy.md: 2.2-2.4 % high without)
     doc["material"]["edge_t_n_mm"], doc["material"]["edge_r_n_mm"] = STEEL_EDGE_N_MM
     doc["tools"] = {str(n): t for n, t in view["tools"].items()}

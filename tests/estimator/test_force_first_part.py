@@ -83,7 +83,7 @@ def test_three_and_four_flute_slots_of_the_first_part_within_two_percent():
 def test_the_thin_chip_three_flute_slots_within_two_percent_with_the_material_s_edge_coefficients():
     """4101/3/70 and /80 (φ8 3-flute, 0.04 and 0.05 mm a tooth) on the plant with every effect: 2.1-2.2 % high
     with the law alone (its edge forces taken for chip); within 2 % with the material's edge coefficients of the
-    published order for steel (physics/edge.py; not the plant's own: docs/accuracy.md)."""
+    round steel pair (unverified: physics.md §5b; not the plant's own: docs/accuracy.md)."""
     assert _check(FIRST_PART_PROGRAMS["first-part-slot"].only(70, 80), STEEL_EDGE_N_MM) >= 20
 
 
