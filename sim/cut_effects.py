@@ -138,6 +138,28 @@ def _slot_means(fz: float, law: ChipLaw, material: Material, effects: CutEffects
     return float(ft.mean()) / 2.0, float(fr.mean()) / 2.0  # engaged over [0, π], half the revolution
 
 
+def _root(f, lo: float, hi: float, xtol: float = 1e-12) -> float:
+    """The root of `f` between `lo` and `hi`, where its sign changes, by bisection to `xtol`.
+
+    Not scipy.optimize's brentq: its import (0.4 CPU s) came at a plant's first tool change, in the middle of
+    an emulator's stream, and on a loaded box held the samples back past the daemon's 1-s stall check (the
+    DAQ's watchdog then held the feed: a live first-part test that never saw its cut). Some 40 halvings of a
+    ~2-wide bracket, a few milliseconds a tool change."""
+    f_lo = f(lo)
+    if f_lo * f(hi) > 0:
+        raise ValueError(f"no sign change over [{lo}, {hi}]")
+    while hi - lo > xtol:
+        mid = 0.5 * (lo + hi)
+        f_mid = f(mid)
+        if f_mid == 0.0:
+            return mid
+        if (f_mid > 0) == (f_lo > 0):
+            lo, f_lo = mid, f_mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
 def calibration(material: Material, effects: CutEffects) -> ChipLaw:
     """The chip term fitted so that a slot's mean forces are [D] eq. (9)'s at both reference feeds.
 
@@ -149,8 +171,6 @@ def calibration(material: Material, effects: CutEffects) -> ChipLaw:
     mean F_t = k_s·t_a^ks_exp·f_z/π, mean F_r = r₁(t_a)·F_t; the edge adds K_te/2, K_re/2. Without
     ``size_effect`` the chip term keeps the law's coefficients at the average chip (q = 0 here, as in
     cutting.py) and only the scale is fitted (at the references' geometric mean)."""
-    from scipy.optimize import brentq  # noqa: PLC0415 (scipy only when a plant has effects)
-
     fzs = effects.reference_fz_mm
     e_t, e_r = effects.edge_tangential_n_mm / 2.0, effects.edge_radial_n_mm / 2.0
 
@@ -177,14 +197,14 @@ def calibration(material: Material, effects: CutEffects) -> ChipLaw:
         m2, _ = _slot_means(fzs[1], ChipLaw(1.0, q, 1.0, 0.0), material, effects)
         return math.log(m1 / m2) - math.log((t1 - e_t) / (t2 - e_t))
 
-    q_t = brentq(fit_t, -0.95, 1.0, xtol=1e-10)
+    q_t = _root(fit_t, -0.95, 1.0)
     c_t = (t1 - e_t) / _slot_means(fzs[0], ChipLaw(1.0, q_t, 1.0, 0.0), material, effects)[0]
 
     def radial(q: float, fz: float) -> float:
         return _slot_means(fz, ChipLaw(c_t, q_t, 1.0, q), material, effects)[1]
 
-    q_r = brentq(lambda q: math.log(radial(q, fzs[0]) / radial(q, fzs[1])) - math.log((r1 - e_r) / (r2 - e_r)),
-                 -0.95, 1.0, xtol=1e-10)
+    q_r = _root(lambda q: math.log(radial(q, fzs[0]) / radial(q, fzs[1])) - math.log((r1 - e_r) / (r2 - e_r)),
+                -0.95, 1.0)
     c_r = (r1 - e_r) / radial(q_r, fzs[0])
     return ChipLaw(float(c_t), float(q_t), float(c_r), float(q_r))
 
