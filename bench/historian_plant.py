@@ -539,6 +539,148 @@ def outage(server, work: Path, payload_file: Path, args) -> None:
           f"duplicates skipped {stopped.get('duplicates')}")
 
 
+# --------------------------------------------------------------------------- the per-payload CPU (no Zenoh)
+class _Payload:
+    __slots__ = ("data",)
+
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+class _Sample:
+    """What the historian's callback reads of a Zenoh sample: `key_expr` and `payload.to_bytes()`."""
+    __slots__ = ("key_expr", "payload")
+
+    def __init__(self, key: str, data: bytes) -> None:
+        self.key_expr, self.payload = key, _Payload(data)
+
+
+def plant_seconds(payloads: list[dict], machines: int, rev_hz: float, seconds: int, t0: float) -> list[list]:
+    """`seconds` one-second lists of (kind, key, bytes) as the publishers send them (same order, same re-stamping,
+    the same `json.dumps`), `t` spread over each second."""
+    est_at = [i for i, p in enumerate(payloads) if p["type"] == "estimate"]
+    names = [f"plant-{m:04d}" for m in range(machines)]
+    pos = {n: est_at[(k * 37) % len(est_at)] for k, n in enumerate(names)}
+    rev, proc = dict.fromkeys(names, 0), dict.fromkeys(names, 0)
+    ticks = max(1, round(rev_hz))
+    out = []
+    for s in range(seconds):
+        second = []
+        for tick in range(ticks):
+            t = t0 + s + tick / ticks
+            for n in names:
+                i, first = pos[n], True
+                while True:
+                    p = payloads[i]
+                    kind = p["type"]
+                    if kind == "estimate" and not first:
+                        break
+                    first = False
+                    msg = {k: v for k, v in p.items() if k != "type"}
+                    msg["machine"], msg["t"] = n, t
+                    if kind == "estimate":
+                        rev[n] += 1
+                        msg["rev"] = rev[n]
+                    elif kind == "alarm":
+                        msg["rev"] = rev[n]
+                    else:
+                        proc[n] += 1
+                        msg["process"] = proc[n]
+                    second.append((kind, f"millsense/{n}/{kind}", json.dumps(msg).encode()))
+                    i = (i + 1) % len(payloads)
+                pos[n] = i
+        out.append(second)
+    return out
+
+
+class _NullLog:
+    def _say(self, event: str, **fields) -> None:
+        pass
+
+    info = warning = error = _say
+
+
+def profile(server, work: Path, payloads: list[dict], args) -> None:
+    """CPU µs a payload (this process's `time.process_time`: it does not depend on the box's load, the way the
+    wall clock does) of the historian's own path with no Zenoh: the callbacks (`Inbox.callback`), the loop's
+    rows (`_drain_all` then `Rows`), the writes (`Writer.flush` into a fresh database of the throw-away server;
+    PostgreSQL's own CPU is another process's, not in it). Once with every machine's revolutions kept (the
+    saturation's case), once with those of `--revolution-machines` (the steady run's)."""
+    import cProfile
+    import pstats
+
+    from millsense.daemon.historian import schema, service
+    from millsense.daemon.historian.spool import Spool
+    from millsense.daemon.historian.writer import Writer
+
+    seconds = plant_seconds(payloads, args.machines, args.rev_hz, args.profile_s, time.time() - args.profile_s - 10)
+    n = sum(len(s) for s in seconds)
+    n_est = sum(k == "estimate" for s in seconds for k, _, _ in s)
+    print(f"\n== CPU a payload, no Zenoh: {args.machines} machines × {args.rev_hz:g} rev/s, {args.profile_s} s "
+          f"({n:,} payloads, {n_est:,} estimates), best of {args.profile_rounds}")
+    for label, kept in (("every revolution a row", args.machines), (f"revolutions of {args.revolution_machines} "
+                                                                   "machines", args.revolution_machines)):
+        best: dict[str, float] = {}
+        for r in range(args.profile_rounds):
+            folder = work / f"profile-{kept}-{r}"
+            folder.mkdir()
+            db = server.new_database()
+            writer = Writer(server.dsn(db), str(server.passfile(folder)), Spool(folder / "spool", 10**9),
+                            {t: 30.0 for t in schema.TABLES}, _NullLog())
+            rows = service.Rows(writer, {f"plant-{m:04d}" for m in range(kept)})
+            inbox = service.Inbox()
+            callbacks = {k: inbox.callback(k) for k in service.KINDS}
+            samples = [[(callbacks[k], _Sample(key, data)) for k, key, data in s] for s in seconds]
+            writer.flush()   # connected, partitions made: not in the figures
+            took = dict.fromkeys(("receive", "rows", "write"), 0.0)
+            prof = cProfile.Profile() if args.cprofile and r == 0 else None
+            for second in samples:
+                c0 = time.process_time()
+                if prof:
+                    prof.enable()
+                for cb, sample in second:
+                    cb(sample)
+                c1 = time.process_time()
+                service._drain_all(inbox, rows)
+                c2 = time.process_time()
+                writer.flush()
+                c3 = time.process_time()
+                if prof:
+                    prof.disable()
+                took["receive"] += c1 - c0
+                took["rows"] += c2 - c1
+                took["write"] += c3 - c2
+            c0 = time.process_time()
+            rows.close_all()
+            writer.flush()
+            took["write"] += time.process_time() - c0
+            (counted,), = _query(server, db, "SELECT coalesce(sum(revolutions), 0) FROM load_1s")
+            missing = n_est - int(counted)   # every estimate aggregated and written, or the figure means nothing
+            writer.close()
+            if missing:
+                raise SystemExit(f"profile: {missing} estimates not in load_1s")
+            total = sum(took.values())
+            for k, v in dict(took, total=total).items():
+                best[k] = min(best.get(k, math.inf), v)
+            if prof:
+                print(f"  cProfile, {label}, round 1 (the top 25 by own time):")
+                stats = pstats.Stats(prof)
+                stats.sort_stats("tottime").print_stats(25)
+        per = {k: v / n * 1e6 for k, v in best.items()}
+        print(f"  {label}: receive {per['receive']:.1f} µs, rows {per['rows']:.1f} µs, write {per['write']:.1f} µs; "
+              f"total {per['total']:.1f} µs a payload = {1e6 / per['total']:,.0f} payloads/s on one whole core")
+
+
+def _query(server, db: str, statement: str) -> list[tuple]:
+    import psycopg
+
+    with psycopg.connect(server.dsn(db).replace("user=historian", "user=postgres")) as conn:
+        return conn.execute(statement).fetchall()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     ap.add_argument("--machines", type=int, default=50)
@@ -550,6 +692,12 @@ def main() -> int:
     ap.add_argument("--step-s", type=int, default=30)
     ap.add_argument("--pg-outage-s", type=float, default=0.0)
     ap.add_argument("--outage-run-s", type=int, default=180)
+    ap.add_argument("--profile", action="store_true", help="the historian's CPU a payload, no Zenoh (and no other "
+                    "run unless asked)")
+    ap.add_argument("--profile-s", type=int, default=10, help="seconds of the plant's payloads the profile feeds")
+    ap.add_argument("--profile-rounds", type=int, default=3)
+    ap.add_argument("--cprofile", action="store_true", help="with --profile: cProfile's top functions")
+    ap.add_argument("--payloads-file", help="the replay's payloads from a file (JSON list) instead of a new replay")
     ap.add_argument("--_publisher", action="store_true", help=argparse.SUPPRESS)
     for name in ("payloads", "router", "report"):
         ap.add_argument(f"--{name}", help=argparse.SUPPRESS)
@@ -567,12 +715,15 @@ def main() -> int:
     work = Path(tempfile.mkdtemp(prefix="millsense-plant-bench-"))
     server = pg_server()
     try:
-        payloads = replay_payloads(work)
+        payloads = (json.loads(Path(args.payloads_file).read_text()) if args.payloads_file
+                    else replay_payloads(work))
         payload_file = work / "payloads.json"
         payload_file.write_text(json.dumps(payloads))
         kinds = {k: sum(p["type"] == k for p in payloads) for k in KINDS}
         print(f"replay: {kinds} in 60 s of program 1001")
-        if args.seconds:
+        if args.profile:
+            profile(server, work, payloads, args)
+        if args.seconds and not (args.profile and "--seconds" not in sys.argv):
             steady(server, work, payload_file, args)
         if args.saturate:
             saturation(server, work, payload_file, args)
