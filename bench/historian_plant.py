@@ -18,8 +18,9 @@ Figures, each beside its budget or floor:
   time of the transaction that wrote the row (the same clock: one box). For `revolutions` rows (the machines in
   `revolutions_for`: the first `--revolution-machines`), alarms and processes, the publication time is the row's
   `time` (the payload's `t`); for a `load_1s` row it is the end of its second (`time` + 1 s: the second's last
-  revolution was published then). RSS: /proc/<pid>/status VmRSS every second; "flat" is the last minute's
-  median against the second minute's (the first is the start's).
+  revolution was published then). RSS: /proc/<pid>/status VmRSS every second, each minute's median, and the
+  least-squares slope over the run's second half (the first half is the warm-up): "flat" is a slope of at most
+  `RSS_FLAT_MB_PER_H` (1 MB an hour), printed with its standard error.
 - **saturation** (`--saturate`, rates `--rev-hz` × each factor, `--step-s` each, a fresh database with every
   machine in `revolutions_for`, so that every revolution is a row): rows committed a second while the publishers
   run, the p99 latency of each step, and whether the historian kept up (p99 ≤ 2 s and every row in the database
@@ -28,15 +29,21 @@ Figures, each beside its budget or floor:
   database of the same server.
 - **outage** (`--pg-outage-s`): a fresh stack, `pg_ctl stop -m fast` a third into `--outage-run-s`, started again
   `--pg-outage-s` later: every row afterwards once (counts as in steady, and no key twice).
+- **profile** (`--profile`): no Zenoh, no router, no publishers: `--profile-s` seconds of the same payloads for
+  `--machines` at `--rev-hz` fed through the historian's own callbacks, loop and writer (into a fresh database of
+  the same server), and the CPU µs a payload each took (`time.process_time`: the work, not the box's load);
+  `--cprofile` adds cProfile's top functions. Issue 43's before/after figure.
 
 Beside each run's figures, the CPU (in cores, while the publishers run) of the historian (and of each of its
-threads: `main` is the loop that makes rows and writes them, `python` Zenoh's callbacks parsing the JSON), the
-router, this PostgreSQL and the publishers: the profile that says who is short of what; and the historian's RSS
-each minute.
+threads: `main` is the loop that parses, makes rows and writes them, `python` Zenoh's callbacks keeping the
+bytes), the router, this PostgreSQL and the publishers: the profile that says who is short of what; the
+historian's CPU a payload (its cores over the payloads a second, Zenoh's threads in it: what it spends, which the
+box's load moves far less than a rate); and the historian's RSS each minute.
 
 `os.nice(19)` first: every process it starts (PostgreSQL, the router, the historian, the publishers) inherits it.
 
 Run: python bench/historian_plant.py --machines 500 --rev-hz 10 --seconds 600 --saturate 1,2,3,4 --pg-outage-s 60
+     python bench/historian_plant.py --profile --machines 500 --rev-hz 10 [--cprofile]
 """
 
 from __future__ import annotations
@@ -98,6 +105,13 @@ def publisher(args: argparse.Namespace) -> int:
     rev = dict.fromkeys(names, 0)
     proc = dict.fromkeys(names, 0)
     sent = {n: dict.fromkeys(KINDS, 0) for n in names}
+    # each payload's JSON but for what is re-stamped, made once: a publication only writes `machine`, `t` and the
+    # counter in front of it (the publishers must not be what limits the rate the historian is measured at)
+    counter = {"estimate": "rev", "alarm": "rev", "process": "process"}
+    bodies = []
+    for p in payloads:
+        rest = {k: v for k, v in p.items() if k not in ("type", "machine", "t", counter[p["type"]])}
+        bodies.append((p["type"], counter[p["type"]], ("," + json.dumps(rest)[1:-1]) if rest else ""))
     block = zenoh.CongestionControl.BLOCK
     period = 1.0 / args.rate_hz
     slots = 10   # a tick's machines spread over 10 slots: no burst of every machine at once
@@ -121,24 +135,23 @@ def publisher(args: argparse.Namespace) -> int:
             for n in names[s * per_slot:(s + 1) * per_slot]:
                 i = pos[n]
                 first = True
+                sent_n = sent[n]
                 while True:   # this machine's next estimate, and the alarms and summaries after it
-                    p = payloads[i]
-                    kind = p["type"]
+                    kind, field, body = bodies[i]
                     if kind == "estimate" and not first:
                         break
                     first = False
-                    out = {k: v for k, v in p.items() if k != "type"}
-                    out["machine"], out["t"] = n, time.time()
                     if kind == "estimate":
                         rev[n] += 1
-                        out["rev"] = rev[n]
+                        count = rev[n]
                     elif kind == "alarm":
-                        out["rev"] = rev[n]
+                        count = rev[n]
                     else:
                         proc[n] += 1
-                        out["process"] = proc[n]
-                    session.put(f"millsense/{n}/{kind}", json.dumps(out), congestion_control=block)
-                    sent[n][kind] += 1
+                        count = proc[n]
+                    text = f'{{"machine":"{n}","t":{time.time()!r},"{field}":{count}{body}}}'
+                    session.put(f"millsense/{n}/{kind}", text, congestion_control=block)
+                    sent_n[kind] += 1
                     i = (i + 1) % len(payloads)
                 pos[n] = i
         tick += 1
@@ -420,6 +433,36 @@ def cores(share: dict[str, float]) -> str:
     return ", ".join(f"{k.strip()} {v:.2f}" for k, v in share.items() if v >= 0.01)
 
 
+def cpu_a_payload(run: dict) -> str:
+    """The historian's CPU a payload published (Zenoh's threads included): its cores over the payloads a second.
+    Less dependent on the box's load than any rate is: what the historian spends, not what it was given."""
+    n = sum(sum(s.values()) for s in run["sent"].values())
+    us = run["cpu"]["historian"] / (n / run["elapsed_s"]) * 1e6 if n else float("nan")
+    return f"historian CPU {us:.1f} µs a payload (Zenoh's threads in it): {1e6 / us:,.0f} payloads/s on a whole core"
+
+
+RSS_FLAT_MB_PER_H = 1.0   # "flat": the second half's least-squares slope at most this (below)
+
+
+def rss_slope(rss: list[tuple[float, float]], t0: float, t1: float) -> tuple[float, float, int]:
+    """The least-squares slope of the RSS over the second half of [t0, t1) in MB an hour, its standard error,
+    and the samples in it. The first half is the warm-up (the partitions, the keys, the arenas filling); a leak
+    is what still grows after it. Flat: slope ≤ RSS_FLAT_MB_PER_H, a rate at which the historian would take more
+    than 40 hours to grow from 105 MB to its 150 MB budget, and a 5-minute half can still tell from noise
+    (its standard error, printed beside it, is a few tenths of a MB an hour)."""
+    half = [(t, mb) for t, mb in rss if (t0 + t1) / 2 <= t < t1]
+    n = len(half)
+    if n < 3:
+        return float("nan"), float("nan"), n
+    mt = sum(t for t, _ in half) / n
+    mm = sum(mb for _, mb in half) / n
+    sxx = sum((t - mt) ** 2 for t, _ in half)
+    slope = sum((t - mt) * (mb - mm) for t, mb in half) / sxx
+    resid = sum((mb - mm - slope * (t - mt)) ** 2 for t, mb in half)
+    stderr = math.sqrt(resid / (n - 2) / sxx)
+    return slope * 3600, stderr * 3600, n
+
+
 def rss_figures(rss: list[tuple[float, float]], t0: float, t1: float) -> tuple[float, float, float]:
     """Max, the second minute's median, the last minute's median (MB) of the publishing window."""
     window = [(t, mb) for t, mb in rss if t0 <= t < t1]
@@ -450,7 +493,12 @@ def steady(server, work: Path, payload_file: Path, args) -> None:
     print_latency(lat)
     print(f"  historian RSS: max {rss_max:.1f} MB (budget ≤ {RSS_BUDGET_MB:g}); median second minute {rss_2:.1f} MB, "
           f"last minute {rss_last:.1f} MB (flat: {rss_last - rss_2:+.1f} MB)")
+    slope, stderr, n = rss_slope(stack.rss, run["start_at"], run["end_at"])
+    verdict = "flat" if slope <= RSS_FLAT_MB_PER_H else "NOT flat"
+    print(f"  historian RSS over the run's second half ({n} samples): {slope:+.2f} ± {stderr:.2f} MB/h "
+          f"(least squares ± its standard error); {verdict} (criterion: ≤ {RSS_FLAT_MB_PER_H:g} MB/h)")
     print(f"  CPU (cores, while publishing): {cores(run['cpu'])}; load {os.getloadavg()[0]:.2f}")
+    print(f"  {cpu_a_payload(run)}")
     minutes = {}
     for t, mb in stack.rss:
         if run["start_at"] <= t < run["end_at"]:
@@ -485,6 +533,7 @@ def saturation(server, work: Path, payload_file: Path, args) -> None:
                   f"p99 {p99:.2f} s, {'kept up' if kept_up else 'BEHIND'}"
                   f"{'' if drained is not None else ' (not all in 30 s after)'}")
             print(f"      CPU (cores): {cores(run['cpu'])}; load {os.getloadavg()[0]:.2f}")
+            print(f"      {cpu_a_payload(run)}")
             if kept_up:
                 best = max(best, rate)
             else:
