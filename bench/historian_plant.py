@@ -537,9 +537,11 @@ def saturation(server, work: Path, payload_file: Path, args) -> None:
             if kept_up:
                 best = max(best, rate)
             else:
-                late = wait_all_in(stack, so_far, 300)
+                late = drained if drained is not None else wait_all_in(stack, so_far, 300)
+                if late is not None and drained is None:
+                    late += 30.0
                 lost = losses(so_far, in_db(stack))
-                print("      behind: " + (f"nothing lost, all in {_after(30 + late, 330)}" if late is not None
+                print("      behind: " + (f"nothing lost, all in {_after(late, 330)}" if late is not None
                                           else f"after 330 s still missing {lost}"))
                 break
     finally:
