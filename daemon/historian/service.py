@@ -122,7 +122,7 @@ class Rows:
                 continue
             try:
                 payload = parse(data)
-            except ValueError:
+            except (ValueError, RecursionError):   # not JSON; nested deeper than the parser goes
                 payload = None
             if type(payload) is not dict:
                 refused += 1

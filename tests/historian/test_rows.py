@@ -127,3 +127,24 @@ def test_a_number_too_large_for_a_double_is_no_value_and_never_stops_the_loop():
     names = column_names("revolutions")
     assert rev[names.index("torque_nm")] is None and rev[names.index("spindle_rpm")] == 900.0
     assert rows.alarm_row("m", {"t": huge, "level": "warning"}, t0) is None
+
+
+def test_a_payload_nested_past_the_parsers_depth_is_refused_and_the_rest_taken(tmp_path):
+    """256 KiB of `[` is JSON nested deeper than Python's parser goes: RecursionError, not ValueError. It is one
+    refused payload, never an error out of the loop (which would stop the historian), and the payloads after it
+    are taken."""
+    from millsense.daemon.historian import schema
+    from millsense.daemon.historian.service import Inbox, Rows, _drain_all
+    from millsense.daemon.historian.spool import Spool
+    from millsense.daemon.historian.writer import Writer
+
+    writer = Writer("host=127.0.0.1 port=1", "", Spool(tmp_path / "spool", 10**6), {t: 1.0 for t in schema.TABLES},
+                    None)
+    inbox, taker = Inbox(), Rows(writer, revolutions_for={"m"})
+    on_sample, t0 = inbox.callback("estimate"), 1795324800.0
+    on_sample(Sample("millsense/m/estimate", {"t": t0 + 0.1, "rev": 1, "valid": True, "torque_nm": 1.0}))
+    on_sample(Sample("millsense/m/estimate", b"[" * 100_000 + b"]" * 100_000))
+    on_sample(Sample("millsense/m/estimate", {"t": t0 + 0.2, "rev": 2, "valid": True, "torque_nm": 2.0}))
+    _drain_all(inbox, taker)
+    assert inbox.refused == 1 and inbox.received["estimate"] == 2
+    assert [row[3] for row in writer.pending["revolutions"]] == [1, 2]
