@@ -662,6 +662,7 @@ def profile(server, work: Path, payloads: list[dict], args) -> None:
     saturation's case), once with those of `--revolution-machines` (the steady run's)."""
     import cProfile
     import pstats
+    import tracemalloc
 
     from millsense.daemon.historian import schema, service
     from millsense.daemon.historian.spool import Spool
@@ -675,7 +676,7 @@ def profile(server, work: Path, payloads: list[dict], args) -> None:
     for label, kept in (("every revolution a row", args.machines), (f"revolutions of {args.revolution_machines} "
                                                                    "machines", args.revolution_machines)):
         best: dict[str, float] = {}
-        for r in range(args.profile_rounds):
+        for r in range(args.profile_rounds + bool(args.profile_memory)):   # the memory round first
             folder = work / f"profile-{kept}-{r}"
             folder.mkdir()
             db = server.new_database()
@@ -687,7 +688,10 @@ def profile(server, work: Path, payloads: list[dict], args) -> None:
             samples = [[(callbacks[k], _Sample(key, data)) for k, key, data in s] for s in seconds]
             writer.flush()   # connected, partitions made: not in the figures
             took = dict.fromkeys(("receive", "rows", "write"), 0.0)
-            prof = cProfile.Profile() if args.cprofile and r == 0 else None
+            memory = []   # --profile-memory: (Python's traced MiB, RSS MiB) after each second
+            if args.profile_memory and r == 0:
+                tracemalloc.start()
+            prof = cProfile.Profile() if args.cprofile and r == int(args.profile_memory) else None
             for second in samples:
                 c0 = time.process_time()
                 if prof:
@@ -704,6 +708,8 @@ def profile(server, work: Path, payloads: list[dict], args) -> None:
                 took["receive"] += c1 - c0
                 took["rows"] += c2 - c1
                 took["write"] += c3 - c2
+                if tracemalloc.is_tracing():
+                    memory.append((tracemalloc.get_traced_memory()[0] / 2**20, _rss_mib()))
             c0 = time.process_time()
             rows.close_all()
             writer.flush()
@@ -713,6 +719,13 @@ def profile(server, work: Path, payloads: list[dict], args) -> None:
             writer.close()
             if missing:
                 raise SystemExit(f"profile: {missing} estimates not in load_1s")
+            if memory:
+                tracemalloc.stop()
+                q = len(memory) // 4
+                print(f"  {label}, memory (tracemalloc on: its CPU figures not taken): Python's traced "
+                      f"{memory[q][0]:.2f} MiB after a quarter of the seconds, {memory[-1][0]:.2f} MiB at the end "
+                      f"(max {max(m[0] for m in memory):.2f}); RSS {memory[q][1]:.1f} → {memory[-1][1]:.1f} MiB")
+                continue
             total = sum(took.values())
             for k, v in dict(took, total=total).items():
                 best[k] = min(best.get(k, math.inf), v)
@@ -723,6 +736,11 @@ def profile(server, work: Path, payloads: list[dict], args) -> None:
         per = {k: v / n * 1e6 for k, v in best.items()}
         print(f"  {label}: receive {per['receive']:.1f} µs, rows {per['rows']:.1f} µs, write {per['write']:.1f} µs; "
               f"total {per['total']:.1f} µs a payload = {1e6 / per['total']:,.0f} payloads/s on one whole core")
+
+
+def _rss_mib() -> float:
+    return next(int(line.split()[1]) for line in Path("/proc/self/status").read_text().splitlines()
+                if line.startswith("VmRSS")) / 1024
 
 
 def _query(server, db: str, statement: str) -> list[tuple]:
@@ -748,6 +766,8 @@ def main() -> int:
     ap.add_argument("--profile-s", type=int, default=10, help="seconds of the plant's payloads the profile feeds")
     ap.add_argument("--profile-rounds", type=int, default=3)
     ap.add_argument("--cprofile", action="store_true", help="with --profile: cProfile's top functions")
+    ap.add_argument("--profile-memory", action="store_true", help="with --profile: a first round more, under "
+                    "tracemalloc: does the historian's own path keep Python objects as payloads go through?")
     ap.add_argument("--payloads-file", help="the replay's payloads from a file (JSON list) instead of a new replay")
     ap.add_argument("--_publisher", action="store_true", help=argparse.SUPPRESS)
     for name in ("payloads", "router", "report"):
