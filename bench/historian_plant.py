@@ -32,7 +32,8 @@ Figures, each beside its budget or floor:
 - **profile** (`--profile`): no Zenoh, no router, no publishers: `--profile-s` seconds of the same payloads for
   `--machines` at `--rev-hz` fed through the historian's own callbacks, loop and writer (into a fresh database of
   the same server), and the CPU µs a payload each took (`time.process_time`: the work, not the box's load);
-  `--cprofile` adds cProfile's top functions. Issue 43's before/after figure.
+  `--cprofile` adds cProfile's top functions, `--profile-memory` a first round under tracemalloc (the Python
+  objects the path holds as payloads go through). Issue 43's before/after figure.
 
 Beside each run's figures, the CPU (in cores, while the publishers run) of the historian (and of each of its
 threads: `main` is the loop that parses, makes rows and writes them, `python` Zenoh's callbacks keeping the
