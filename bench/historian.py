@@ -6,10 +6,11 @@ widest table, what a plant keeps for the machines in `revolutions_for`) plus eac
 the historian's own row makers (daemon/historian/rows.py) from estimate payloads shaped like the daemon's.
 
 Three ways of writing the same batches, each into its own fresh database, in turn:
-- **writer**: what the historian does (`writer.Database.write`): COPY into a temporary staging table, then
+- **writer**: what the historian does (`writer.Database.write`): binary COPY into a temporary staging table, then
   `INSERT … SELECT … ON CONFLICT DO NOTHING` into the partitioned table, all tables of a batch in one transaction;
-- **copy (no staging)**: the same rows COPY'd straight into the tables, one transaction a batch (the COPY floor:
-  what idempotence costs is the difference);
+- **copy (no staging)**: the same rows COPY'd straight into the tables, in PostgreSQL's binary format as the writer
+  sends them, one transaction a batch (the COPY floor: what idempotence costs is the difference); and the same in
+  the text format (what the binary format saves);
 - **insert**: `executemany` of `INSERT … ON CONFLICT DO NOTHING`, one transaction a batch (what COPY saves).
 Then **replay**: the writer's batches written a second time (a spool replayed after an outage: every row a
 duplicate, nothing inserted).
@@ -78,15 +79,31 @@ def write_writer(db: Database, batch: dict[str, list[list]]) -> None:
     db.write(batch)
 
 
-def write_copy(db: Database, batch: dict[str, list[list]]) -> None:
+def _pg_type(kind: str) -> str:
+    """A column's own type as binary COPY names it (straight into the table: no staging)."""
+    return {"double precision": "float8", "bigint": "int8", "integer": "int4", "boolean": "bool", "text": "text",
+            "jsonb": "jsonb", "timestamptz": "timestamptz"}[kind.replace(" NOT NULL", "")]
+
+
+def write_copy(db: Database, batch: dict[str, list[list]], binary: bool = True) -> None:
+    """The COPY floor: the rows straight into the tables, in PostgreSQL's binary format as the writer sends them
+    (`binary=False`: the text format, what the writer sent before issue 43's profile)."""
     for table, table_rows in batch.items():
         db.ensure_days(table, {_ts(r[0]).date() for r in table_rows})
     with db.conn.transaction(), db.conn.cursor() as cur:
         for table, table_rows in batch.items():
             cols = sql.SQL(", ").join(map(sql.Identifier, schema.column_names(table)))
-            with cur.copy(sql.SQL("COPY {t} ({c}) FROM STDIN").format(t=sql.Identifier(table), c=cols)) as copy:
+            how = sql.SQL(" (FORMAT BINARY)" if binary else "")
+            with cur.copy(sql.SQL("COPY {t} ({c}) FROM STDIN{h}").format(t=sql.Identifier(table), c=cols,
+                                                                         h=how)) as copy:
+                if binary:
+                    copy.set_types([_pg_type(kind) for _, kind in schema.columns(table)])
                 for row in table_rows:
                     copy.write_row(_converted(table, row))
+
+
+def write_copy_text(db: Database, batch: dict[str, list[list]]) -> None:
+    write_copy(db, batch, binary=False)
 
 
 def write_insert(db: Database, batch: dict[str, list[list]]) -> None:
@@ -139,6 +156,7 @@ def main() -> int:
               f"{len(data)} batches a case, best of {args.rounds}; load {load:.2f}")
         cases = [("writer (COPY via staging, ON CONFLICT)", write_writer, False),
                  ("copy (no staging, not idempotent)", write_copy, False),
+                 ("copy, text format (no staging)", write_copy_text, False),
                  ("insert (executemany, ON CONFLICT)", write_insert, False),
                  ("writer, replay (every row a duplicate)", write_writer, True)]
         best = {label: 0.0 for label, *_ in cases}

@@ -18,8 +18,9 @@ Figures, each beside its budget or floor:
   time of the transaction that wrote the row (the same clock: one box). For `revolutions` rows (the machines in
   `revolutions_for`: the first `--revolution-machines`), alarms and processes, the publication time is the row's
   `time` (the payload's `t`); for a `load_1s` row it is the end of its second (`time` + 1 s: the second's last
-  revolution was published then). RSS: /proc/<pid>/status VmRSS every second; "flat" is the last minute's
-  median against the second minute's (the first is the start's).
+  revolution was published then). RSS: /proc/<pid>/status VmRSS every second, each minute's median, and the
+  least-squares slope over the run's second half (the first half is the warm-up): "flat" is a slope of at most
+  `RSS_FLAT_MB_PER_H` (1 MB an hour), printed with its standard error.
 - **saturation** (`--saturate`, rates `--rev-hz` × each factor, `--step-s` each, a fresh database with every
   machine in `revolutions_for`, so that every revolution is a row): rows committed a second while the publishers
   run, the p99 latency of each step, and whether the historian kept up (p99 ≤ 2 s and every row in the database
@@ -28,15 +29,22 @@ Figures, each beside its budget or floor:
   database of the same server.
 - **outage** (`--pg-outage-s`): a fresh stack, `pg_ctl stop -m fast` a third into `--outage-run-s`, started again
   `--pg-outage-s` later: every row afterwards once (counts as in steady, and no key twice).
+- **profile** (`--profile`): no Zenoh, no router, no publishers: `--profile-s` seconds of the same payloads for
+  `--machines` at `--rev-hz` fed through the historian's own callbacks, loop and writer (into a fresh database of
+  the same server), and the CPU µs a payload each took (`time.process_time`: the work, not the box's load);
+  `--cprofile` adds cProfile's top functions, `--profile-memory` a first round under tracemalloc (the Python
+  objects the path holds as payloads go through). Issue 43's before/after figure.
 
 Beside each run's figures, the CPU (in cores, while the publishers run) of the historian (and of each of its
-threads: `main` is the loop that makes rows and writes them, `python` Zenoh's callbacks parsing the JSON), the
-router, this PostgreSQL and the publishers: the profile that says who is short of what; and the historian's RSS
-each minute.
+threads: `main` is the loop that parses, makes rows and writes them, `python` Zenoh's callbacks keeping the
+bytes), the router, this PostgreSQL and the publishers: the profile that says who is short of what; the
+historian's CPU a payload (its cores over the payloads a second, Zenoh's threads in it: what it spends, which the
+box's load moves far less than a rate); and the historian's RSS each minute.
 
 `os.nice(19)` first: every process it starts (PostgreSQL, the router, the historian, the publishers) inherits it.
 
 Run: python bench/historian_plant.py --machines 500 --rev-hz 10 --seconds 600 --saturate 1,2,3,4 --pg-outage-s 60
+     python bench/historian_plant.py --profile --machines 500 --rev-hz 10 [--cprofile]
 """
 
 from __future__ import annotations
@@ -98,6 +106,13 @@ def publisher(args: argparse.Namespace) -> int:
     rev = dict.fromkeys(names, 0)
     proc = dict.fromkeys(names, 0)
     sent = {n: dict.fromkeys(KINDS, 0) for n in names}
+    # each payload's JSON but for what is re-stamped, made once: a publication only writes `machine`, `t` and the
+    # counter in front of it (the publishers must not be what limits the rate the historian is measured at)
+    counter = {"estimate": "rev", "alarm": "rev", "process": "process"}
+    bodies = []
+    for p in payloads:
+        rest = {k: v for k, v in p.items() if k not in ("type", "machine", "t", counter[p["type"]])}
+        bodies.append((p["type"], counter[p["type"]], ("," + json.dumps(rest)[1:-1]) if rest else ""))
     block = zenoh.CongestionControl.BLOCK
     period = 1.0 / args.rate_hz
     slots = 10   # a tick's machines spread over 10 slots: no burst of every machine at once
@@ -121,24 +136,23 @@ def publisher(args: argparse.Namespace) -> int:
             for n in names[s * per_slot:(s + 1) * per_slot]:
                 i = pos[n]
                 first = True
+                sent_n = sent[n]
                 while True:   # this machine's next estimate, and the alarms and summaries after it
-                    p = payloads[i]
-                    kind = p["type"]
+                    kind, field, body = bodies[i]
                     if kind == "estimate" and not first:
                         break
                     first = False
-                    out = {k: v for k, v in p.items() if k != "type"}
-                    out["machine"], out["t"] = n, time.time()
                     if kind == "estimate":
                         rev[n] += 1
-                        out["rev"] = rev[n]
+                        count = rev[n]
                     elif kind == "alarm":
-                        out["rev"] = rev[n]
+                        count = rev[n]
                     else:
                         proc[n] += 1
-                        out["process"] = proc[n]
-                    session.put(f"millsense/{n}/{kind}", json.dumps(out), congestion_control=block)
-                    sent[n][kind] += 1
+                        count = proc[n]
+                    text = f'{{"machine":"{n}","t":{time.time()!r},"{field}":{count}{body}}}'
+                    session.put(f"millsense/{n}/{kind}", text, congestion_control=block)
+                    sent_n[kind] += 1
                     i = (i + 1) % len(payloads)
                 pos[n] = i
         tick += 1
@@ -420,6 +434,36 @@ def cores(share: dict[str, float]) -> str:
     return ", ".join(f"{k.strip()} {v:.2f}" for k, v in share.items() if v >= 0.01)
 
 
+def cpu_a_payload(run: dict) -> str:
+    """The historian's CPU a payload published (Zenoh's threads included): its cores over the payloads a second.
+    Less dependent on the box's load than any rate is: what the historian spends, not what it was given."""
+    n = sum(sum(s.values()) for s in run["sent"].values())
+    us = run["cpu"]["historian"] / (n / run["elapsed_s"]) * 1e6 if n else float("nan")
+    return f"historian CPU {us:.1f} µs a payload (Zenoh's threads in it): {1e6 / us:,.0f} payloads/s on a whole core"
+
+
+RSS_FLAT_MB_PER_H = 1.0   # "flat": the second half's least-squares slope at most this (below)
+
+
+def rss_slope(rss: list[tuple[float, float]], t0: float, t1: float) -> tuple[float, float, int]:
+    """The least-squares slope of the RSS over the second half of [t0, t1) in MB an hour, its standard error,
+    and the samples in it. The first half is the warm-up (the partitions, the keys, the arenas filling); a leak
+    is what still grows after it. Flat: slope ≤ RSS_FLAT_MB_PER_H, a rate at which the historian would take more
+    than 40 hours to grow from 105 MB to its 150 MB budget, and a 5-minute half can still tell from noise
+    (its standard error, printed beside it, is a few tenths of a MB an hour)."""
+    half = [(t, mb) for t, mb in rss if (t0 + t1) / 2 <= t < t1]
+    n = len(half)
+    if n < 3:
+        return float("nan"), float("nan"), n
+    mt = sum(t for t, _ in half) / n
+    mm = sum(mb for _, mb in half) / n
+    sxx = sum((t - mt) ** 2 for t, _ in half)
+    slope = sum((t - mt) * (mb - mm) for t, mb in half) / sxx
+    resid = sum((mb - mm - slope * (t - mt)) ** 2 for t, mb in half)
+    stderr = math.sqrt(resid / (n - 2) / sxx)
+    return slope * 3600, stderr * 3600, n
+
+
 def rss_figures(rss: list[tuple[float, float]], t0: float, t1: float) -> tuple[float, float, float]:
     """Max, the second minute's median, the last minute's median (MB) of the publishing window."""
     window = [(t, mb) for t, mb in rss if t0 <= t < t1]
@@ -450,7 +494,12 @@ def steady(server, work: Path, payload_file: Path, args) -> None:
     print_latency(lat)
     print(f"  historian RSS: max {rss_max:.1f} MB (budget ≤ {RSS_BUDGET_MB:g}); median second minute {rss_2:.1f} MB, "
           f"last minute {rss_last:.1f} MB (flat: {rss_last - rss_2:+.1f} MB)")
+    slope, stderr, n = rss_slope(stack.rss, run["start_at"], run["end_at"])
+    verdict = "flat" if slope <= RSS_FLAT_MB_PER_H else "NOT flat"
+    print(f"  historian RSS over the run's second half ({n} samples): {slope:+.2f} ± {stderr:.2f} MB/h "
+          f"(least squares ± its standard error); {verdict} (criterion: ≤ {RSS_FLAT_MB_PER_H:g} MB/h)")
     print(f"  CPU (cores, while publishing): {cores(run['cpu'])}; load {os.getloadavg()[0]:.2f}")
+    print(f"  {cpu_a_payload(run)}")
     minutes = {}
     for t, mb in stack.rss:
         if run["start_at"] <= t < run["end_at"]:
@@ -485,12 +534,15 @@ def saturation(server, work: Path, payload_file: Path, args) -> None:
                   f"p99 {p99:.2f} s, {'kept up' if kept_up else 'BEHIND'}"
                   f"{'' if drained is not None else ' (not all in 30 s after)'}")
             print(f"      CPU (cores): {cores(run['cpu'])}; load {os.getloadavg()[0]:.2f}")
+            print(f"      {cpu_a_payload(run)}")
             if kept_up:
                 best = max(best, rate)
             else:
-                late = wait_all_in(stack, so_far, 300)
+                late = drained if drained is not None else wait_all_in(stack, so_far, 300)
+                if late is not None and drained is None:
+                    late += 30.0
                 lost = losses(so_far, in_db(stack))
-                print("      behind: " + (f"nothing lost, all in {_after(30 + late, 330)}" if late is not None
+                print("      behind: " + (f"nothing lost, all in {_after(late, 330)}" if late is not None
                                           else f"after 330 s still missing {lost}"))
                 break
     finally:
@@ -539,6 +591,166 @@ def outage(server, work: Path, payload_file: Path, args) -> None:
           f"duplicates skipped {stopped.get('duplicates')}")
 
 
+# --------------------------------------------------------------------------- the per-payload CPU (no Zenoh)
+class _Payload:
+    __slots__ = ("data",)
+
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+class _Sample:
+    """What the historian's callback reads of a Zenoh sample: `key_expr` and `payload.to_bytes()`."""
+    __slots__ = ("key_expr", "payload")
+
+    def __init__(self, key: str, data: bytes) -> None:
+        self.key_expr, self.payload = key, _Payload(data)
+
+
+def plant_seconds(payloads: list[dict], machines: int, rev_hz: float, seconds: int, t0: float) -> list[list]:
+    """`seconds` one-second lists of (kind, key, bytes) as the publishers send them (same order, same re-stamping,
+    the same `json.dumps`), `t` spread over each second."""
+    est_at = [i for i, p in enumerate(payloads) if p["type"] == "estimate"]
+    names = [f"plant-{m:04d}" for m in range(machines)]
+    pos = {n: est_at[(k * 37) % len(est_at)] for k, n in enumerate(names)}
+    rev, proc = dict.fromkeys(names, 0), dict.fromkeys(names, 0)
+    ticks = max(1, round(rev_hz))
+    out = []
+    for s in range(seconds):
+        second = []
+        for tick in range(ticks):
+            t = t0 + s + tick / ticks
+            for n in names:
+                i, first = pos[n], True
+                while True:
+                    p = payloads[i]
+                    kind = p["type"]
+                    if kind == "estimate" and not first:
+                        break
+                    first = False
+                    msg = {k: v for k, v in p.items() if k != "type"}
+                    msg["machine"], msg["t"] = n, t
+                    if kind == "estimate":
+                        rev[n] += 1
+                        msg["rev"] = rev[n]
+                    elif kind == "alarm":
+                        msg["rev"] = rev[n]
+                    else:
+                        proc[n] += 1
+                        msg["process"] = proc[n]
+                    second.append((kind, f"millsense/{n}/{kind}", json.dumps(msg).encode()))
+                    i = (i + 1) % len(payloads)
+                pos[n] = i
+        out.append(second)
+    return out
+
+
+class _NullLog:
+    def _say(self, event: str, **fields) -> None:
+        pass
+
+    info = warning = error = _say
+
+
+def profile(server, work: Path, payloads: list[dict], args) -> None:
+    """CPU µs a payload (this process's `time.process_time`: it does not depend on the box's load, the way the
+    wall clock does) of the historian's own path with no Zenoh: the callbacks (`Inbox.callback`), the loop's
+    rows (`_drain_all` then `Rows`), the writes (`Writer.flush` into a fresh database of the throw-away server;
+    PostgreSQL's own CPU is another process's, not in it). Once with every machine's revolutions kept (the
+    saturation's case), once with those of `--revolution-machines` (the steady run's)."""
+    import cProfile
+    import pstats
+    import tracemalloc
+
+    from millsense.daemon.historian import schema, service
+    from millsense.daemon.historian.spool import Spool
+    from millsense.daemon.historian.writer import Writer
+
+    seconds = plant_seconds(payloads, args.machines, args.rev_hz, args.profile_s, time.time() - args.profile_s - 10)
+    n = sum(len(s) for s in seconds)
+    n_est = sum(k == "estimate" for s in seconds for k, _, _ in s)
+    print(f"\n== CPU a payload, no Zenoh: {args.machines} machines × {args.rev_hz:g} rev/s, {args.profile_s} s "
+          f"({n:,} payloads, {n_est:,} estimates), best of {args.profile_rounds}")
+    for label, kept in (("every revolution a row", args.machines), (f"revolutions of {args.revolution_machines} "
+                                                                   "machines", args.revolution_machines)):
+        best: dict[str, float] = {}
+        for r in range(args.profile_rounds + bool(args.profile_memory)):   # the memory round first
+            folder = work / f"profile-{kept}-{r}"
+            folder.mkdir()
+            db = server.new_database()
+            writer = Writer(server.dsn(db), str(server.passfile(folder)), Spool(folder / "spool", 10**9),
+                            {t: 30.0 for t in schema.TABLES}, _NullLog())
+            rows = service.Rows(writer, {f"plant-{m:04d}" for m in range(kept)})
+            inbox = service.Inbox()
+            callbacks = {k: inbox.callback(k) for k in service.KINDS}
+            samples = [[(callbacks[k], _Sample(key, data)) for k, key, data in s] for s in seconds]
+            writer.flush()   # connected, partitions made: not in the figures
+            took = dict.fromkeys(("receive", "rows", "write"), 0.0)
+            memory = []   # --profile-memory: (Python's traced MiB, RSS MiB) after each second
+            if args.profile_memory and r == 0:
+                tracemalloc.start()
+            prof = cProfile.Profile() if args.cprofile and r == int(args.profile_memory) else None
+            for second in samples:
+                c0 = time.process_time()
+                if prof:
+                    prof.enable()
+                for cb, sample in second:
+                    cb(sample)
+                c1 = time.process_time()
+                service._drain_all(inbox, rows)
+                c2 = time.process_time()
+                writer.flush()
+                c3 = time.process_time()
+                if prof:
+                    prof.disable()
+                took["receive"] += c1 - c0
+                took["rows"] += c2 - c1
+                took["write"] += c3 - c2
+                if tracemalloc.is_tracing():
+                    memory.append((tracemalloc.get_traced_memory()[0] / 2**20, _rss_mib()))
+            c0 = time.process_time()
+            rows.close_all()
+            writer.flush()
+            took["write"] += time.process_time() - c0
+            (counted,), = _query(server, db, "SELECT coalesce(sum(revolutions), 0) FROM load_1s")
+            missing = n_est - int(counted)   # every estimate aggregated and written, or the figure means nothing
+            writer.close()
+            if missing:
+                raise SystemExit(f"profile: {missing} estimates not in load_1s")
+            if memory:
+                tracemalloc.stop()
+                q = len(memory) // 4
+                print(f"  {label}, memory (tracemalloc on: its CPU figures not taken): Python's traced "
+                      f"{memory[q][0]:.2f} MiB after a quarter of the seconds, {memory[-1][0]:.2f} MiB at the end "
+                      f"(max {max(m[0] for m in memory):.2f}); RSS {memory[q][1]:.1f} → {memory[-1][1]:.1f} MiB")
+                continue
+            total = sum(took.values())
+            for k, v in dict(took, total=total).items():
+                best[k] = min(best.get(k, math.inf), v)
+            if prof:
+                print(f"  cProfile, {label}, round 1 (the top 25 by own time):")
+                stats = pstats.Stats(prof)
+                stats.sort_stats("tottime").print_stats(25)
+        per = {k: v / n * 1e6 for k, v in best.items()}
+        print(f"  {label}: receive {per['receive']:.1f} µs, rows {per['rows']:.1f} µs, write {per['write']:.1f} µs; "
+              f"total {per['total']:.1f} µs a payload = {1e6 / per['total']:,.0f} payloads/s on one whole core")
+
+
+def _rss_mib() -> float:
+    return next(int(line.split()[1]) for line in Path("/proc/self/status").read_text().splitlines()
+                if line.startswith("VmRSS")) / 1024
+
+
+def _query(server, db: str, statement: str) -> list[tuple]:
+    import psycopg
+
+    with psycopg.connect(server.dsn(db).replace("user=historian", "user=postgres")) as conn:
+        return conn.execute(statement).fetchall()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     ap.add_argument("--machines", type=int, default=50)
@@ -550,6 +762,14 @@ def main() -> int:
     ap.add_argument("--step-s", type=int, default=30)
     ap.add_argument("--pg-outage-s", type=float, default=0.0)
     ap.add_argument("--outage-run-s", type=int, default=180)
+    ap.add_argument("--profile", action="store_true", help="the historian's CPU a payload, no Zenoh (and no other "
+                    "run unless asked)")
+    ap.add_argument("--profile-s", type=int, default=10, help="seconds of the plant's payloads the profile feeds")
+    ap.add_argument("--profile-rounds", type=int, default=3)
+    ap.add_argument("--cprofile", action="store_true", help="with --profile: cProfile's top functions")
+    ap.add_argument("--profile-memory", action="store_true", help="with --profile: a first round more, under "
+                    "tracemalloc: does the historian's own path keep Python objects as payloads go through?")
+    ap.add_argument("--payloads-file", help="the replay's payloads from a file (JSON list) instead of a new replay")
     ap.add_argument("--_publisher", action="store_true", help=argparse.SUPPRESS)
     for name in ("payloads", "router", "report"):
         ap.add_argument(f"--{name}", help=argparse.SUPPRESS)
@@ -567,12 +787,15 @@ def main() -> int:
     work = Path(tempfile.mkdtemp(prefix="millsense-plant-bench-"))
     server = pg_server()
     try:
-        payloads = replay_payloads(work)
+        payloads = (json.loads(Path(args.payloads_file).read_text()) if args.payloads_file
+                    else replay_payloads(work))
         payload_file = work / "payloads.json"
         payload_file.write_text(json.dumps(payloads))
         kinds = {k: sum(p["type"] == k for p in payloads) for k in KINDS}
         print(f"replay: {kinds} in 60 s of program 1001")
-        if args.seconds:
+        if args.profile:
+            profile(server, work, payloads, args)
+        if args.seconds and not (args.profile and "--seconds" not in sys.argv):
             steady(server, work, payload_file, args)
         if args.saturate:
             saturation(server, work, payload_file, args)

@@ -9,24 +9,35 @@ a column.
 from __future__ import annotations
 
 import math
-from collections import defaultdict
 from typing import Any
 
-from millsense.daemon.historian.schema import column_names, columns
+from millsense.daemon.historian.schema import TABLES, column_names, columns
 
 
 def _num(value: Any) -> float | None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return None
-    return float(value) if math.isfinite(value) else None
+    """A finite double, or None. `type() is` rather than isinstance: JSON gives exact types, and a bool is no
+    number. An integer no double holds (JSON's have no bound) is None, not an OverflowError out of the loop."""
+    kind = type(value)
+    if kind is float:
+        return value if value - value == 0.0 else None   # inf - inf and nan - nan are nan
+    if kind is int:
+        try:
+            return float(value)
+        except OverflowError:
+            return None
+    return None
 
 
 def _int(value: Any) -> int | None:
-    return value if isinstance(value, int) and not isinstance(value, bool) else None
+    return value if type(value) is int else None
 
 
 def _str(value: Any) -> str | None:
-    return value if isinstance(value, str) else None
+    return value if type(value) is str else None
+
+
+def _bool(value: Any) -> bool | None:
+    return value if type(value) is bool else None
 
 
 # A daemon's `t` outside these (2001 … 2100) is no clock's: taken, it would make a day partition of year 33658, or
@@ -36,31 +47,46 @@ T_MIN, T_MAX = 1.0e9, 4102444800.0
 
 def payload_time(payload: dict[str, Any]) -> float | None:
     """The daemon's time of the payload (`t`, Unix seconds), None when it has none that is usable."""
-    t = _num(payload.get("t"))
-    return t if t is not None and T_MIN <= t <= T_MAX else None
+    t = payload.get("t")
+    if type(t) is not float:
+        t = _num(t)
+        if t is None:
+            return None
+    return t if T_MIN <= t <= T_MAX else None   # nan and inf are outside
 
 
 _FIELD = {"limit_value": "limit"}   # a column named apart from its payload field (LIMIT is an SQL word)
 
 
+def _converter(kind: str) -> Any:
+    if kind.startswith("double precision"):
+        return _num
+    if kind.startswith(("bigint", "integer")):
+        return _int
+    if kind.startswith("boolean"):
+        return _bool
+    if kind.startswith("jsonb"):
+        return None   # as it is
+    return _str
+
+
+# table -> (column, payload field, converter) after the common three: made once, not per row
+_SPECS: dict[str, list[tuple[str, str, Any]]] = {
+    table: [(name, _FIELD.get(name, name), _converter(kind)) for name, kind in columns(table)[3:]]
+    for table in TABLES}
+
+
 def _row(table: str, t: float, received_at: float, machine: str, payload: dict[str, Any],
          extra: dict[str, Any] | None = None) -> list[Any]:
     out: list[Any] = [t, received_at, machine]
-    for name, kind in columns(table)[3:]:
+    get = payload.get
+    for name, field, convert in _SPECS[table]:
         if extra and name in extra:
             out.append(extra[name])
-            continue
-        raw = payload if name == "payload" else payload.get(_FIELD.get(name, name))
-        if kind.startswith("double precision"):
-            out.append(_num(raw))
-        elif kind.startswith(("bigint", "integer")):
-            out.append(_int(raw))
-        elif kind.startswith("boolean"):
-            out.append(raw if isinstance(raw, bool) else None)
-        elif kind.startswith("jsonb"):
-            out.append(raw)
+        elif convert is None:
+            out.append(payload if name == "payload" else get(field))
         else:
-            out.append(_str(raw))
+            out.append(convert(get(field)))
     return out
 
 
@@ -81,8 +107,11 @@ def revolution_row(machine: str, payload: dict[str, Any], received_at: float) ->
     if t is None or _int(payload.get("rev")) is None:
         return None
     row = _row("revolutions", t, received_at, machine, payload)
-    row[column_names("revolutions").index("valid")] = payload.get("valid") is True
+    row[_REVOLUTIONS_VALID] = payload.get("valid") is True
     return row
+
+
+_REVOLUTIONS_VALID = column_names("revolutions").index("valid")
 
 
 STATUS_FIELDS = ("state", "daq_link", "interlock", "alarm", "faults", "run_id")
@@ -157,53 +186,59 @@ class LimitChanges:
             "after": after or None})
 
 
+_LOAD_FIELDS = ((4, "torque_nm"), (5, "force_n"), (6, "p_in_w"))   # the accumulator's value lists, by field
+
+
 class LoadSeconds:
     """Per machine and second of the daemon's clock, the revolutions' aggregate: counts of valid and invalid, min,
     mean and max of torque, force and input power over the valid ones. A second is closed when a revolution of a
-    later second comes, or by `close_idle` (the machine stopped publishing)."""
+    later second comes, or by `close_idle` (the machine stopped publishing).
+
+    An open second is one list (second, last received_at, valid, invalid, torques, forces, powers): this runs for
+    every estimate of the plant, so it does as little per revolution as it can (issue 43's profile)."""
 
     def __init__(self) -> None:
-        self._open: dict[str, tuple[int, dict[str, Any]]] = {}
+        self._open: dict[str, list[Any]] = {}
 
     def add(self, machine: str, payload: dict[str, Any], received_at: float) -> list[list[Any]]:
         t = payload_time(payload)
         if t is None:
             return []
-        second = math.floor(t)
+        second = int(t)   # t > 0 (T_MIN): the floor
         out = []
-        current = self._open.get(machine)
-        if current is not None and current[0] != second:
-            if second < current[0]:
+        acc = self._open.get(machine)
+        if acc is not None and acc[0] != second:
+            if second < acc[0]:
                 return []   # an estimate older than the open second: its second was written already
             out.append(self._close(machine))
-        if machine not in self._open:
-            self._open[machine] = (second, {"received_at": received_at, "valid": 0, "invalid": 0,
-                                            "values": defaultdict(list)})
-        acc = self._open[machine][1]
-        acc["received_at"] = received_at
+            acc = None
+        if acc is None:
+            acc = self._open[machine] = [second, received_at, 0, 0, [], [], []]
+        acc[1] = received_at
         if payload.get("valid") is True:
-            acc["valid"] += 1
-            for name, field in (("torque", "torque_nm"), ("force", "force_n"), ("power", "p_in_w")):
-                v = _num(payload.get(field))
-                if v is not None:
-                    acc["values"][name].append(v)
+            acc[2] += 1
+            get = payload.get
+            for i, field in _LOAD_FIELDS:
+                v = get(field)
+                if type(v) is float and v - v == 0.0:
+                    acc[i].append(v)
+                elif v is not None and (v := _num(v)) is not None:
+                    acc[i].append(v)
         else:
-            acc["invalid"] += 1
+            acc[3] += 1
         return out
 
     def close_idle(self, now: float, idle_s: float = 2.0) -> list[list[Any]]:
         """The seconds whose last revolution came more than `idle_s` ago (the machine stopped publishing)."""
-        return [self._close(m) for m, (_, acc) in list(self._open.items()) if now - acc["received_at"] > idle_s]
+        return [self._close(m) for m, acc in list(self._open.items()) if now - acc[1] > idle_s]
 
     def close_all(self) -> list[list[Any]]:
         """Every open second (the historian stops: it is all it will see of them)."""
         return [self._close(m) for m in list(self._open)]
 
     def _close(self, machine: str) -> list[Any]:
-        second, acc = self._open.pop(machine)
-        row: list[Any] = [float(second), acc["received_at"], machine, acc["valid"] + acc["invalid"], acc["valid"],
-                          acc["invalid"]]
-        for name in ("torque", "force", "power"):
-            values = acc["values"].get(name) or []
+        second, received_at, valid, invalid, *lists = self._open.pop(machine)
+        row: list[Any] = [float(second), received_at, machine, valid + invalid, valid, invalid]
+        for values in lists:
             row += [min(values), math.fsum(values) / len(values), max(values)] if values else [None, None, None]
         return row

@@ -3,6 +3,7 @@ year 33658 or overflow the writer), the per-second load closes a second when the
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -49,6 +50,7 @@ def test_a_steady_flood_of_payloads_does_not_hold_back_the_flush(tmp_path):
     writer = Writer("host=127.0.0.1 port=1", "", Spool(tmp_path / "spool", 10**6), {t: 1.0 for t in schema.TABLES},
                     None)
     inbox, taker = Inbox(), Rows(writer, revolutions_for={"m"})
+    on_sample = inbox.callback("estimate")
     stop = threading.Event()
 
     def flood():
@@ -56,8 +58,8 @@ def test_a_steady_flood_of_payloads_does_not_hold_back_the_flush(tmp_path):
         while not stop.is_set():
             for _ in range(200):
                 rev += 1
-                inbox.q.put(("estimate", "m", {"t": t + rev * 1e-4, "rev": rev, "valid": True, "torque_nm": 1.0},
-                             t))
+                on_sample(Sample("millsense/m/estimate", {"t": t + rev * 1e-4, "rev": rev, "valid": True,
+                                                          "torque_nm": 1.0}))
 
     producer = threading.Thread(target=flood, daemon=True)
     producer.start()
@@ -67,10 +69,18 @@ def test_a_steady_flood_of_payloads_does_not_hold_back_the_flush(tmp_path):
                                    daemon=True)
         drainer.start()
         assert done.wait(20.0), "the drain never gave the flush its turn"
-        assert writer.pending   # it took some, and left the rest for the next cycle
+        assert writer.pending.get("revolutions")   # it took some, and left the rest for the next cycle
     finally:
         stop.set()
         producer.join(5.0)
+
+
+class Sample:
+    """What the historian's callback reads of a Zenoh sample: `key_expr`, `payload.to_bytes()`."""
+
+    def __init__(self, key: str, payload: dict | bytes) -> None:
+        data = payload if isinstance(payload, bytes) else json.dumps(payload).encode()
+        self.key_expr, self.payload = key, type("Bytes", (), {"to_bytes": lambda _: data})()
 
 
 def _summary(t: float, envelope: str, learned: int, process: int) -> dict:
@@ -99,3 +109,42 @@ def test_a_published_change_is_one_row_and_the_summaries_after_it_infer_no_secon
     assert changes.row("m", _summary(t0 + 30, "active", 5, 4), t0) is None     # the change's own state: no row
     relearn = changes.row("m", _summary(t0 + 40, "active", 2, 5), t0)          # a count that falls: still inferred
     assert relearn is not None and relearn[names.index("change")] == "relearn"
+
+
+def test_a_number_too_large_for_a_double_is_no_value_and_never_stops_the_loop():
+    """JSON's integers have no bound: `1` and 400 zeros is a valid number that no double holds. It is no value
+    (null, as NaN is), never an OverflowError out of the loop (before: `math.isfinite` raised it, and the historian
+    stopped on one such payload)."""
+    from millsense.daemon.historian.schema import column_names
+
+    t0, huge = 1795324800.0, 10 ** 400
+    load = rows.LoadSeconds()
+    load.add("m", {"t": t0 + 0.1, "valid": True, "torque_nm": huge, "force_n": 10.0, "p_in_w": huge}, t0)
+    load.add("m", {"t": t0 + 0.2, "valid": True, "torque_nm": 2.0, "force_n": 12.0, "p_in_w": 400.0}, t0)
+    (row,) = load.close_all()
+    assert row[3:6] == [2, 2, 0] and row[6:] == [2.0, 2.0, 2.0, 10.0, 11.0, 12.0, 400.0, 400.0, 400.0]
+    rev = rows.revolution_row("m", {"t": t0, "rev": 1, "valid": True, "torque_nm": huge, "spindle_rpm": 900}, t0)
+    names = column_names("revolutions")
+    assert rev[names.index("torque_nm")] is None and rev[names.index("spindle_rpm")] == 900.0
+    assert rows.alarm_row("m", {"t": huge, "level": "warning"}, t0) is None
+
+
+def test_a_payload_nested_past_the_parsers_depth_is_refused_and_the_rest_taken(tmp_path):
+    """256 KiB of `[` is JSON nested deeper than Python's parser goes: RecursionError, not ValueError. It is one
+    refused payload, never an error out of the loop (which would stop the historian), and the payloads after it
+    are taken."""
+    from millsense.daemon.historian import schema
+    from millsense.daemon.historian.service import Inbox, Rows, _drain_all
+    from millsense.daemon.historian.spool import Spool
+    from millsense.daemon.historian.writer import Writer
+
+    writer = Writer("host=127.0.0.1 port=1", "", Spool(tmp_path / "spool", 10**6), {t: 1.0 for t in schema.TABLES},
+                    None)
+    inbox, taker = Inbox(), Rows(writer, revolutions_for={"m"})
+    on_sample, t0 = inbox.callback("estimate"), 1795324800.0
+    on_sample(Sample("millsense/m/estimate", {"t": t0 + 0.1, "rev": 1, "valid": True, "torque_nm": 1.0}))
+    on_sample(Sample("millsense/m/estimate", b"[" * 100_000 + b"]" * 100_000))
+    on_sample(Sample("millsense/m/estimate", {"t": t0 + 0.2, "rev": 2, "valid": True, "torque_nm": 2.0}))
+    _drain_all(inbox, taker)
+    assert inbox.refused == 1 and inbox.received["estimate"] == 2
+    assert [row[3] for row in writer.pending["revolutions"]] == [1, 2]

@@ -231,3 +231,28 @@ def test_a_newer_schema_met_on_reconnecting_stops_the_writer_with_its_rows_spool
         writer.close()
     at = schema.column_names("alarms").index("alarm_seq")
     assert [row[at] for _, seg in writer.spool.segments() for _, row in seg] == [1, 2]
+
+
+def test_an_integer_its_column_cannot_hold_is_refused_never_written_as_another_number(pg_db, tmp_path):
+    """`operation` is an int4 column, `rev` int8: 2**40 and 2**70 are JSON integers neither holds. Each such row is
+    refused as PostgreSQL refuses a row (counted, said, never spooled), the rest written: never the number's low
+    bits written instead, never an error out of the loop (the COPY is binary since issue 43's profile)."""
+    server, name, passfile = pg_db
+    log = Log()
+    writer = Writer(server.dsn(name), str(passfile), Spool(tmp_path / "spool", 10**6),
+                    {t: 30.0 for t in schema.TABLES}, log)
+    now = time.time()
+    for rev in range(1, 6):
+        estimate = {"t": now - 10 + rev, "rev": rev, "valid": True, "torque_nm": 2.0, "operation": 10}
+        if rev == 2:
+            estimate["operation"] = 2 ** 40
+        if rev == 4:
+            estimate["process_rev"] = 2 ** 70
+        writer.add("revolutions", rows.revolution_row("m1", estimate, now))
+    writer.flush()
+    assert writer.status()["db"] == "up" and writer.rejected == 2 and writer.written["revolutions"] == 3
+    assert writer.spool.empty() and [e for e, _ in log.events].count("historian.rows_rejected") == 1
+    with connect(pg_db) as conn:
+        assert conn.execute("SELECT rev, operation FROM revolutions ORDER BY rev").fetchall() == \
+            [(1, 10), (3, 10), (5, 10)]
+    writer.close()
