@@ -138,10 +138,8 @@ def alarm(t: float, seq: int) -> dict:
 
 
 def test_the_same_batch_written_twice_is_one_row_each(pg_db, tmp_path):
-    server, name, passfile = pg_db
     log = Log()
-    writer = Writer(server.dsn(name), str(passfile), Spool(tmp_path / "spool", 10**6),
-                    {t: 30.0 for t in schema.TABLES}, log)
+    writer = _writer(pg_db, tmp_path, log)
     now = time.time()
     batch = [("alarms", rows.alarm_row("m1", alarm(now - i, i), now)) for i in range(5)]
     batch.append(("alarms", rows.alarm_row("m1", dict(alarm(now - 9, 0), alarm_seq=None), now)))  # a replay's: no seq
@@ -187,6 +185,13 @@ def test_retention_drops_whole_partitions_and_late_rows_are_counted_never_writte
     writer.close()
 
 
+def _writer(pg_db, tmp_path, log) -> Writer:
+    """A writer into the test's database, spooling under `tmp_path`, every table kept 30 days."""
+    server, name, passfile = pg_db
+    return Writer(server.dsn(name), str(passfile), Spool(tmp_path / "spool", 10**6), {t: 30.0 for t in schema.TABLES},
+                  log)
+
+
 def _day(t: float):
     return datetime.fromtimestamp(t, UTC).date()
 
@@ -194,10 +199,8 @@ def _day(t: float):
 def test_a_row_postgresql_refuses_for_its_data_is_counted_and_the_rest_written_never_spooled(pg_db, tmp_path):
     """PostgreSQL stores no NUL character in text or jsonb: such a row, taken for an outage, would sit at the head
     of the spool for ever and hold back everything after it."""
-    server, name, passfile = pg_db
     log = Log()
-    writer = Writer(server.dsn(name), str(passfile), Spool(tmp_path / "spool", 10**6),
-                    {t: 30.0 for t in schema.TABLES}, log)
+    writer = _writer(pg_db, tmp_path, log)
     now = time.time()
     for seq in range(1, 6):
         payload = alarm(now - 10 + seq, seq)
@@ -216,8 +219,7 @@ def test_a_newer_schema_met_on_reconnecting_stops_the_writer_with_its_rows_spool
     """Another (newer) historian upgraded the database while this one's connection was cut: it must stop writing,
     and keep what it holds for the newer one (the spool), never drop it."""
     server, name, passfile = pg_db
-    writer = Writer(server.dsn(name), str(passfile), Spool(tmp_path / "spool", 10**6),
-                    {t: 30.0 for t in schema.TABLES}, Log())
+    writer = _writer(pg_db, tmp_path, Log())
     writer.flush()
     now = time.time()
     with server.admin(name) as admin:
@@ -237,10 +239,8 @@ def test_an_integer_its_column_cannot_hold_is_refused_never_written_as_another_n
     """`operation` is an int4 column, `rev` int8: 2**40 and 2**70 are JSON integers neither holds. Each such row is
     refused as PostgreSQL refuses a row (counted, said, never spooled), the rest written: never the number's low
     bits written instead, never an error out of the loop (the COPY is binary since issue 43's profile)."""
-    server, name, passfile = pg_db
     log = Log()
-    writer = Writer(server.dsn(name), str(passfile), Spool(tmp_path / "spool", 10**6),
-                    {t: 30.0 for t in schema.TABLES}, log)
+    writer = _writer(pg_db, tmp_path, log)
     now = time.time()
     for rev in range(1, 6):
         estimate = {"t": now - 10 + rev, "rev": rev, "valid": True, "torque_nm": 2.0, "operation": 10}
