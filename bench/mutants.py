@@ -459,7 +459,7 @@ MUTANTS: tuple[Mutant, ...] = (
            "daemon/pipeline/loss_check.py",
            "if discontinuity or (after_link_up and lost >= self.link_gap):",
            "if discontinuity or lost >= self.link_gap:",
-           ("tests/faults/test_data_loss.py", "tests/faults/test_modbus.py")),
+           ("tests/faults/test_data_loss.py", "tests/faults/test_modbus_overrun.py")),
 )
 
 
