@@ -182,41 +182,33 @@ async function main() {
         const mt = ns(MT_NS), di = ns(DI_NS), machinery = ns(MACHINERY_NS), ms = ns(MS_NS);
 
         const events = [];
-        let refreshing = null; // the events between RefreshStart and RefreshEnd
-        let refreshed = null;
         const subscription = await s.createSubscription2({
             requestedPublishingInterval: 50, requestedLifetimeCount: 600, requestedMaxKeepAliveCount: 20,
             maxNotificationsPerPublish: 0, publishingEnabled: true, priority: 1,
         });
-        const eventItem = ClientMonitoredItem.create(subscription,
-            { nodeId: resolveNodeId("Server"), attributeId: AttributeIds.EventNotifier },
-            { samplingInterval: 0, queueSize: 1000, discardOldest: false, filter: constructEventFilter(EVENT_FIELDS) },
-            TimestampsToReturn.Both);
-        eventItem.on("changed", (fields) => {
-            const e = eventOf(fields);
-            if (e.event_type === REFRESH_START) { refreshing = []; return; }
-            if (e.event_type === REFRESH_END) { refreshed = refreshing; refreshing = null; return; }
-            if (refreshing !== null) { refreshing.push(e); return; }
-            events.push(e);
-            say("event", e);
-        });
+        // An event item on the Server object: each event to `onEvent`, except ConditionRefresh's replay, which
+        // the item keeps from RefreshStart to RefreshEnd and then hands over as `refreshed` (null until then).
+        const watch = (filter, onEvent) => {
+            const item = ClientMonitoredItem.create(subscription,
+                { nodeId: resolveNodeId("Server"), attributeId: AttributeIds.EventNotifier },
+                { samplingInterval: 0, queueSize: 1000, discardOldest: false, filter },
+                TimestampsToReturn.Both);
+            const watched = { item, refreshed: null };
+            let refreshing = null;
+            item.on("changed", (fields) => {
+                const e = eventOf(fields);
+                if (e.event_type === REFRESH_START) { refreshing = []; return; }
+                if (e.event_type === REFRESH_END) { watched.refreshed = refreshing; refreshing = null; return; }
+                if (refreshing !== null) { refreshing.push(e); return; }
+                onEvent(e);
+            });
+            return watched;
+        };
+        const all = watch(constructEventFilter(EVENT_FIELDS), (e) => { events.push(e); say("event", e); });
         // The client that watches only active conditions: its own item, its own refresh window.
-        let activeRefreshing = null;
-        let activeRefreshed = null;
-        const activeItem = ClientMonitoredItem.create(subscription,
-            { nodeId: resolveNodeId("Server"), attributeId: AttributeIds.EventNotifier },
-            { samplingInterval: 0, queueSize: 1000, discardOldest: false,
-              filter: constructEventFilter(EVENT_FIELDS, ACTIVE_ONLY) },
-            TimestampsToReturn.Both);
-        activeItem.on("changed", (fields) => {
-            const e = eventOf(fields);
-            if (e.event_type === REFRESH_START) { activeRefreshing = []; return; }
-            if (e.event_type === REFRESH_END) { activeRefreshed = activeRefreshing; activeRefreshing = null; return; }
-            if (activeRefreshing !== null) { activeRefreshing.push(e); return; }
-            say("active_event", e);
-        });
+        const active = watch(constructEventFilter(EVENT_FIELDS, ACTIVE_ONLY), (e) => say("active_event", e));
         await until("the event subscription", async () =>
-            eventItem.monitoredItemId !== undefined && activeItem.monitoredItemId !== undefined);
+            all.item.monitoredItemId !== undefined && active.item.monitoredItemId !== undefined);
         say("subscribed", { subscription_id: subscription.subscriptionId });
 
         // 3. The machine by its type: browse Objects/Machines, check each child's TypeDefinition.
@@ -266,12 +258,12 @@ async function main() {
             events.find((e) => e.condition === opts.overload_condition && e.active === false));
         const refreshStatus = await callConditionRefresh(s, subscription.subscriptionId);
         say("refresh_called", { status: refreshStatus.name });
-        const replayed = await until("ConditionRefresh's RefreshEnd", async () => refreshed);
+        const replayed = await until("ConditionRefresh's RefreshEnd", async () => all.refreshed);
         say("refreshed", { conditions: replayed });
         // The same refresh, as the item that watches only active conditions got it (RefreshStart and RefreshEnd
         // ignore its filter: Part 9 5.5.7).
         say("active_refreshed", { conditions: await until("the active-only item's RefreshEnd", async () =>
-            activeRefreshed) });
+            active.refreshed) });
 
         // Each condition's type, by its TypeDefinition and the supertypes up to Part 9's (standard, ns 0) ones; the
         // overload's HighLimit.
